@@ -1,0 +1,1 @@
+"""Cooperative pose estimation for multi-agent systems from relative bearing measurements."""

@@ -1,0 +1,51 @@
+"""PNG plots of a run: the quantities of the paper's Fig. 2 and Fig. 3.
+
+Fig. 2 is the average attitude error norm ``(1/n_f) Σ |R̃_i|_I``; Fig. 3 the average position
+error norm ``(1/n_f) Σ ‖p̃_i‖`` with ``p̃_i = p_i − R̃_i p̂_i``. Each figure has the paper's linear
+view and a log view showing the convergence rate, with per-follower curves.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .simulator import Recording
+
+
+def _figure(t: np.ndarray, per_agent: np.ndarray, names: list[str], title: str, ylabel: str,
+            path: Path) -> None:
+    import matplotlib
+    matplotlib.use('Agg')  # files only: works without a display
+    import matplotlib.pyplot as plt
+
+    mean = per_agent.mean(axis=1)
+    fig, (lin, lg) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    for ax, log in ((lin, False), (lg, True)):
+        for k, name in enumerate(names[:20]):  # beyond 20 curves a legend is noise
+            ax.plot(t, per_agent[:, k], lw=0.8, alpha=0.6, label=name)
+        ax.plot(t, mean, 'k', lw=2.0, label='average')
+        ax.set_xlabel('time [s]')
+        ax.grid(True, which='both', alpha=0.3)
+        if log:
+            ax.set_yscale('log')
+            ax.set_title(f'{title} (log scale)')
+        else:
+            ax.set_ylabel(ylabel)
+            ax.set_title(title)
+    lin.legend(fontsize=7, ncol=2)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_plots(rec: Recording, out_dir: Path) -> list[Path]:
+    """Write ``fig2_attitude_error.png`` and ``fig3_position_error.png``; return their paths."""
+    att = out_dir / 'fig2_attitude_error.png'
+    pos = out_dir / 'fig3_position_error.png'
+    # Floor at a tiny positive value so a log axis can show exact zeros (leaders, converged).
+    _figure(rec.t, np.maximum(rec.att_dist_I, 1e-17), rec.followers,
+            'Average attitude estimation error norm (Fig. 2)', r'$|\tilde R_i|_I$', att)
+    _figure(rec.t, np.maximum(rec.pos_err_paper, 1e-17), rec.followers,
+            'Average position estimation error norm (Fig. 3)',
+            r'$\|p_i - \tilde R_i \hat p_i\|$ [m]', pos)
+    return [att, pos]

@@ -1,0 +1,106 @@
+"""Packaging: package.xml, the colcon (ament_python) build, and the msg_defs subpackage mapping."""
+import os
+from pathlib import Path
+import shutil
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+
+import pytest
+
+PKG = 'bearing_pose_estimation'
+# Top-level entries of the repo that are not part of the package source.
+_NOT_SOURCE = {'.venv', '.git', 'build', 'install', 'log', 'results'}
+_IMPORT_MSG_DEFS = 'import bearing_pose_estimation.msg_defs as m; print(m.__file__)'
+
+
+def _copy_source(repo_root: Path, dest: Path) -> None:
+    def ignore(directory, names):
+        skip = {n for n in names if n in ('__pycache__', '.pytest_cache') or n.endswith('.egg-info')}
+        if Path(directory) == repo_root:
+            skip |= _NOT_SOURCE & set(names)
+        return skip
+
+    shutil.copytree(repo_root, dest, ignore=ignore, symlinks=True)
+
+
+@pytest.fixture(scope='module', params=['copy', 'symlink-install'])
+def colcon_install(request, repo_root, tmp_path_factory):
+    """Build the package with colcon in a fresh workspace, as `colcon build` and as
+    `colcon build --symlink-install` (what most ROS developers type); return the install prefix."""
+    venv_bin = Path(sys.executable).parent
+    colcon = venv_bin / 'colcon'
+    if not colcon.exists():
+        pytest.skip(f'colcon is not installed beside {sys.executable} (run scripts/dev.sh setup)')
+    ws = tmp_path_factory.mktemp('colcon_ws')
+    _copy_source(repo_root, ws / 'src' / PKG)
+    env = dict(os.environ, PATH=f"{venv_bin}{os.pathsep}{os.environ.get('PATH', '')}",
+               COLCON_HOME=str(ws / 'colcon_home'))
+    env.pop('PYTHONPATH', None)
+    extra = ['--symlink-install'] if request.param == 'symlink-install' else []
+    proc = subprocess.run([str(colcon), 'build', '--base-paths', 'src', *extra], cwd=ws, env=env,
+                          capture_output=True, text=True, timeout=600)
+    rc = proc.returncode
+    assert rc == 0, f'colcon build failed:\n{proc.stdout}\n{proc.stderr}'
+    return ws / 'install' / PKG
+
+
+def _run_installed(prefix: Path, args, cwd: Path):
+    """Run a command as a ROS user would: `source install/setup.bash`, then the command."""
+    setup_bash = prefix.parent / 'setup.bash'
+    assert setup_bash.is_file(), f'{setup_bash} missing (colcon-bash)'
+    env = dict(os.environ)
+    env.pop('PYTHONPATH', None)
+    script = f'source "{setup_bash}" && exec "$@"'
+    return subprocess.run(['bash', '-c', script, 'bash', *map(str, args)], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_colcon_build_installs_what_ros2_run_needs(colcon_install, repo_root, tmp_path):
+    exe = colcon_install / 'lib' / PKG / 'bearing-pose'
+    assert exe.is_file(), f'{exe} missing: setup.cfg [install] install_scripts'
+    assert os.access(exe, os.X_OK)
+    share = colcon_install / 'share' / PKG
+    assert (share / 'package.xml').is_file()
+    assert (colcon_install / 'share' / 'ament_index' / 'resource_index' / 'packages' / PKG).is_file()
+    configs = sorted(p.name for p in (repo_root / 'config').glob('*.yaml'))
+    installed = sorted(p.name for p in (share / 'config').glob('*.yaml'))
+    assert installed == configs
+
+    # What `ros2 run bearing_pose_estimation bearing-pose --help` runs, with the install on the path.
+    proc = _run_installed(colcon_install, [str(exe), '--help'], cwd=tmp_path)
+    rc = proc.returncode
+    assert rc == 0, f'bearing-pose --help failed:\n{proc.stdout}\n{proc.stderr}'
+    assert proc.stdout.strip()
+
+
+def test_package_xml(repo_root):
+    root = ET.parse(repo_root / 'package.xml').getroot()
+    assert root.get('format') == '3'
+    assert root.findtext('name') == PKG
+    assert root.findtext('export/build_type') == 'ament_python'
+    exec_depends = {e.text for e in root.iter('exec_depend')}
+    assert {'rclpy', 'geometry_msgs', 'sensor_msgs'} <= exec_depends
+
+
+def test_msg_defs_imports_from_repo(repo_root):
+    import bearing_pose_estimation.msg_defs as msg_defs
+
+    assert Path(msg_defs.__file__).resolve() == repo_root / 'msg_defs' / '__init__.py'
+
+
+def test_msg_defs_imports_from_editable_install_outside_repo(repo_root, tmp_path):
+    env = dict(os.environ)
+    env.pop('PYTHONPATH', None)
+    proc = subprocess.run([sys.executable, '-c', _IMPORT_MSG_DEFS], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert Path(proc.stdout.strip()).resolve() == repo_root / 'msg_defs' / '__init__.py'
+
+
+def test_msg_defs_imports_from_colcon_install(colcon_install, tmp_path):
+    proc = _run_installed(colcon_install, [sys.executable, '-c', _IMPORT_MSG_DEFS], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    # From the workspace (install/, or build/ for --symlink-install), not from this checkout.
+    workspace = colcon_install.parent.parent
+    assert Path(proc.stdout.strip()).resolve().is_relative_to(workspace.resolve()), proc.stdout
