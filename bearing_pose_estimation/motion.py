@@ -91,4 +91,4 @@ def magnus_increment(omega: OmegaProfile, t: float, h: float) -> NDArray[np.floa
     """
     w1 = omega(t + (0.5 - _SQRT3 / 6.0) * h)
     w2 = omega(t + (0.5 + _SQRT3 / 6.0) * h)
-    return so3.exp(0.5 * h * (w1 + w2) + (_SQRT3 / 12.0) * h * h * np.cross(w1, w2))
+    return so3.exp(0.5 * h * (w1 + w2) + (_SQRT3 / 12.0) * h * h * so3.cross(w1, w2))

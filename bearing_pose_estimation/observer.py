@@ -57,7 +57,7 @@ class Edges:
     agent: NDArray[np.intp]
     k: Array
     n_agents: int
-    _incidence: sparse.csr_matrix = field(init=False, repr=False, compare=False)
+    _incidence: sparse.csr_matrix | None = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         agent = np.asarray(self.agent, dtype=np.intp)
@@ -65,8 +65,10 @@ class Edges:
         object.__setattr__(self, 'agent', agent)
         object.__setattr__(self, 'k', k)
         n_edges = agent.shape[0]
-        inc = sparse.csr_matrix(
-            (np.ones(n_edges), (agent, np.arange(n_edges))), shape=(self.n_agents, n_edges))
+        inc = None
+        if self.n_agents > 1:  # one agent (the node): a plain sum is cheaper
+            inc = sparse.csr_matrix(
+                (np.ones(n_edges), (agent, np.arange(n_edges))), shape=(self.n_agents, n_edges))
         object.__setattr__(self, '_incidence', inc)
 
     def __len__(self) -> int:
@@ -74,6 +76,8 @@ class Edges:
 
     def sum_by_agent(self, values: Array) -> Array:
         """``out[i] = Σ_{e: agent[e] = i} values[e]``, shape ``(n_agents, 3)``."""
+        if self._incidence is None:
+            return values.sum(axis=0, keepdims=True)
         return np.asarray(self._incidence @ values)
 
 
@@ -98,7 +102,7 @@ def innovation(R_hat: Array, edges: Edges, b_body: Array, d_world: Array) -> tup
         ``(sigma (N, 3), y (E, 3))``.
     """
     y = np.einsum('eab,eb->ea', R_hat[edges.agent], b_body)
-    sigma = edges.sum_by_agent(edges.k[:, None] * np.cross(d_world, y))
+    sigma = edges.sum_by_agent(edges.k[:, None] * so3.cross(d_world, y))
     return sigma, y
 
 

@@ -72,6 +72,21 @@ class Noise:
 
 
 @dataclass(frozen=True)
+class SimulationRates:
+    """How the simulator node samples the world. Truth is integrated with ``internal_step``
+    [s]; every sensor period must be a whole number of internal steps."""
+
+    internal_step: float = 0.001
+    imu_rate: float = 200.0          # gyro samples [Hz], interval averages
+    bearing_rate: float = 50.0       # bearing measurements [Hz]
+    ground_truth_rate: float = 50.0  # true poses [Hz], for the monitor and leaders
+
+    def ticks(self, rate: float) -> int:
+        """Internal steps per period of ``rate``."""
+        return int(round(1.0 / (rate * self.internal_step)))
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     agents: tuple[Agent, ...]
@@ -85,6 +100,7 @@ class Scenario:
     world_frame: str = 'world'
     noise: Noise = Noise()
     random_init: RandomInit | None = None
+    simulation: SimulationRates = SimulationRates()
     source: str = '<memory>'
     index: dict[str, int] = field(default_factory=dict, compare=False, repr=False)
 
@@ -101,6 +117,20 @@ class Scenario:
 
     def agent(self, name: str) -> Agent:
         return self.agents[self.index[name]]
+
+    def agent_id(self, name: str) -> int:
+        """The id on the wire: the 1-based position in ``agents`` (the paper's agent number)."""
+        return self.index[name] + 1
+
+    def listeners(self, name: str) -> list[str]:
+        """Agents that have ``name`` as a neighbour (they need its world bearings)."""
+        return [a.name for a in self.agents if any(n.name == name for n in a.neighbours)]
+
+    def sensing_targets(self, name: str) -> list[str]:
+        """Agents that ``name`` measures bearings to: its neighbours and its listeners
+        (sensing is two-way on every edge)."""
+        targets = {n.name for n in self.agent(name).neighbours} | set(self.listeners(name))
+        return sorted(targets, key=self.index.__getitem__)
 
 
 # ----------------------------------------------------------------------------- parsing helpers
@@ -247,8 +277,27 @@ def _neighbours(ctx: _Ctx, value: Any, where: str, default_k: float) -> tuple[Ne
     return tuple(out)
 
 
+def _simulation(ctx: _Ctx, value: Any) -> SimulationRates:
+    m = _mapping(ctx, value, 'simulation',
+                 {'internal_step', 'imu_rate', 'bearing_rate', 'ground_truth_rate'})
+    d = SimulationRates()
+    dt = _number(ctx, m.get('internal_step', d.internal_step), 'simulation.internal_step',
+                 positive=True)
+    rates = {}
+    for key in ('imu_rate', 'bearing_rate', 'ground_truth_rate'):
+        rate = _number(ctx, m.get(key, getattr(d, key)), f'simulation.{key}', positive=True)
+        ticks = 1.0 / (rate * dt)
+        if ticks < 1.0 - 1e-9 or abs(ticks - round(ticks)) > 1e-6:
+            raise ctx.fail(f'simulation.{key}', f'a period of 1/{rate:g} s is not a whole number '
+                           f'of internal steps ({dt:g} s)',
+                           'choose a rate that divides 1/internal_step (e.g. 200, 100, 50 Hz '
+                           'with a 1 ms step)')
+        rates[key] = rate
+    return SimulationRates(internal_step=dt, **rates)
+
+
 _TOP_KEYS = {'name', 'description', 'method', 'world_frame', 'gains', 'frequency', 'duration',
-             'noise', 'leaders', 'agents', 'initial_estimates'}
+             'noise', 'leaders', 'agents', 'initial_estimates', 'simulation'}
 _AGENT_KEYS = {'name', 'position', 'attitude', 'angular_velocity', 'neighbours',
                'initial_estimate'}
 
@@ -280,6 +329,8 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
                   bearing_std=_number(ctx, nz.get('bearing_std', 0.0), 'noise.bearing_std',
                                       non_negative=True),
                   seed=_integer(ctx, nz.get('seed', 0), 'noise.seed'))
+
+    simulation = _simulation(ctx, top.get('simulation', {}))
 
     random_init = None
     if 'initial_estimates' in top:
@@ -372,7 +423,7 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     return Scenario(name=name, agents=tuple(agents), leaders=tuple(leaders), method=method,
                     description=str(top.get('description', '')), k_R=k_R, k_p=k_p,
                     frequency=frequency, duration=duration, world_frame=world_frame,
-                    noise=noise, random_init=random_init, source=source)
+                    noise=noise, random_init=random_init, simulation=simulation, source=source)
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -10,6 +10,8 @@ Every function accepts a single vector/matrix or a batch with leading axes
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -64,6 +66,8 @@ def exp(phi: ArrayLike) -> Array:
     orthonormal to machine precision for any angle.
     """
     phi = np.asarray(phi, dtype=float)
+    if phi.shape == (3,):
+        return _exp_one(phi)
     theta2 = np.sum(phi * phi, axis=-1)
     theta = np.sqrt(theta2)
     small = theta < _SMALL_ANGLE
@@ -73,6 +77,34 @@ def exp(phi: ArrayLike) -> Array:
     b = np.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - np.cos(safe)) / safe**2)
     K = hat(phi)
     return _I3 + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def _exp_one(phi: Array) -> Array:
+    """:func:`exp` of one vector with scalar math: ~10x faster than the batched path, which
+    matters in the per-agent node (many small rotations per step)."""
+    x, y, z = float(phi[0]), float(phi[1]), float(phi[2])
+    theta2 = x * x + y * y + z * z
+    if theta2 < _SMALL_ANGLE**2:
+        a = 1.0 - theta2 / 6.0 + theta2 * theta2 / 120.0
+        b = 0.5 - theta2 / 24.0 + theta2 * theta2 / 720.0
+    else:
+        theta = math.sqrt(theta2)
+        a = math.sin(theta) / theta
+        b = (1.0 - math.cos(theta)) / theta2
+    # I + a K + b K², with K² = φφᵀ - θ² I.
+    return np.array([
+        [1.0 + b * (x * x - theta2), -a * z + b * x * y, a * y + b * x * z],
+        [a * z + b * x * y, 1.0 + b * (y * y - theta2), -a * x + b * y * z],
+        [-a * y + b * x * z, a * x + b * y * z, 1.0 + b * (z * z - theta2)]])
+
+
+def cross(a: ArrayLike, b: ArrayLike) -> Array:
+    """``a × b`` over the last axis; much cheaper than ``np.cross`` for small batches."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                     a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
 
 
 def log(R: ArrayLike) -> Array:

@@ -1,0 +1,100 @@
+"""Gyro sample buffer: exact body-frame rotation increments between any two times.
+
+Sample meaning (the convention of the simulator node, and of delta-angle IMUs): a sample
+stamped ``t_k`` with rate ``ω_k`` is the *interval average* over ``(t_{k-1}, t_k]``, i.e. the
+constant rate that produces the true rotation over that interval, ``R(t_{k-1})ᵀ R(t_k) =
+exp(ω_k (t_k - t_{k-1}))``. The buffer treats ω as piecewise constant on those intervals, so the
+increment between two sample stamps is exact, and between arbitrary times it is exact up to the
+split of one interval.
+
+Why it matters: holding ω constant over a 10 ms estimator step with the paper's ``sin 9t`` rates
+leaves a steady-state attitude error of milliradians; integrating every sample removes it.
+"""
+from __future__ import annotations
+
+import bisect
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import so3
+
+# Stamps are floats: 0.03 + 0.01 != 0.04. Coverage is judged with this slack [s].
+STAMP_TOLERANCE = 1e-9
+
+
+class GyroBuffer:
+    """Interval-average gyro samples of one agent over a sliding time window.
+
+    Args:
+        start: the time the first interval starts (the scenario's t = 0).
+        horizon: how much history to keep [s]; older samples are dropped.
+    """
+
+    def __init__(self, start: float, horizon: float = 2.0) -> None:
+        self.horizon = horizon
+        self._t: list[float] = [start]     # interval boundaries: sample k covers (t[k], t[k+1]]
+        self._w: list[NDArray[np.float64]] = []
+        # Increments over covered intervals never change (samples are only appended), and the
+        # node asks for the same ones repeatedly (all bearings of one message share a stamp).
+        self._cache: dict[tuple[float, float], NDArray[np.float64]] = {}
+
+    @property
+    def start(self) -> float:
+        """Earliest time the buffer can integrate from."""
+        return self._t[0]
+
+    @property
+    def end(self) -> float:
+        """Latest time covered by samples (the newest stamp)."""
+        return self._t[-1]
+
+    def add(self, stamp: float, omega: NDArray[np.float64]) -> bool:
+        """Append a sample. Returns False (and ignores it) unless ``stamp`` is newer than the
+        newest sample."""
+        if not stamp > self._t[-1]:
+            return False
+        self._t.append(float(stamp))
+        self._w.append(np.asarray(omega, dtype=float))
+        cutoff = stamp - self.horizon
+        drop = bisect.bisect_right(self._t, cutoff) - 1
+        if drop > 0 and drop < len(self._w):
+            del self._t[:drop]
+            del self._w[:drop]
+        return True
+
+    def reset(self, start: float) -> None:
+        """Forget every sample; integrate from ``start`` again."""
+        self._t, self._w = [start], []
+        self._cache.clear()
+
+    def covers(self, t0: float, t1: float) -> bool:
+        return (self.start - STAMP_TOLERANCE <= min(t0, t1)
+                and max(t0, t1) <= self.end + STAMP_TOLERANCE)
+
+    def increment(self, t0: float, t1: float) -> NDArray[np.float64]:
+        """``R(t0)ᵀ R(t1)``: the body-frame rotation from ``t0`` to ``t1`` (either order).
+
+        Raises:
+            ValueError: the buffer does not cover ``[t0, t1]``.
+        """
+        if t1 < t0:
+            return self.increment(t1, t0).T
+        if not self.covers(t0, t1):
+            raise ValueError(f'gyro buffer covers [{self.start:.6f}, {self.end:.6f}], '
+                             f'not [{t0:.6f}, {t1:.6f}]')
+        key = (t0, t1)
+        cached = self._cache.get(key)
+        if cached is not None:
+            return cached
+        R = np.eye(3)
+        k = max(bisect.bisect_right(self._t, t0) - 1, 0)
+        while k < len(self._w) and self._t[k] < t1:
+            a, b = max(self._t[k], t0), min(self._t[k + 1], t1)
+            if b > a:
+                R = R @ so3.exp(self._w[k] * (b - a))
+            k += 1
+        if len(self._cache) > 64:
+            self._cache.clear()
+        self._cache[key] = R
+        return R

@@ -1,0 +1,76 @@
+"""The simulated world for the simulator node: truth integrated finely, sampled like sensors.
+
+- Truth: every attitude follows ``dR/dt = R [ω(t)]x``, advanced by 4th-order Magnus steps of
+  ``simulation.internal_step`` (1 ms by default), far finer than any published rate.
+- Gyro: each sample is the interval average over the last IMU period,
+  ``ω̄ = log(R(t_prev)ᵀ R(t)) / Δt`` (the constant rate that produces the true rotation), plus
+  white noise ``noise.gyro_std``. See :mod:`bearing_pose_estimation.gyro`.
+- Bearings: instantaneous ``R_i(t)ᵀ b_ij`` to every agent i senses (its neighbours and its
+  listeners: sensing is two-way), rotated by ``noise.bearing_std``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import so3
+from .motion import OmegaProfile, magnus_increment
+from .scenario import Scenario
+from .simulator import perturb_bearings
+
+Array = NDArray[np.float64]
+
+
+class World:
+    """Truth of a scenario on the internal time grid ``t = tick · internal_step``."""
+
+    def __init__(self, scenario: Scenario) -> None:
+        self.scenario = scenario
+        rates = scenario.simulation
+        self.dt = rates.internal_step
+        self.imu_every = rates.ticks(rates.imu_rate)
+        self.bearing_every = rates.ticks(rates.bearing_rate)
+        self.truth_every = rates.ticks(rates.ground_truth_rate)
+        self.omega = OmegaProfile([a.angular_velocity for a in scenario.agents])
+        self.p = np.stack([a.position for a in scenario.agents])
+        self.names = [a.name for a in scenario.agents]
+        self.targets = [np.array([scenario.index[t] for t in scenario.sensing_targets(a.name)],
+                                 dtype=np.intp) for a in scenario.agents]
+        self.rng = np.random.default_rng(scenario.noise.seed)
+        self.reset()
+
+    def reset(self) -> None:
+        self.tick = 0
+        self.R = np.stack([a.attitude for a in self.scenario.agents])
+        self._R_last_imu = self.R.copy()
+
+    @property
+    def t(self) -> float:
+        return self.tick * self.dt
+
+    def step(self) -> None:
+        """Advance the truth by one internal step."""
+        self.R = so3.reorthonormalize(self.R @ magnus_increment(self.omega, self.t, self.dt))
+        self.tick += 1
+
+    def due(self, every: int) -> bool:
+        return self.tick % every == 0
+
+    def imu(self) -> Array:
+        """Interval-average gyro samples of all agents, ``(N, 3)`` [rad/s], for the IMU period
+        ending now."""
+        period = self.imu_every * self.dt
+        omega = so3.log(np.swapaxes(self._R_last_imu, -1, -2) @ self.R) / period
+        self._R_last_imu = self.R.copy()
+        std = self.scenario.noise.gyro_std
+        if std > 0.0:
+            omega = omega + std * self.rng.normal(size=omega.shape)
+        return omega
+
+    def bearings(self, i: int) -> tuple[NDArray[np.intp], Array]:
+        """Agent i's measured body bearings now: (0-based target indices, ``(n, 3)`` unit vectors)."""
+        j = self.targets[i]
+        d = self.p[j] - self.p[i]
+        b_world = d / np.linalg.norm(d, axis=1, keepdims=True)
+        b_body = b_world @ self.R[i]  # rows: R_iᵀ b_ij
+        return j, perturb_bearings(b_body, self.scenario.noise.bearing_std, self.rng)
