@@ -7,10 +7,11 @@ package_name = 'bearing_pose_estimation'
 
 # Every executable, in one place. `ros2 run bearing_pose_estimation <name>` finds these after a
 # colcon build (setup.cfg puts them in lib/<package>); pip puts them in the venv's bin/.
-# Node executables go here later, one line each, e.g.
-#   'estimator = bearing_pose_estimation.estimator_node:main',
 console_scripts = [
     'bearing-pose = bearing_pose_estimation.cli:main',
+    'estimator = bearing_pose_estimation.estimator_node:main',
+    'simulator = bearing_pose_estimation.simulator_node:main',
+    'monitor = bearing_pose_estimation.monitor_node:main',
 ]
 
 setup(

@@ -1,4 +1,4 @@
-"""``bearing-pose``: check, simulate and generate scenarios.
+"""``bearing-pose``: check, simulate and generate scenarios, and run them over DDS.
 
 Exit codes: 0 success; 1 invalid scenario, failed check, or a file it refuses to overwrite;
 2 bad command line.
@@ -6,6 +6,7 @@ Exit codes: 0 success; 1 invalid scenario, failed check, or a file it refuses to
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -83,6 +84,44 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    from . import launch
+
+    scenario = _load_checked(args.scenario)
+    out = _out_dir(args.out or f'results/{scenario.name}_dds').resolve()
+    domain_id = args.domain_id if args.domain_id is not None else launch.private_domain_id()
+    how = 'from --domain-id' if args.domain_id is not None else 'private to this run'
+    if args.domain_id is None and os.environ.get('ROS_DOMAIN_ID'):
+        how += f"; the caller's ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} is not used"
+    cfg = launch.RunConfig(
+        scenario_file=Path(args.scenario).resolve(), out_dir=out,
+        duration=args.duration if args.duration is not None else scenario.duration,
+        domain_id=domain_id, real_time_factor=args.real_time_factor, plots=not args.no_plots,
+        timeout=args.timeout)
+    pace = (f'at most {cfg.real_time_factor:g}x real time' if cfg.real_time_factor > 0
+            else 'as fast as the estimators keep up')
+    print(f'running {scenario.name} over DDS: {len(scenario.agents)} estimators, monitor, '
+          f'simulator; {cfg.duration:g} s simulated, {pace}; '
+          f'ROS_DOMAIN_ID={domain_id} ({how}), localhost only', file=sys.stderr)
+    try:
+        with launch.sigterm_as_interrupt():
+            result = launch.launch_run(scenario, cfg)
+    except KeyboardInterrupt:
+        print(f'interrupted: all processes stopped; partial outputs (if any) and logs in {out}',
+              file=sys.stderr)
+        raise
+    except launch.LaunchError as exc:
+        raise ScenarioError(str(exc)) from exc
+    if not result.ok:
+        print(f'run failed after {result.wall_s:.1f} s; logs in {cfg.logs_dir}',
+              file=sys.stderr)
+        return 1
+    # The monitor's forwarded output has already shown the summary.
+    print(f'wall time {result.wall_s:.1f} s; wrote ' + ', '.join(str(f) for f in result.files)
+          + f'; parameter files in {cfg.params_dir}; logs in {cfg.logs_dir}')
+    return 0
+
+
 def cmd_generate(args: argparse.Namespace) -> int:
     from .generate import generate_scenario
 
@@ -133,6 +172,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--quiet', action='store_true', help='no progress lines')
     p.set_defaults(func=cmd_simulate)
 
+    p = sub.add_parser('run', help='run every agent as its own ROS 2 process over DDS',
+                       description='Start one estimator process per agent, the monitor and the '
+                       'simulator (DDS on localhost only, on a private ROS_DOMAIN_ID), wait '
+                       'until the monitor has written DIR/metrics.csv, DIR/summary.json and the '
+                       'plots, then stop everything. DIR/params/ holds one ROS 2 parameter '
+                       'file per process; DIR/logs/ one log per process.')
+    p.add_argument('scenario', help='scenario YAML file')
+    p.add_argument('--duration', type=float, metavar='S',
+                   help='simulated time [s] (default: the scenario\'s)')
+    p.add_argument('--out', metavar='DIR',
+                   help='output directory (default: results/<scenario name>_dds)')
+    p.add_argument('--domain-id', type=int, metavar='N',
+                   help='ROS_DOMAIN_ID, 0..232 (default: 1 + pid %% 101, private to this run)')
+    p.add_argument('--real-time-factor', type=float, default=0.0, metavar='F',
+                   help='cap on simulated seconds per wall second; 0: no cap, as fast as the '
+                   'estimators keep up (default: 0)')
+    p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
+    p.add_argument('--timeout', type=float, metavar='S',
+                   help='wall-time safety net [s] (default: 10 x duration / F + 120 for F < 1, '
+                   'else 10 x duration + 120)')
+    p.set_defaults(func=cmd_run)
+
     p = sub.add_parser('generate', help='write a random valid scenario',
                        description='Generate a random scenario that satisfies Assumption 2 '
                        '(reproducible from --seed).')
@@ -151,7 +212,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == 'generate' and args.agents < 3:
         parser.error('--agents must be at least 3 (two leaders and one follower)')
-    for name in ('duration', 'step', 'record_every'):
+    if getattr(args, 'domain_id', None) is not None and not 0 <= args.domain_id <= 232:
+        parser.error('--domain-id must be in 0..232 (ROS 2 domain ids)')
+    rtf = getattr(args, 'real_time_factor', None)
+    if rtf is not None and not (np.isfinite(rtf) and rtf >= 0):
+        parser.error('--real-time-factor must be a number >= 0 (0: no cap)')
+    for name in ('duration', 'step', 'record_every', 'timeout'):
         value = getattr(args, name, None)
         if value is not None and not (np.isfinite(value) and value > 0):
             parser.error(f'--{name.replace("_", "-")} must be a positive number')

@@ -96,6 +96,7 @@ class Scenario:
     k_R: float = 1.0
     k_p: float = 1.0
     frequency: float = 100.0   # estimator rate [Hz]; batch step h = 1/frequency
+    publish_rate: float = 50.0  # estimators publish estimate + world bearings [Hz]
     duration: float = 60.0     # default run length [s]
     world_frame: str = 'world'
     noise: Noise = Noise()
@@ -114,6 +115,11 @@ class Scenario:
     @property
     def step(self) -> float:
         return 1.0 / self.frequency
+
+    @property
+    def publish_every(self) -> int:
+        """Estimator steps between two publications."""
+        return int(round(self.frequency / self.publish_rate))
 
     def agent(self, name: str) -> Agent:
         return self.agents[self.index[name]]
@@ -296,7 +302,8 @@ def _simulation(ctx: _Ctx, value: Any) -> SimulationRates:
     return SimulationRates(internal_step=dt, **rates)
 
 
-_TOP_KEYS = {'name', 'description', 'method', 'world_frame', 'gains', 'frequency', 'duration',
+_TOP_KEYS = {'name', 'description', 'method', 'world_frame', 'gains', 'frequency',
+             'publish_rate', 'duration',
              'noise', 'leaders', 'agents', 'initial_estimates', 'simulation'}
 _AGENT_KEYS = {'name', 'position', 'attitude', 'angular_velocity', 'neighbours',
                'initial_estimate'}
@@ -320,6 +327,12 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     k_p = _number(ctx, gains.get('k_p', 1.0), 'gains.k_p', positive=True)
     k_ij = _number(ctx, gains.get('k_ij', 1.0), 'gains.k_ij', positive=True)
     frequency = _number(ctx, top.get('frequency', 100.0), 'frequency', positive=True)
+    publish_rate = _number(ctx, top.get('publish_rate', min(50.0, frequency)), 'publish_rate',
+                           positive=True)
+    ratio = frequency / publish_rate
+    if ratio < 1.0 - 1e-9 or abs(ratio - round(ratio)) > 1e-6:
+        raise ctx.fail('publish_rate', f'{publish_rate:g} Hz does not divide the estimator '
+                       f'frequency {frequency:g} Hz', 'use frequency / n, e.g. 50 for 100 Hz')
     duration = _number(ctx, top.get('duration', 60.0), 'duration', positive=True)
     world_frame = _string(ctx, top.get('world_frame', 'world'), 'world_frame')
 
@@ -422,7 +435,8 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
 
     return Scenario(name=name, agents=tuple(agents), leaders=tuple(leaders), method=method,
                     description=str(top.get('description', '')), k_R=k_R, k_p=k_p,
-                    frequency=frequency, duration=duration, world_frame=world_frame,
+                    frequency=frequency, publish_rate=publish_rate, duration=duration,
+                    world_frame=world_frame,
                     noise=noise, random_init=random_init, simulation=simulation, source=source)
 
 

@@ -41,6 +41,15 @@ def perturb_bearings(b: Array, std: float, rng: np.random.Generator) -> Array:
     return np.einsum('eab,eb->ea', so3.exp(phi), b)
 
 
+def pose_errors(R: Array, p: Array, R_hat: Array, p_hat: Array) -> tuple[Array, Array, Array, Array]:
+    """Errors of poses ``(n, 3, 3)``, ``(n, 3)`` and their estimates: ``(att_err, pos_err,
+    att_dist_I, pos_err_paper)`` as defined in :class:`Recording`."""
+    R_tilde = R @ np.swapaxes(R_hat, -1, -2)
+    p_tilde = p - np.einsum('nab,nb->na', R_tilde, p_hat)
+    return (so3.angle(R_tilde), np.linalg.norm(p - p_hat, axis=1), so3.dist_I(R_tilde),
+            np.linalg.norm(p_tilde, axis=1))
+
+
 @dataclass
 class Recording:
     """Errors of every follower at the recorded times.
@@ -133,10 +142,7 @@ class BatchSimulator:
     def errors(self) -> tuple[Array, Array, Array, Array]:
         """Followers' ``(att_err, pos_err, att_dist_I, pos_err_paper)`` now (see Recording)."""
         f = self.follower_idx
-        R_tilde = self.R[f] @ np.swapaxes(self.R_hat[f], -1, -2)
-        p_tilde = self.p[f] - np.einsum('nab,nb->na', R_tilde, self.p_hat[f])
-        return (so3.angle(R_tilde), np.linalg.norm(self.p[f] - self.p_hat[f], axis=1),
-                so3.dist_I(R_tilde), np.linalg.norm(p_tilde, axis=1))
+        return pose_errors(self.R[f], self.p[f], self.R_hat[f], self.p_hat[f])
 
     def run(self, duration: float, record_every: float = 0.1,
             progress: Callable[[float, Array, Array], None] | None = None,

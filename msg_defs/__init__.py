@@ -14,8 +14,9 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped
 from numpy.typing import NDArray
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import Imu, PointCloud2, PointField
+
+from bearing_pose_estimation import so3
 
 Array = NDArray[np.float64]
 
@@ -170,7 +171,7 @@ def encode_pose(t: float, frame_id: str, R: Array, p: Array) -> PoseStamped:
     msg.header.stamp = to_stamp(t)
     msg.header.frame_id = frame_id
     msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, p)
-    q = Rotation.from_matrix(R).as_quat()
+    q = so3.to_quat(R)
     o = msg.pose.orientation
     o.x, o.y, o.z, o.w = map(float, q)
     return msg
@@ -190,4 +191,4 @@ def decode_pose(msg: PoseStamped) -> tuple[float, Array, Array]:
     norm = float(np.linalg.norm(q))
     if not math.isclose(norm, 1.0, abs_tol=1e-3):
         raise WireError(f'quaternion norm {norm:.6g} is not 1')
-    return from_stamp(msg.header.stamp), Rotation.from_quat(q / norm).as_matrix(), p
+    return from_stamp(msg.header.stamp), so3.from_quat(q), p

@@ -104,3 +104,47 @@ def test_msg_defs_imports_from_colcon_install(colcon_install, tmp_path):
     # From the workspace (install/, or build/ for --symlink-install), not from this checkout.
     workspace = colcon_install.parent.parent
     assert Path(proc.stdout.strip()).resolve().is_relative_to(workspace.resolve()), proc.stdout
+
+
+def test_colcon_built_estimator_talks_dds(colcon_install, tmp_path):
+    """`ros2 run bearing_pose_estimation estimator --ros-args -r __ns:=/agent_1 -p
+    scenario_file:=...` from the colcon install: once its inputs have publishers it announces
+    its t0 estimate (leader agent_1: its true pose) in frame `world`, and exits 0 on Ctrl-C."""
+    import signal
+
+    import numpy as np
+
+    from bearing_pose_estimation import msg_defs as wire
+    from ros_helpers import observer
+
+    exe = colcon_install / 'lib' / PKG / 'estimator'
+    scenario = colcon_install / 'share' / PKG / 'config' / 'paper_8_agents.yaml'
+    setup_bash = colcon_install.parent / 'setup.bash'
+    env = dict(os.environ)
+    env.pop('PYTHONPATH', None)
+    script = (f'source "{setup_bash}" && exec "{exe}" --ros-args -r __ns:=/agent_1 '
+              f'-p scenario_file:={scenario} -p use_sim_time:=true')
+    proc = subprocess.Popen(['bash', '-c', script], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        with observer() as obs:
+            obs.subscribe(wire.PoseStamped, '/agent_1/estimate', wire.ESTIMATE_QOS)
+            pubs = [obs.node.create_publisher(wire.Imu, '/agent_1/imu', wire.SIM_PUB_QOS),
+                    obs.node.create_publisher(wire.PointCloud2, '/agent_1/bearings',
+                                              wire.SIM_PUB_QOS),
+                    obs.node.create_publisher(wire.PoseStamped, '/agent_1/known_pose',
+                                              wire.SIM_PUB_QOS)]
+            got = obs.spin_until(lambda: bool(obs.messages['/agent_1/estimate']), timeout=60)
+            assert all(p.get_subscription_count() == 1 for p in pubs)
+            assert got, 'no estimate from the installed estimator'
+        msg = obs.messages['/agent_1/estimate'][0]
+        assert msg.header.frame_id == 'world'
+        t, R, p = wire.decode_pose(msg)
+        assert t == 0.0
+        np.testing.assert_allclose(p, [0.0, 0.0, 0.0])
+        np.testing.assert_allclose(R, np.eye(3), atol=1e-12)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert 'agent_1 (id 1, leader) at 100 Hz' in out

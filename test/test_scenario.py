@@ -209,6 +209,7 @@ def test_random_initial_estimates_are_seeded(paper_data):
     s = parse_scenario(paper_data)
     (R1, p1), (R2, p2) = initial_estimates(s), initial_estimates(s)
     np.testing.assert_array_equal(p1, p2)
+    np.testing.assert_array_equal(R1, R2)
     angles = so3.angle(np.stack([a.attitude for a in s.agents]) @ np.swapaxes(R1, 1, 2))
     assert np.all(angles[2:] <= math.radians(30) + 1e-12) and np.all(angles[2:] > 0)
     paper_data['initial_estimates']['random']['seed'] = 5

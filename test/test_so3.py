@@ -85,3 +85,15 @@ def test_reorthonormalize_removes_drift_and_keeps_rotations():
     # The residual is squared (Newton-Schulz): ~1e-7 becomes ~1e-13, not ~1e-7.
     assert np.all(so3.orthonormality_error(fixed) < 10 * before**2 + 1e-15)
     np.testing.assert_allclose(so3.reorthonormalize(ROTS), ROTS, atol=1e-15)
+
+
+def test_quaternion_conversions_match_scipy():
+    """Including the branches of Shepperd's method: near-π rotations about each axis."""
+    specials = np.stack([so3.axis_angle(a, np.pi - 1e-9) for a in np.eye(3)])
+    for R in np.concatenate([ROTS, specials, np.eye(3)[None]]):
+        q = so3.to_quat(R)
+        ref = Rotation.from_matrix(R).as_quat()
+        ref = -ref if ref[3] < 0 else ref
+        np.testing.assert_allclose(q, ref, atol=1e-12)
+        np.testing.assert_allclose(so3.from_quat(q), R, atol=1e-14)
+        np.testing.assert_allclose(so3.from_quat(3.0 * q), R, atol=1e-14)  # normalises

@@ -1,0 +1,134 @@
+"""``monitor``: errors of a distributed run, in the same files as ``bearing-pose simulate``.
+
+Subscribes to every follower's ``/<agent>/estimate`` and ``/<agent>/ground_truth``, pairs them
+at identical stamps on a ``record_every`` grid (estimates come every estimator step, truth every
+ground-truth period, so the grid instants carry both), and writes ``metrics.csv``,
+``summary.json`` and the plots to ``out_dir`` once ``t = duration`` is recorded, then exits.
+Interrupted, it writes what it has. Progress goes to stdout.
+
+Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``out_dir``,
+``record_every`` [s], ``progress_every`` [s of sim time], ``plots``.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from rclpy.node import Node
+from rclpy.task import Future
+
+from . import msg_defs as wire
+from .metrics import format_summary, summarize, write_metrics_csv, write_summary_json
+from .node_main import run_node
+from .scenario import ScenarioError, load_scenario
+from .simulator import Recording, pose_errors
+
+
+class MonitorNode(Node):
+    def __init__(self) -> None:
+        super().__init__('monitor')
+        p = self.declare_parameter
+        scenario_file = p('scenario_file', '').value
+        if not scenario_file:
+            raise ScenarioError('parameter scenario_file is empty. Fix: pass '
+                                '-p scenario_file:=/path/to/scenario.yaml')
+        self.scenario = s = load_scenario(scenario_file)
+        self.duration = p('duration', 0.0).value or s.duration
+        self.out_dir = Path(p('out_dir', 'results').value)
+        self.record_ns = int(round(p('record_every', 0.1).value * 1e9))
+        self.progress_every = p('progress_every', max(self.duration / 10.0, 1.0)).value
+        self.plots = p('plots', True).value
+
+        self.followers = [a.name for a in s.followers]
+        self._truth: dict[int, dict[int, tuple]] = {}   # ns -> follower index -> (R, p)
+        self._est: dict[int, dict[int, tuple]] = {}     # ns -> follower index -> (R̂, p̂)
+        self._recorded: set[int] = set()
+        self.rows: list[tuple[float, tuple]] = []
+        self._last_progress = -np.inf
+        self.done = False
+        self.finished = Future()  # completes once the outputs are written
+        self.wall_start = time.monotonic()
+        for k, name in enumerate(self.followers):
+            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.GROUND_TRUTH),
+                                     lambda m, k=k: self._on_pose(self._truth, k, m),
+                                     wire.SIM_PUB_QOS)
+            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE),
+                                     lambda m, k=k: self._on_pose(self._est, k, m),
+                                     wire.ESTIMATE_QOS)
+
+    def _on_pose(self, table: dict, k: int, msg: wire.PoseStamped) -> None:
+        ns = wire.stamp_ns(msg.header.stamp)
+        if ns % self.record_ns or self.done or ns in self._recorded:
+            return  # only grid instants, once each (t0 estimates are announced repeatedly)
+        try:
+            _, R, p = wire.decode_pose(msg)
+        except wire.WireError as exc:
+            self.get_logger().warning(f'bad pose: {exc}', throttle_duration_sec=5.0)
+            return
+        table.setdefault(ns, {})[k] = (R, p)
+        self._complete(ns)
+
+    def _complete(self, ns: int) -> None:
+        n = len(self.followers)
+        truth, est = self._truth.get(ns, {}), self._est.get(ns, {})
+        if len(truth) < n or len(est) < n:
+            return
+        R = np.stack([truth[k][0] for k in range(n)])
+        p = np.stack([truth[k][1] for k in range(n)])
+        R_hat = np.stack([est[k][0] for k in range(n)])
+        p_hat = np.stack([est[k][1] for k in range(n)])
+        t = ns * 1e-9
+        self.rows.append((t, pose_errors(R, p, R_hat, p_hat)))
+        del self._truth[ns], self._est[ns]
+        self._recorded.add(ns)
+        att, pos = self.rows[-1][1][0], self.rows[-1][1][1]
+        if t - self._last_progress >= self.progress_every - 1e-9 or t >= self.duration - 1e-9:
+            self._last_progress = t
+            print(f'  t = {t:7.1f} / {self.duration:g} s   mean attitude error {att.mean():.2e} '
+                  f'rad   mean position error {pos.mean():.2e} m', flush=True)
+        if t >= self.duration - 1e-9:
+            self.finish()
+
+    def recording(self) -> Recording | None:
+        if not self.rows:
+            return None
+        rows = sorted(self.rows, key=lambda r: r[0])
+        cols = [np.array([r[1][c] for r in rows]) for c in range(4)]
+        return Recording(t=np.array([r[0] for r in rows]), followers=self.followers,
+                         att_err=cols[0], pos_err=cols[1], att_dist_I=cols[2],
+                         pos_err_paper=cols[3])
+
+    def finish(self) -> None:
+        """Write the outputs (once), from whatever has been recorded."""
+        if self.done:
+            return
+        self.done = True
+        rec = self.recording()
+        if rec is None:
+            print('monitor: nothing recorded', file=sys.stderr)
+            self.finished.set_result(False)
+            return
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        summary = summarize(rec, scenario=self.scenario.name, source=self.scenario.source,
+                            mode='dds', step_s=self.scenario.step,
+                            wall_time_s=round(time.monotonic() - self.wall_start, 3),
+                            complete=bool(rec.t[-1] >= self.duration - 1e-9))
+        write_metrics_csv(rec, self.out_dir / 'metrics.csv')
+        write_summary_json(summary, self.out_dir / 'summary.json')
+        if self.plots:
+            from .plots import write_plots
+            write_plots(rec, self.out_dir)
+        print(format_summary(summary), flush=True)
+        self.finished.set_result(True)
+
+
+def main(args: list[str] | None = None) -> None:
+    # Interrupted, it still writes what it measured.
+    raise SystemExit(run_node(MonitorNode, 'monitor', args, until=lambda node: node.finished,
+                              on_interrupt=lambda node: node.finish()))
+
+
+if __name__ == '__main__':
+    main()

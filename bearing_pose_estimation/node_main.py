@@ -1,0 +1,63 @@
+"""The life cycle shared by every node's ``main``: init, spin, clean shutdown on Ctrl-C.
+
+Clean shutdown matters: a node that dies without destroying its DDS participant leaves Fast DDS
+files in /dev/shm. Configuration errors (:class:`ScenarioError`) are logged as fatal with their
+fix and give exit code 1, without a traceback.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import rclpy
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.task import Future
+
+from .scenario import ScenarioError
+
+
+def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None,
+             until: Callable[[Node], Future] | None = None,
+             on_interrupt: Callable[[Node], None] | None = None) -> int:
+    """Create the node, spin it (until ``until(node)`` completes, or until shut down), and
+    shut down cleanly. Returns the process exit code.
+
+    Args:
+        factory: builds the node (after ``rclpy.init``).
+        name: logger name for fatal configuration errors.
+        until: a future whose completion ends the spin (e.g. "outputs written").
+        on_interrupt: called on Ctrl-C / external shutdown (e.g. write partial outputs).
+    """
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = factory()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        if until is None:
+            executor.spin()
+        else:
+            executor.spin_until_future_complete(until(node))
+            result = until(node).result()
+            code = 0 if result in (None, True) else 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        if node is not None and on_interrupt is not None:
+            on_interrupt(node)
+    except (RCLError, RuntimeError):
+        # Ctrl-C shuts the context down from a signal handler; an executor caught between its
+        # checks then fails to build a wait set (RCLError) or to take a message (pybind11's
+        # RuntimeError). After shutdown that is the shutdown itself; before, a real error.
+        if rclpy.ok():
+            raise
+        if node is not None and on_interrupt is not None:
+            on_interrupt(node)
+    except ScenarioError as exc:
+        rclpy.logging.get_logger(name).fatal(str(exc))
+        code = 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code

@@ -1,0 +1,176 @@
+"""``simulator``: the world of a scenario over DDS, with a simulated clock.
+
+Publishes, per agent, ``/<agent>/imu`` (interval-average gyro), ``/<agent>/bearings`` (body
+frame) and ``/<agent>/ground_truth``, plus ``/clock``, from :class:`world.World` (truth on a
+1 ms grid). It is the only clock publisher; every other node runs with ``use_sim_time``.
+
+Start: it waits until every estimator and the monitor are matched (subscriptions to its
+topics, and the estimators' own topics to each other) and every estimator has announced its
+t0 state (which it does only once its own subscriptions are matched), then starts the clock at
+t = 0, so t = 0 is the same for every node and no first sample is lost.
+
+Pacing (``lockstep``, default on): the clock never runs more than ``max_lag`` seconds ahead of
+the slowest estimator's published state, like Gazebo's lockstep. Results then do not depend on
+how loaded the machine is, and runs go as fast as the estimators can. ``real_time_factor`` > 0
+also caps the clock at that multiple of wall time.
+
+Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``lockstep``, ``max_lag``
+[s], ``real_time_factor``, ``wait_for_monitor``, ``start_timeout`` [s].
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.task import Future
+from rosgraph_msgs.msg import Clock as ClockMsg
+
+from . import msg_defs as wire
+from .node_main import run_node
+from .scenario import ScenarioError, load_scenario
+from .world import World
+
+# Sim time advanced per wall-timer callback at most: keeps the node responsive to Ctrl-C and to
+# the estimators' progress messages.
+_MAX_SIM_PER_TICK = 0.02
+
+
+class SimulatorNode(Node):
+    def __init__(self) -> None:
+        super().__init__('simulator')
+        p = self.declare_parameter
+        scenario_file = p('scenario_file', '').value
+        if not scenario_file:
+            raise ScenarioError('parameter scenario_file is empty. Fix: pass '
+                                '-p scenario_file:=/path/to/scenario.yaml')
+        self.scenario = s = load_scenario(scenario_file)
+        self.duration = p('duration', 0.0).value or s.duration
+        self.lockstep = p('lockstep', True).value
+        self.max_lag = p('max_lag', 3.0 / s.publish_rate).value
+        self.rtf = p('real_time_factor', 0.0).value
+        self.wait_for_monitor = p('wait_for_monitor', True).value
+        self.start_timeout = p('start_timeout', 120.0).value
+
+        self.world = World(s)
+        self.names = [a.name for a in s.agents]
+        self.pub_imu, self.pub_bearings, self.pub_truth = [], [], []
+        for name in self.names:
+            topic = lambda t, n=name: wire.topic(n, t)  # noqa: E731
+            qos = wire.SIM_PUB_QOS
+            self.pub_imu.append(self.create_publisher(wire.Imu, topic(wire.IMU), qos))
+            self.pub_bearings.append(
+                self.create_publisher(wire.PointCloud2, topic(wire.BEARINGS), qos))
+            self.pub_truth.append(
+                self.create_publisher(wire.PoseStamped, topic(wire.GROUND_TRUTH), qos))
+        self.pub_clock = self.create_publisher(ClockMsg, wire.CLOCK, wire.CLOCK_QOS)
+        # Estimators' progress: the stamp of each agent's latest estimate (lockstep pacing).
+        self.progress = np.full(len(self.names), -np.inf)
+        for k, name in enumerate(self.names):
+            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE),
+                                     lambda msg, k=k: self._on_estimate(k, msg), wire.ESTIMATE_QOS)
+
+        self.state = 'waiting'
+        self.failed = Future()  # completes only if start-up fails; otherwise spin until Ctrl-C
+        self.wall_start = time.monotonic()
+        self.sim_wall_start = 0.0
+        # /clock once per estimator step: finer ticks only cost every node callbacks.
+        self.steps_per_clock = max(1, int(round(s.step / self.world.dt)))
+        # A wall-clock timer: the simulator owns sim time, so it must not wait on it.
+        self.timer = self.create_timer(0.001, self.on_tick,
+                                       clock=Clock(clock_type=ClockType.STEADY_TIME))
+        waiting = 'estimators and monitor' if self.wait_for_monitor else 'estimators'
+        self.get_logger().info(f'{s.name}: {len(self.names)} agents, {self.duration:g} s; '
+                               f'waiting for {waiting}')
+
+    def _on_estimate(self, k: int, msg: wire.PoseStamped) -> None:
+        self.progress[k] = max(self.progress[k], wire.from_stamp(msg.header.stamp))
+
+    # --------------------------------------------------------------------------- start
+    def _unmatched(self) -> list[str]:
+        """Topics whose expected peers are not matched yet."""
+        s, missing = self.scenario, []
+        for k, name in enumerate(self.names):
+            need_truth = (1 if self.wait_for_monitor and name not in s.leaders else 0) + \
+                         (1 if name in s.leaders else 0)
+            if self.pub_imu[k].get_subscription_count() < 1:
+                missing.append(wire.topic(name, wire.IMU))
+            if self.pub_bearings[k].get_subscription_count() < 1:
+                missing.append(wire.topic(name, wire.BEARINGS))
+            if self.pub_truth[k].get_subscription_count() < need_truth:
+                missing.append(wire.topic(name, wire.GROUND_TRUTH))
+            listeners = len(s.listeners(name))
+            est_subs = 1 + listeners + (1 if self.wait_for_monitor and name not in s.leaders else 0)
+            if self.count_subscribers(wire.topic(name, wire.ESTIMATE)) < est_subs:
+                missing.append(wire.topic(name, wire.ESTIMATE))
+            if self.count_subscribers(wire.topic(name, wire.WORLD_BEARINGS)) < listeners:
+                missing.append(wire.topic(name, wire.WORLD_BEARINGS))
+            if self.count_publishers(wire.topic(name, wire.ESTIMATE)) < 1:
+                missing.append(wire.topic(name, wire.ESTIMATE) + ' (publisher)')
+        return missing
+
+    def _start(self) -> None:
+        self.state = 'running'
+        self.sim_wall_start = time.monotonic()
+        self.get_logger().info(f'all matched after {self.sim_wall_start - self.wall_start:.2f} s;'
+                               ' clock starts at t = 0')
+        self._publish(clock=True)
+
+    # --------------------------------------------------------------------------- running
+    def on_tick(self) -> None:
+        if self.state == 'waiting':
+            missing = self._unmatched()
+            silent = [n for n, t in zip(self.names, self.progress) if t < 0.0]
+            if not missing and not silent:
+                self._start()
+            elif time.monotonic() - self.wall_start > self.start_timeout:
+                self.get_logger().error(
+                    f'not ready after {self.start_timeout:g} s: unmatched '
+                    f'{", ".join(missing[:10]) or "none"}; no t0 estimate from '
+                    f'{", ".join(silent[:10]) or "none"}')
+                self.state = 'failed'
+                self.failed.set_result(False)
+            return
+        if self.state != 'running':
+            return
+        w = self.world
+        limit = min(self.duration, w.t + _MAX_SIM_PER_TICK)
+        if self.lockstep:
+            limit = min(limit, float(self.progress.min()) + self.max_lag)
+        if self.rtf > 0.0:
+            limit = min(limit, (time.monotonic() - self.sim_wall_start) * self.rtf)
+        while w.t + w.dt <= limit + 1e-9:
+            w.step()
+            self._publish(clock=w.tick % self.steps_per_clock == 0)
+        if w.t >= self.duration - 1e-9:
+            self.state = 'done'
+            wall = time.monotonic() - self.sim_wall_start
+            self.get_logger().info(f'reached t = {w.t:g} s in {wall:.1f} s wall '
+                                   f'(x{w.t / max(wall, 1e-9):.2f} real time)')
+
+    def _publish(self, clock: bool) -> None:
+        w, t = self.world, self.world.t
+        if w.due(w.imu_every) and w.tick > 0:  # a sample covers the period ending now
+            for i, omega in enumerate(w.imu()):
+                self.pub_imu[i].publish(wire.encode_imu(t, self.names[i], omega))
+        if w.due(w.bearing_every):
+            for i, name in enumerate(self.names):
+                j, b = w.bearings(i)
+                self.pub_bearings[i].publish(
+                    wire.encode_vectors(t, wire.body_frame(name), j + 1, b))
+        if w.due(w.truth_every):
+            for i, pub in enumerate(self.pub_truth):
+                pub.publish(wire.encode_pose(t, wire.WORLD_FRAME, w.R[i], w.p[i]))
+        if clock:
+            self.pub_clock.publish(ClockMsg(clock=wire.to_stamp(t)))
+
+
+def main(args: list[str] | None = None) -> None:
+    # Spins until Ctrl-C; exits 1 by itself only if start-up fails.
+    raise SystemExit(run_node(SimulatorNode, 'simulator', args,
+                              until=lambda node: node.failed))
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,313 @@
+"""`bearing-pose run` and bearing_pose_estimation.launch, with stand-in node executables.
+
+The stand-ins are one small Python script installed as `estimator`, `simulator` and `monitor`
+in a temp folder (found through $BEARING_POSE_BIN_DIR). Each records its pid, command line,
+parameters and DDS environment to $STANDIN_DIR/<name>.json, then behaves as told by
+$STANDIN_<NAME> (default: loop until SIGINT; the monitor: write outputs and exit 0).
+No rclpy, no DDS: these tests check process management only.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from bearing_pose_estimation import launch
+from bearing_pose_estimation.cli import main
+from bearing_pose_estimation.scenario import load_scenario
+
+REPO = Path(__file__).resolve().parents[1]
+PAPER = REPO / 'config' / 'paper_8_agents.yaml'
+
+STANDIN = '''#!{python}
+import json, os, signal, subprocess, sys, time
+from pathlib import Path
+
+import yaml
+
+argv = sys.argv[1:]
+remaps = dict(argv[i + 1].split(':=', 1) for i, a in enumerate(argv) if a == '-r')
+name = remaps.get('__ns', '').strip('/') or remaps['__node']
+params_file = argv[argv.index('--params-file') + 1]
+params = next(iter(yaml.safe_load(Path(params_file).read_text()).values()))['ros__parameters']
+default = 'monitor' if name == 'monitor' else 'loop'
+behaviour = os.environ.get('STANDIN_' + name.upper(), default)
+record = dict(pid=os.getpid(), argv=sys.argv, params=params, behaviour=behaviour,
+              env=dict((k, os.environ.get(k)) for k in
+                       ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID', 'ROS_LOG_DIR')))
+
+
+def stop(signum, frame):
+    if behaviour == 'monitor':
+        write_outputs(partial=True)
+    sys.exit(0)
+
+
+def write_outputs(partial):
+    out = Path(params['out_dir'])
+    (out / 'metrics.csv').write_text('t,attitude_error_mean_rad,position_error_mean_m\\n')
+    final = dict(attitude_error_mean_rad=1e-3, attitude_error_max_rad=2e-3,
+                 position_error_mean_m=1e-2, position_error_max_m=2e-2)
+    summary = {{'final': final, 'partial': partial,
+               'time_to_attitude_error_mean_below_1e-3_rad_s': 1.5,
+               'time_to_position_error_mean_below_1e-2_m_s': None}}
+    (out / 'summary.json').write_text(json.dumps(summary))
+
+
+signal.signal(signal.SIGINT, stop)
+if behaviour == 'deaf':          # ignores SIGINT, dies on SIGTERM
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+if behaviour == 'stubborn':      # ignores SIGINT and SIGTERM: needs SIGKILL
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+if behaviour == 'spawn':         # leaves a grandchild in its process group, then exits
+    record['grandchild'] = subprocess.Popen(['sleep', '60']).pid
+if behaviour == 'shm':           # leaves a (fake) Fast DDS shared-memory file
+    Path(os.environ['STANDIN_SHM'], 'fastrtps_standin').write_text('')
+tmp = Path(os.environ['STANDIN_DIR'], name + '.tmp')
+tmp.write_text(json.dumps(record))
+tmp.rename(tmp.with_suffix('.json'))
+
+if behaviour == 'crash':
+    print('boom: something went wrong', flush=True)
+    sys.exit(3)
+if behaviour == 'spawn':
+    sys.exit(0)
+if behaviour == 'monitor':
+    delay = float(os.environ.get('STANDIN_MONITOR_DELAY', '0.3'))
+    for k in range(3):
+        print(f'  t = {{k}} s progress line', flush=True)
+        time.sleep(delay / 3)
+    write_outputs(partial=False)
+    sys.exit(0)
+while True:
+    time.sleep(0.05)
+'''
+
+
+@pytest.fixture
+def standins(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Install the stand-ins; return the folder where they record themselves."""
+    bin_dir, records = tmp_path / 'bin', tmp_path / 'records'
+    bin_dir.mkdir()
+    records.mkdir()
+    for name in launch.NODE_EXECUTABLES:
+        exe = bin_dir / name
+        exe.write_text(STANDIN.format(python=sys.executable))
+        exe.chmod(0o755)
+    monkeypatch.setenv(launch.BIN_DIR_ENV, str(bin_dir))
+    monkeypatch.setenv('STANDIN_DIR', str(records))
+    return records
+
+
+@pytest.fixture
+def small(tmp_path: Path) -> Path:
+    """A valid 3-agent scenario (2 leaders, 1 follower): 5 processes, quick to start."""
+    path = tmp_path / 'small.yaml'
+    assert main(['generate', '--agents', '3', '--out', str(path)]) == 0
+    return path
+
+
+def records(folder: Path) -> dict[str, dict]:
+    return {p.stem: json.loads(p.read_text()) for p in folder.glob('*.json')}
+
+
+def alive(pid: int) -> bool:
+    """From /proc (no psutil): a zombie counts as gone."""
+    try:
+        stat = Path(f'/proc/{pid}/stat').read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(')') + 2] not in 'ZX'
+
+
+def assert_all_gone(recs: dict[str, dict]) -> None:
+    pids = [r['pid'] for r in recs.values()] + [r['grandchild'] for r in recs.values()
+                                                 if 'grandchild' in r]
+    assert pids and not [p for p in pids if alive(p)]
+
+
+def wait_for_records(folder: Path, n: int, timeout: float = 10.0) -> dict[str, dict]:
+    deadline = time.monotonic() + timeout
+    while len(recs := records(folder)) < n:
+        assert time.monotonic() < deadline, f'only {sorted(recs)} started'
+        time.sleep(0.05)
+    return recs
+
+
+# ----------------------------------------------------------------------------- set-up
+def test_params_files_have_the_ros2_layout(tmp_path):
+    scenario = load_scenario(PAPER)
+    cfg = launch.RunConfig(scenario_file=PAPER, out_dir=tmp_path, duration=12.0, domain_id=7,
+                           real_time_factor=2.0, plots=False)
+    files = launch.write_params(scenario, cfg)
+    assert set(files) == {f'agent_{k}' for k in range(1, 9)} | {'simulator', 'monitor'}
+    assert all(f.parent == tmp_path / 'params' for f in files.values())
+    assert yaml.safe_load(files['agent_3'].read_text()) == {'/agent_3/estimator': {
+        'ros__parameters': {'scenario_file': str(PAPER), 'agent': 'agent_3',
+                            'use_sim_time': True}}}
+    assert yaml.safe_load(files['simulator'].read_text()) == {'/simulator': {
+        'ros__parameters': {'scenario_file': str(PAPER), 'duration': 12.0,
+                            'real_time_factor': 2.0, 'use_sim_time': False}}}
+    assert yaml.safe_load(files['monitor'].read_text()) == {'/monitor': {
+        'ros__parameters': {'scenario_file': str(PAPER), 'duration': 12.0,
+                            'out_dir': str(tmp_path), 'plots': False, 'use_sim_time': True}}}
+
+
+def test_plan_starts_estimators_then_monitor_then_simulator(tmp_path):
+    scenario = load_scenario(PAPER)
+    params = {n: tmp_path / f'{n}.yaml' for n in [a.name for a in scenario.agents]
+              + ['monitor', 'simulator']}
+    specs = launch.plan_processes(scenario, params, tmp_path, lambda n: Path('/x') / n)
+    assert [s.name for s in specs] == [f'agent_{k}' for k in range(1, 9)] + ['monitor',
+                                                                             'simulator']
+    assert specs[0].argv == ('/x/estimator', '--ros-args', '-r', '__ns:=/agent_1', '-r',
+                             '__node:=estimator', '-r', 'known_pose:=ground_truth',
+                             '--params-file', str(tmp_path / 'agent_1.yaml'))
+    assert 'known_pose:=ground_truth' not in specs[2].argv   # agent_3 is a follower
+    assert specs[9].argv == ('/x/simulator', '--ros-args', '-r', '__node:=simulator',
+                             '--params-file', str(tmp_path / 'simulator.yaml'))
+    assert [s.forward for s in specs] == [False] * 8 + [True, False]
+
+
+def test_executable_lookup_follows_ros2_run(tmp_path, monkeypatch):
+    monkeypatch.delenv(launch.BIN_DIR_ENV, raising=False)
+    prefixes = [tmp_path / 'ws1', tmp_path / 'ws2']
+    venv_bin = tmp_path / 'venv' / 'bin'
+    monkeypatch.setenv('AMENT_PREFIX_PATH', os.pathsep.join(map(str, prefixes)))
+    monkeypatch.setattr(sys, 'executable', str(venv_bin / 'python'))
+    with pytest.raises(launch.LaunchError, match='scripts/dev.sh setup.*colcon build'):
+        launch.find_executable('estimator')
+    for exe in (venv_bin / 'estimator', prefixes[1] / 'lib' / launch.PACKAGE / 'estimator'):
+        exe.parent.mkdir(parents=True)
+        exe.write_text('#!/bin/sh\n')
+        exe.chmod(0o755)
+        assert launch.find_executable('estimator') == exe   # the colcon install wins
+    assert launch.find_executable('estimator', bin_dir=venv_bin) == venv_bin / 'estimator'
+
+
+def test_bad_command_lines_exit_2(capsys):
+    for bad in (['--domain-id', '300'], ['--real-time-factor', '-1'], ['--timeout', '0'],
+                ['--duration', 'nan']):
+        with pytest.raises(SystemExit) as exc:
+            main(['run', str(PAPER), *bad])
+        assert exc.value.code == 2
+    assert '--domain-id must be in 0..232' in capsys.readouterr().err
+
+
+def test_missing_executables_name_the_fix(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv(launch.BIN_DIR_ENV, str(tmp_path))
+    assert main(['run', str(PAPER), '--out', str(tmp_path / 'out')]) == 1
+    assert "cannot find the node executable 'estimator'" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- runs
+def test_run_succeeds_and_leaves_nothing_behind(standins, tmp_path, monkeypatch, capsys):
+    shm = tmp_path / 'shm'
+    shm.mkdir()
+    monkeypatch.setattr(launch, 'SHM_GLOB', str(shm / 'fastrtps_*'))
+    monkeypatch.setenv('STANDIN_SHM', str(shm))
+    monkeypatch.setenv('STANDIN_SIMULATOR', 'shm')
+    monkeypatch.setenv('ROS_DOMAIN_ID', '0')
+    out = tmp_path / 'out'
+    assert main(['run', str(PAPER), '--out', str(out), '--duration', '5']) == 0
+    captured = capsys.readouterr()
+    recs = records(standins)
+    assert set(recs) == {f'agent_{k}' for k in range(1, 9)} | {'simulator', 'monitor'}
+    assert_all_gone(recs)
+    domain = str(1 + os.getpid() % 101)      # private, not the caller's 0
+    for rec in recs.values():
+        assert rec['env'] == {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
+                              'ROS_DOMAIN_ID': domain, 'ROS_LOG_DIR': str(out / 'logs' / 'ros')}
+    assert f'ROS_DOMAIN_ID={domain}' in captured.err
+    assert recs['agent_2']['params']['agent'] == 'agent_2'
+    assert 'known_pose:=ground_truth' in recs['agent_2']['argv']
+    assert recs['monitor']['params']['out_dir'] == str(out)
+    # The monitor's progress (and its summary) is forwarded live and kept in its log; `run`
+    # adds the files it wrote.
+    assert '  t = 2 s progress line' in captured.out
+    assert '  t = 2 s progress line' in (out / 'logs' / 'monitor.log').read_text()
+    assert str(out / 'summary.json') in captured.out
+    assert {p.name for p in (out / 'logs').glob('*.log')} == {f'{n}.log' for n in recs}
+    assert 'new Fast DDS shared-memory file(s)' in captured.err
+    assert 'shm clean' in captured.err
+
+
+def test_early_crash_is_reported_and_everything_stopped(standins, tmp_path, monkeypatch,
+                                                        capsys):
+    monkeypatch.setenv('STANDIN_AGENT_3', 'crash')
+    monkeypatch.setenv('STANDIN_MONITOR_DELAY', '60')
+    out = tmp_path / 'out'
+    t0 = time.monotonic()
+    assert main(['run', str(PAPER), '--out', str(out), '--domain-id', '77']) == 1
+    assert time.monotonic() - t0 < 10
+    err = capsys.readouterr().err
+    assert 'estimator agent_3 exited with code 3 early' in err
+    assert '| boom: something went wrong' in err
+    recs = records(standins)
+    assert {r['env']['ROS_DOMAIN_ID'] for r in recs.values()} == {'77'}
+    assert_all_gone(recs)
+    # The monitor was stopped with SIGINT and wrote its partial outputs.
+    assert json.loads((out / 'summary.json').read_text())['partial'] is True
+
+
+def test_timeout_stops_the_run(standins, small, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv('STANDIN_MONITOR_DELAY', '60')
+    assert main(['run', str(small), '--out', str(tmp_path / 'out'), '--timeout', '1']) == 1
+    assert 'monitor did not finish within the 1 s timeout' in capsys.readouterr().err
+    assert_all_gone(records(standins))
+
+
+def test_shutdown_escalates_and_reports_sigkill(standins, tmp_path, monkeypatch, capsys):
+    """SIGINT, then SIGTERM, then SIGKILL (named loudly); a grandchild left in a child's
+    process group is stopped too."""
+    params = tmp_path / 'p.yaml'
+    params.write_text('/x:\n  ros__parameters: {}\n')
+    exe = Path(os.environ[launch.BIN_DIR_ENV]) / 'simulator'
+    behaviours = ['loop', 'deaf', 'stubborn', 'spawn']
+    for b in behaviours:
+        monkeypatch.setenv(f'STANDIN_{b.upper()}', b)
+    with launch.ProcessGroup() as group:
+        for b in behaviours:
+            group.start(launch.ProcessSpec(b, 'standin', (str(exe), '--ros-args', '-r',
+                                           f'__node:={b}', '--params-file', str(params)),
+                                           tmp_path / 'logs' / f'{b}.log'))
+        recs = wait_for_records(standins, len(behaviours))
+        assert alive(recs['spawn']['grandchild'])
+        killed = group.shutdown(grace=0.5, term_grace=0.5)
+    assert killed == ['stubborn']
+    assert group.returncode('loop') == 0
+    assert group.returncode('deaf') == -signal.SIGTERM
+    assert group.returncode('stubborn') == -signal.SIGKILL
+    err = capsys.readouterr().err
+    assert 'sending SIGTERM: ' in err and 'standin stubborn' in err
+    assert 'KILLING it with SIGKILL' in err
+    assert_all_gone(recs)
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_interrupting_run_stops_every_child(standins, small, tmp_path, monkeypatch, sig):
+    monkeypatch.setenv('STANDIN_MONITOR_DELAY', '60')
+    out = tmp_path / 'out'
+    run = subprocess.Popen([sys.executable, '-m', 'bearing_pose_estimation.cli', 'run',
+                            str(small), '--out', str(out)],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        recs = wait_for_records(standins, 5)
+        run.send_signal(sig)
+        stdout, stderr = run.communicate(timeout=20)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 130, stderr
+    assert 'interrupted: all processes stopped' in stderr
+    assert '  t = 0 s progress line' in stdout
+    assert_all_gone(recs)
+    assert json.loads((out / 'summary.json').read_text())['partial'] is True
