@@ -117,6 +117,12 @@ def cmd_run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 1
     # The monitor's forwarded output has already shown the summary.
+    est_cpu = [result.cpu_s[a.name] for a in scenario.agents if a.name in result.cpu_s]
+    if est_cpu:
+        print(f'CPU: {sum(est_cpu) / len(est_cpu):.1f} s per estimator on average '
+              f'({100 * sum(est_cpu) / len(est_cpu) / result.wall_s:.0f} % of a core), '
+              f'simulator {result.cpu_s.get("simulator", float("nan")):.1f} s, over '
+              f'{result.wall_s:.1f} s wall for {cfg.duration:g} s simulated')
     print(f'wall time {result.wall_s:.1f} s; wrote ' + ', '.join(str(f) for f in result.files)
           + f'; parameter files in {cfg.params_dir}; logs in {cfg.logs_dir}')
     return 0

@@ -16,6 +16,7 @@ Parameters: either ``scenario_file`` (+ ``agent``, default: the namespace) or th
 """
 from __future__ import annotations
 
+import time
 from collections import Counter
 
 import numpy as np
@@ -80,6 +81,7 @@ class EstimatorNode(Node):
             self.est = self._make_estimator(self.start_time)
         self.rejected: Counter[str] = Counter()
         self._published_k = -1
+        self._wall_first_step: float | None = None
 
         qos_in, qos_est = wire.SENSOR_QOS, wire.ESTIMATE_QOS
         self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE, qos_est)
@@ -205,9 +207,20 @@ class EstimatorNode(Node):
         if self.est is None:
             return
         while self.est.steps_ready() > 0:
+            if self._wall_first_step is None:
+                self._wall_first_step = time.monotonic()
             self.est.advance(1)
             if self.est.k % self.publish_every == 0:
                 self._publish(world=True)
+
+    def destroy_node(self) -> None:
+        """Log what this estimator achieved: steps, the step rate in wall time, rejections."""
+        if self.est is not None and self._wall_first_step is not None:
+            wall = max(time.monotonic() - self._wall_first_step, 1e-9)
+            self.get_logger().info(
+                f'{self.est.k} steps ({self.est.k * self.h:.2f} s of state time) in {wall:.1f} s '
+                f'wall: {self.est.k / wall:.1f} steps/s; rejected: {dict(self.rejected) or 0}')
+        super().destroy_node()
 
     def _publish(self, world: bool, force: bool = False) -> None:
         est = self.est

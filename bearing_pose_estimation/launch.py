@@ -388,6 +388,18 @@ class ProcessGroup:
                 return children
             time.sleep(POLL_S)
 
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU time (user + system) used so far by each live child, from /proc (Linux)."""
+        tick = os.sysconf('SC_CLK_TCK')
+        out = {}
+        for name, child in self._children.items():
+            try:
+                fields = Path(f'/proc/{child.proc.pid}/stat').read_text().rsplit(')', 1)[1].split()
+            except OSError:
+                continue  # already gone
+            out[name] = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+        return out
+
     def shutdown(self, grace: float = 10.0, term_grace: float = 5.0) -> list[str]:
         """Stop every child: SIGINT in reverse start order, up to ``grace`` s in total; then
         SIGTERM and ``term_grace`` s more; then SIGKILL, reported loudly. Returns the names
@@ -448,6 +460,7 @@ class RunResult:
     failure: Failure | None = None
     killed: list[str] = field(default_factory=list)
     files: list[Path] = field(default_factory=list)   # outputs written by this run
+    cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per live process
 
 
 def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = None) -> RunResult:
@@ -475,6 +488,7 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
                 hint = ('; stopping everything. Fix: check the logs; if the run is only slow, '
                         'raise --timeout') if result.failure.timed_out else ''
                 print(f'error: {result.failure.format()}{hint}', file=sys.stderr)
+            result.cpu_s = group.cpu_seconds()
             result.killed = group.shutdown()
     finally:
         result.wall_s = time.perf_counter() - wall

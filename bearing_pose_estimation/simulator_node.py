@@ -72,6 +72,7 @@ class SimulatorNode(Node):
                                      lambda msg, k=k: self._on_estimate(k, msg), wire.ESTIMATE_QOS)
 
         self.state = 'waiting'
+        self.lags: list[float] = []
         self.failed = Future()  # completes only if start-up fails; otherwise spin until Ctrl-C
         self.wall_start = time.monotonic()
         self.sim_wall_start = 0.0
@@ -143,11 +144,16 @@ class SimulatorNode(Node):
         while w.t + w.dt <= limit + 1e-9:
             w.step()
             self._publish(clock=w.tick % self.steps_per_clock == 0)
+        # How far the slowest estimator's published state trails the clock (sim seconds).
+        self.lags.append(w.t - float(self.progress.min()))
         if w.t >= self.duration - 1e-9:
             self.state = 'done'
             wall = time.monotonic() - self.sim_wall_start
+            lag = np.array(self.lags) * 1e3
             self.get_logger().info(f'reached t = {w.t:g} s in {wall:.1f} s wall '
-                                   f'(x{w.t / max(wall, 1e-9):.2f} real time)')
+                                   f'(x{w.t / max(wall, 1e-9):.2f} real time); slowest estimate '
+                                   f'behind the clock: median {np.median(lag):.1f} ms, '
+                                   f'max {lag.max():.1f} ms of sim time')
 
     def _publish(self, clock: bool) -> None:
         w, t = self.world, self.world.t

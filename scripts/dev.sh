@@ -10,7 +10,7 @@ STAMP="$VENV/.dev-setup-stamp"
 # Interpreter used to create the venv; the ROS wheels need CPython 3.11.
 BASE_PYTHON="${PYTHON:-python3}"
 # What `scripts/dev.sh demo` runs (extra arguments are appended).
-DEMO_CMD=("$VENV/bin/bearing-pose" simulate config/paper_8_agents.yaml
+DEMO_CMD=("$VENV/bin/bearing-pose" run config/paper_8_agents.yaml
           --duration 60 --out results/paper_8_agents)
 
 # Keep any DDS traffic on this machine, on the project's domain unless the caller chose one.

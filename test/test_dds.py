@@ -82,10 +82,13 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
                real_time_factor=1.0)
 
         def enough() -> bool:
-            # The simulator does not wait for this observer: it may match a little late.
-            # Collect one second of simulated time after it does.
-            est, imu = obs.messages['/agent_3/estimate'], obs.messages['/agent_3/imu']
-            return (len(est) > 1 and len(imu) > 100 and wire.from_stamp(est[-1].header.stamp)
+            # The simulator does not wait for this observer, and under load discovery of each
+            # participant can lag: wait until every source has delivered a second of data.
+            m = obs.messages
+            est, imu = m['/agent_3/estimate'], m['/agent_3/imu']
+            return (len(imu) > 100 and len(m['/agent_1/world_bearings']) > 30
+                    and all(len(m[t]) > 10 for t in topics)
+                    and wire.from_stamp(est[-1].header.stamp)
                     >= wire.from_stamp(est[0].header.stamp) + 1.0)
         assert obs.spin_until(enough, timeout=120), {k: len(v) for k, v in obs.messages.items()}
         group.shutdown()

@@ -247,7 +247,8 @@ def test_early_crash_is_reported_and_everything_stopped(standins, tmp_path, monk
     out = tmp_path / 'out'
     t0 = time.monotonic()
     assert main(['run', str(PAPER), '--out', str(out), '--domain-id', '77']) == 1
-    assert time.monotonic() - t0 < 10
+    # Reported as soon as it happens, not when the monitor would finish (60 s here).
+    assert time.monotonic() - t0 < 45
     err = capsys.readouterr().err
     assert 'estimator agent_3 exited with code 3 early' in err
     assert '| boom: something went wrong' in err
