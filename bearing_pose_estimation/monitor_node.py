@@ -21,8 +21,7 @@ from rclpy.task import Future
 
 from . import msg_defs as wire
 from .metrics import format_summary, summarize, write_metrics_csv, write_summary_json
-from .node_main import run_node
-from .scenario import ScenarioError, load_scenario
+from .node_main import run_node, scenario_parameter
 from .simulator import Recording, pose_errors
 
 
@@ -30,11 +29,7 @@ class MonitorNode(Node):
     def __init__(self) -> None:
         super().__init__('monitor')
         p = self.declare_parameter
-        scenario_file = p('scenario_file', '').value
-        if not scenario_file:
-            raise ScenarioError('parameter scenario_file is empty. Fix: pass '
-                                '-p scenario_file:=/path/to/scenario.yaml')
-        self.scenario = s = load_scenario(scenario_file)
+        self.scenario = s = scenario_parameter(self)
         self.duration = p('duration', 0.0).value or s.duration
         self.out_dir = Path(p('out_dir', 'results').value)
         self.record_ns = int(round(p('record_every', 0.1).value * 1e9))

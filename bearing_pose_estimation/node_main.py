@@ -14,7 +14,16 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future
 
-from .scenario import ScenarioError
+from .scenario import Scenario, ScenarioError, load_scenario
+
+
+def scenario_parameter(node: Node) -> Scenario:
+    """Declare the required ``scenario_file`` parameter and load the scenario it names."""
+    path = node.declare_parameter('scenario_file', '').value
+    if not path:
+        raise ScenarioError('parameter scenario_file is empty. Fix: pass '
+                            '-p scenario_file:=/path/to/scenario.yaml')
+    return load_scenario(path)
 
 
 def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None,

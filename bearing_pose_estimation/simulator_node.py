@@ -28,8 +28,7 @@ from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from . import msg_defs as wire
-from .node_main import run_node
-from .scenario import ScenarioError, load_scenario
+from .node_main import run_node, scenario_parameter
 from .world import World
 
 # Sim time advanced per wall-timer callback at most: keeps the node responsive to Ctrl-C and to
@@ -41,11 +40,7 @@ class SimulatorNode(Node):
     def __init__(self) -> None:
         super().__init__('simulator')
         p = self.declare_parameter
-        scenario_file = p('scenario_file', '').value
-        if not scenario_file:
-            raise ScenarioError('parameter scenario_file is empty. Fix: pass '
-                                '-p scenario_file:=/path/to/scenario.yaml')
-        self.scenario = s = load_scenario(scenario_file)
+        self.scenario = s = scenario_parameter(self)
         self.duration = p('duration', 0.0).value or s.duration
         self.lockstep = p('lockstep', True).value
         self.max_lag = p('max_lag', 3.0 / s.publish_rate).value
