@@ -1,4 +1,7 @@
-"""``bearing-pose``: check, simulate and generate scenarios, and run them over DDS.
+"""``bearing-pose``: check, simulate and generate scenarios, run Monte Carlo studies, and run
+scenarios over DDS.
+
+No file is ever overwritten without ``--force``.
 
 Exit codes: 0 success; 1 invalid scenario, failed check, or a file it refuses to overwrite;
 2 bad command line.
@@ -29,13 +32,23 @@ def _load_checked(path: str) -> Scenario:
     return scenario
 
 
-def _out_dir(arg: str) -> Path:
+def _out_dir(arg: str | Path, outputs: list[str], force: bool) -> Path:
+    """Create the output directory. Unless ``force``, refuse (ScenarioError) if it already
+    holds any of ``outputs`` (paths relative to it): no file is overwritten without --force."""
     out = Path(arg)
     if out.exists() and not out.is_dir():
         raise ScenarioError(f'{out}: --out must be a directory, and this is a file. '
                             'Fix: choose another --out (outputs never overwrite other files)')
+    existing = [out / name for name in outputs if (out / name).exists()] if not force else []
+    if existing:
+        more = f' (and {len(existing) - 1} more of its outputs)' if len(existing) > 1 else ''
+        raise ScenarioError(f'{existing[0]}: exists{more}; refusing to overwrite it. '
+                            'Fix: pass --force to overwrite, or choose another --out')
     out.mkdir(parents=True, exist_ok=True)
     return out
+
+
+PLOT_FILES = ['fig2_attitude_error.png', 'fig3_position_error.png']
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -57,7 +70,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .simulator import BatchSimulator
 
     scenario = _load_checked(args.scenario)
-    out = _out_dir(args.out)
+    out = _out_dir(args.out, ['metrics.csv', 'summary.json']
+                   + ([] if args.no_plots else PLOT_FILES), args.force)
     duration = args.duration if args.duration is not None else scenario.duration
     sim = BatchSimulator(scenario, step=args.step)
 
@@ -84,11 +98,50 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_montecarlo(args: argparse.Namespace) -> int:
+    from . import montecarlo as mc
+
+    scenario = _load_checked(args.scenario)
+    out = _out_dir(args.out or f'results/{scenario.name}_montecarlo', list(mc.OUTPUT_FILES),
+                   args.force)
+    duration = args.duration if args.duration is not None else scenario.duration
+    seed = args.seed if args.seed is not None else scenario.noise.seed
+    jobs = min(args.jobs or os.cpu_count() or 1, args.runs)
+    seeded = ('noise and random initial estimates' if scenario.random_init is not None
+              else 'noise; initial estimates as given')
+    print(f'monte carlo {scenario.name}: {args.runs} runs of {duration:g} s, seeds {seed}..'
+          f'{seed + args.runs - 1} ({seeded}), {jobs} process(es)', file=sys.stderr)
+
+    def progress(done: int, total: int, r: mc.RunResult) -> None:
+        v = r.values
+        print(f'  {done}/{total} runs done (run {r.run}, seed {r.seed}): steady mean attitude '
+              f'error {v["steady_attitude_error_rad"]:.2e} rad, position '
+              f'{v["steady_position_error_m"]:.2e} m', file=sys.stderr, flush=True)
+
+    wall = time.perf_counter()
+    results = mc.run_montecarlo(args.scenario, args.runs, seed, duration, jobs, progress)
+    wall = time.perf_counter() - wall
+    summary = mc.summarize(results, scenario=scenario.name, source=scenario.source,
+                           first_seed=seed, duration_s=duration, step_s=scenario.step,
+                           steady_window_s=mc.STEADY_FRACTION * duration, jobs=jobs,
+                           wall_time_s=round(wall, 3))
+    files = [out / name for name in mc.OUTPUT_FILES]
+    mc.write_runs_csv(results, files[0])
+    mc.write_summary_json(summary, files[1])
+    mc.write_plot(results, files[2])
+    print(mc.format_table(summary))
+    print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
+    return 0
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from . import launch
 
     scenario = _load_checked(args.scenario)
-    out = _out_dir(args.out or f'results/{scenario.name}_dds').resolve()
+    processes = [a.name for a in scenario.agents] + ['simulator', 'monitor']
+    outputs = (['metrics.csv', 'summary.json'] + ([] if args.no_plots else PLOT_FILES)
+               + [f'params/{p}.yaml' for p in processes] + [f'logs/{p}.log' for p in processes])
+    out = _out_dir(args.out or f'results/{scenario.name}_dds', outputs, args.force).resolve()
     domain_id = args.domain_id if args.domain_id is not None else launch.private_domain_id()
     how = 'from --domain-id' if args.domain_id is not None else 'private to this run'
     if args.domain_id is None and os.environ.get('ROS_DOMAIN_ID'):
@@ -154,7 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='bearing-pose',
         description='Distributed bearing-based pose estimation (Boughellaba & Tayebi): '
-                    'check, simulate and generate scenarios.')
+                    'check, simulate and generate scenarios, run Monte Carlo studies, and run '
+                    'scenarios over DDS. No file is overwritten without --force.')
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
 
     p = sub.add_parser('check', help="check a scenario against the paper's Assumption 2",
@@ -167,7 +221,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser('simulate', help='run the batch simulator; write metrics, summary, plots',
                        description='Run all agents in one process (no ROS). Writes '
                        'DIR/metrics.csv, DIR/summary.json, DIR/fig2_attitude_error.png and '
-                       'DIR/fig3_position_error.png (overwriting those four files only).')
+                       'DIR/fig3_position_error.png; refuses to overwrite any of them without '
+                       '--force.')
     p.add_argument('scenario', help='scenario YAML file')
     p.add_argument('--duration', type=float, help='simulated time [s] (default: the scenario\'s)')
     p.add_argument('--out', default='results', help='output directory (default: results)')
@@ -176,7 +231,28 @@ def build_parser() -> argparse.ArgumentParser:
                    help='metrics row interval [s] (default: 0.1)')
     p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
+    p.add_argument('--force', action='store_true',
+                   help='overwrite outputs already in DIR')
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser('montecarlo', help='many batch runs with different seeds; statistics',
+                       description='Run the batch simulator N times on all cores. Run i uses '
+                       'seed S + i for the noise and for random initial estimates (explicit '
+                       'ones stay), so any run can be replayed. Writes DIR/runs.csv (one row '
+                       'per run), DIR/summary.json (statistics) and DIR/montecarlo.png; '
+                       'refuses to overwrite any of them without --force.')
+    p.add_argument('scenario', help='scenario YAML file')
+    p.add_argument('--runs', type=int, required=True, metavar='N', help='number of runs (>= 1)')
+    p.add_argument('--seed', type=int, metavar='S',
+                   help="first seed (default: the scenario's noise.seed)")
+    p.add_argument('--duration', type=float, metavar='D',
+                   help='simulated time per run [s] (default: the scenario\'s)')
+    p.add_argument('--out', metavar='DIR',
+                   help='output directory (default: results/<scenario name>_montecarlo)')
+    p.add_argument('--jobs', type=int, metavar='J',
+                   help='worker processes (default: the number of cores)')
+    p.add_argument('--force', action='store_true', help='overwrite outputs already in DIR')
+    p.set_defaults(func=cmd_montecarlo)
 
     p = sub.add_parser('run', help='run every agent as its own ROS 2 process over DDS',
                        description='Start one estimator process per agent, the monitor and the '
@@ -198,6 +274,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--timeout', type=float, metavar='S',
                    help='wall-time safety net [s] (default: 10 x duration / F + 120 for F < 1, '
                    'else 10 x duration + 120)')
+    p.add_argument('--force', action='store_true',
+                   help='overwrite outputs already in DIR (results, params/, logs/)')
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser('generate', help='write a random valid scenario',
@@ -218,6 +296,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == 'generate' and args.agents < 3:
         parser.error('--agents must be at least 3 (two leaders and one follower)')
+    if args.command == 'montecarlo':
+        if args.runs < 1:
+            parser.error('--runs must be at least 1')
+        if args.jobs is not None and args.jobs < 1:
+            parser.error('--jobs must be at least 1')
     if getattr(args, 'domain_id', None) is not None and not 0 <= args.domain_id <= 232:
         parser.error('--domain-id must be in 0..232 (ROS 2 domain ids)')
     rtf = getattr(args, 'real_time_factor', None)

@@ -6,50 +6,90 @@ sample and on a timer at ``frequency``) and publishes. Subscribes (relative name
 ``imu`` (sensor_msgs/Imu), ``bearings`` (sensor_msgs/PointCloud2), ``known_pose`` (leaders), and
 ``/<j>/estimate`` + ``/<j>/world_bearings`` of each neighbour j. Publishes ``estimate``
 (geometry_msgs/PoseStamped in ``world``) and ``world_bearings`` (what its listeners need) every
-``publish_rate`` period, on exact multiples of it.
+``publish_rate`` period, on exact multiples of it, and its health on ``/diagnostics``.
 
-Parameters: either ``scenario_file`` (+ ``agent``, default: the namespace) or the explicit set
-``agent_id``, ``leader``, ``neighbours``, ``neighbour_ids``, ``neighbour_gains``,
-``initial_position``, ``initial_orientation`` (x, y, z, w); plus ``frequency`` [Hz], ``k_R``,
-``k_p`` (0 = from the scenario, or 100 Hz / 1.0 in explicit mode) and ``start_time`` [s]
-(the scenario's t = 0 on the node's clock; negative: the first gyro sample's stamp).
+Bad input is rejected, counted by cause, warned about (throttled) and reported in the
+diagnostics; it never stops the node and never reaches the estimate.
+
+Parameters (read-only): either ``scenario_file`` (+ ``agent``, default: the namespace) or the
+explicit set ``agent_id``, ``leader``, ``neighbours``, ``neighbour_ids``, ``neighbour_gains``,
+``initial_position``, ``initial_orientation`` (x, y, z, w); ``frequency`` [Hz], ``publish_rate``
+[Hz], ``k_R``, ``k_p`` (0: from the scenario, or 100 Hz / 50 Hz / 1.0 in explicit mode);
+``start_time`` [s] (the scenario's t = 0 on the node's clock; negative: the first gyro stamp);
+the input limits ``sensor_timeout``, ``neighbour_timeout``, ``max_rate``; the expected frames
+``imu_frame``, ``bearings_frame`` (empty: accept any); ``diagnostics_period`` [s]; and the fault
+injection for tests and studies: ``inject_drop_rate`` (probability of dropping each neighbour
+message), ``inject_delay`` [s] (extra delay of each neighbour message), ``inject_seed``.
 """
 from __future__ import annotations
 
+import heapq
 import time
 from collections import Counter
+from collections.abc import Callable
 
 import numpy as np
-from rcl_interfaces.msg import ParameterDescriptor
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from . import msg_defs as wire
-from .agent import AgentEstimator, estimator_for
+from . import so3
+from .agent import AgentEstimator, Limits, estimator_for
 from .node_main import run_node
 from .observer import CascadeGains
 from .scenario import ScenarioError, load_scenario
 
+# Causes that are events of the time rules, not bad input (see AgentEstimator).
+_TIME_EVENTS = {'time_jump': 'the clock jumped back: restarted from the initial estimate',
+                'gyro_gap': 'gyro gap: the state time restarts after it, keeping the estimate'}
 
-def _describe(text: str) -> ParameterDescriptor:
-    return ParameterDescriptor(description=text)
+
+def _described(text: str, low: float | None = None, high: float | None = None
+               ) -> ParameterDescriptor:
+    d = ParameterDescriptor(description=text, read_only=True)
+    if low is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
+    return d
 
 
 class EstimatorNode(Node):
     def __init__(self) -> None:
         super().__init__('estimator')
         p = self.declare_parameter
-        scenario_file = p('scenario_file', '', _describe('scenario YAML; empty: explicit '
+        scenario_file = p('scenario_file', '', _described('scenario YAML; empty: explicit '
                                                           'parameters')).value
         default_agent = self.get_namespace().strip('/').split('/')[-1]
-        self.agent = p('agent', default_agent, _describe('agent name (default: namespace)')).value
-        frequency = p('frequency', 0.0, _describe('estimator rate [Hz]; 0: scenario / 100')).value
-        publish_rate = p('publish_rate', 0.0, _describe('estimate and world-bearing rate [Hz]; '
-                                                        '0: scenario / 50')).value
-        k_R = p('k_R', 0.0, _describe('attitude gain; 0: scenario / 1')).value
-        k_p = p('k_p', 0.0, _describe('position gain; 0: scenario / 1')).value
-        self.start_time = p('start_time', 0.0, _describe('t = 0 of the scenario on this clock [s]; '
-                                                        'negative: first gyro stamp')).value
+        self.agent = p('agent', default_agent, _described('agent name (default: namespace)')).value
+        frequency = p('frequency', 0.0, _described('estimator rate [Hz]; 0: scenario / 100',
+                                                   0.0, 10000.0)).value
+        publish_rate = p('publish_rate', 0.0, _described('estimate and world-bearing rate [Hz];'
+                                                         ' 0: scenario / 50', 0.0, 10000.0)).value
+        k_R = p('k_R', 0.0, _described('attitude gain; 0: scenario / 1', 0.0, 1e6)).value
+        k_p = p('k_p', 0.0, _described('position gain; 0: scenario / 1', 0.0, 1e6)).value
+        self.start_time = p('start_time', 0.0, _described(
+            't = 0 of the scenario on this clock [s]; negative: the first gyro stamp')).value
+        d = Limits()
+        limits = Limits(
+            sensor_timeout=p('sensor_timeout', d.sensor_timeout, _described(
+                'own bearings older than this are not used [s]', 0.0, 1e6)).value,
+            neighbour_timeout=p('neighbour_timeout', d.neighbour_timeout, _described(
+                'a neighbour silent for longer is stale and not used [s]', 0.0, 1e6)).value,
+            max_rate=p('max_rate', d.max_rate, _described(
+                'gyro rates above this are rejected [rad/s]', 0.0, 1e6)).value)
+        self.imu_frame = p('imu_frame', wire.body_frame(self.agent), _described(
+            'expected Imu frame_id; empty: any')).value
+        self.bearings_frame = p('bearings_frame', wire.body_frame(self.agent), _described(
+            'expected bearings frame_id; empty: any')).value
+        diagnostics_period = p('diagnostics_period', 1.0, _described(
+            '/diagnostics period [s]', 0.01, 3600.0)).value
+        self.drop_rate = p('inject_drop_rate', 0.0, _described(
+            'fault injection: probability of dropping each neighbour message', 0.0, 1.0)).value
+        self.delay = p('inject_delay', 0.0, _described(
+            'fault injection: extra delay of each neighbour message [s]', 0.0, 60.0)).value
+        self.rng = np.random.default_rng(p('inject_seed', 0, _described(
+            'fault injection: random seed')).value)
         explicit = {
             'agent_id': p('agent_id', 0).value,
             'leader': p('leader', False).value,
@@ -64,10 +104,10 @@ class EstimatorNode(Node):
             if self.agent not in scenario.index:
                 raise ScenarioError(f'{scenario_file}: agent {self.agent!r} is not in the '
                                     'scenario. Fix: set the `agent` parameter or the namespace')
-            template = estimator_for(scenario, self.agent)
+            template = estimator_for(scenario, self.agent, limits)
             publish_rate = publish_rate or scenario.publish_rate
         else:
-            template = self._explicit_estimator(explicit)
+            template = self._explicit_estimator(explicit, limits)
             publish_rate = publish_rate or 50.0
         gains = CascadeGains(k_R=k_R or template.gains.k_R, k_p=k_p or template.gains.k_p)
         self.template = template
@@ -80,12 +120,17 @@ class EstimatorNode(Node):
         if self.start_time >= 0.0:
             self.est = self._make_estimator(self.start_time)
         self.rejected: Counter[str] = Counter()
+        self.events: Counter[str] = Counter()
         self._published_k = -1
         self._wall_first_step: float | None = None
+        self._delayed: list[tuple[float, int, Callable[[], None]]] = []  # (release, seq, fn)
+        self._seq = 0
+        self._diag_steps = (0, time.monotonic())
 
         qos_in, qos_est = wire.SENSOR_QOS, wire.ESTIMATE_QOS
         self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE, qos_est)
         self.pub_world = self.create_publisher(wire.PointCloud2, wire.WORLD_BEARINGS, qos_est)
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         subs = [self.create_subscription(wire.Imu, wire.IMU, self.on_imu, qos_in),
                 self.create_subscription(wire.PointCloud2, wire.BEARINGS, self.on_bearings,
                                          qos_in)]
@@ -96,25 +141,29 @@ class EstimatorNode(Node):
         for nb in template.neighbours:
             subs.append(self.create_subscription(
                 wire.PoseStamped, wire.topic(nb.name, wire.ESTIMATE),
-                lambda msg, j=nb.agent_id: self.on_neighbour_estimate(j, msg), qos_est))
+                lambda msg, j=nb.agent_id: self._link(self.on_neighbour_estimate, j, msg),
+                qos_est))
             subs.append(self.create_subscription(
                 wire.PointCloud2, wire.topic(nb.name, wire.WORLD_BEARINGS),
-                lambda msg, j=nb.agent_id: self.on_neighbour_bearings(j, msg), qos_est))
+                lambda msg, j=nb.agent_id: self._link(self.on_neighbour_bearings, j, msg),
+                qos_est))
         self._subs = subs
         self.timer = self.create_timer(self.h, self.on_timer)
+        self.diag_timer = self.create_timer(diagnostics_period, self.publish_diagnostics)
         # Until the first gyro sample, announce the t0 state on a wall-clock timer, but only once
         # every subscription has a publisher: best-effort sensor readers drop what arrives before
         # they are matched, so the simulator starts the clock only after hearing from everyone.
         self.ready_timer = self.create_timer(
             0.05, self.on_ready_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
         role = 'leader' if template.leader else f'{len(template.neighbours)} neighbours'
+        faults = (f'; INJECTING drop {self.drop_rate:g}, delay {self.delay:g} s on neighbour '
+                  'messages' if self.drop_rate or self.delay else '')
         self.get_logger().info(f'{self.agent} (id {template.agent_id}, {role}) at '
-                               f'{1.0 / self.h:g} Hz, k_R={gains.k_R:g}, k_p={gains.k_p:g}')
+                               f'{1.0 / self.h:g} Hz, k_R={gains.k_R:g}, k_p={gains.k_p:g}'
+                               + faults)
 
     # --------------------------------------------------------------------------- set-up
-    def _explicit_estimator(self, e: dict) -> AgentEstimator:
-        from scipy.spatial.transform import Rotation
-
+    def _explicit_estimator(self, e: dict, limits: Limits) -> AgentEstimator:
         names = [n for n in e['neighbours'] if n]
         if e['agent_id'] <= 0:
             raise ScenarioError('parameter agent_id must be > 0 without a scenario_file. Fix: '
@@ -124,50 +173,75 @@ class EstimatorNode(Node):
             raise ScenarioError('parameters neighbours, neighbour_ids and neighbour_gains need '
                                 'the same length >= 2 for a follower. Fix: list each neighbour '
                                 'once in all three')
+        if any(not (k > 0 and np.isfinite(k)) for k in e['neighbour_gains']) and not e['leader']:
+            raise ScenarioError('parameter neighbour_gains: every gain must be > 0. Fix: use '
+                                'positive gains (e.g. 1.0)')
+        q = np.asarray(e['initial_orientation'], dtype=float)
+        p0 = np.asarray(e['initial_position'], dtype=float)
+        if q.shape != (4,) or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1) > 1e-3:
+            raise ScenarioError('parameter initial_orientation must be a unit quaternion '
+                                '[x, y, z, w]. Fix: normalise it')
+        if p0.shape != (3,) or not np.all(np.isfinite(p0)):
+            raise ScenarioError('parameter initial_position must be 3 finite numbers [m]')
         nbrs = [] if e['leader'] else list(zip(names, e['neighbour_ids'], e['neighbour_gains']))
         return AgentEstimator(agent_id=e['agent_id'], neighbours=nbrs, gains=CascadeGains(),
-                              step=0.01, leader=e['leader'],
-                              R0=Rotation.from_quat(e['initial_orientation']).as_matrix(),
-                              p0=np.array(e['initial_position'], dtype=float))
+                              step=0.01, leader=e['leader'], R0=so3.from_quat(q), p0=p0,
+                              limits=limits)
 
     def _make_estimator(self, t0: float) -> AgentEstimator:
         t = self.template
         return AgentEstimator(agent_id=t.agent_id,
                               neighbours=[(n.name, n.agent_id, n.k) for n in t.neighbours],
-                              gains=self.gains, step=self.h, R0=t.R_hat[0], p0=t.p_hat[0],
-                              t0=t0, leader=t.leader)
+                              gains=self.gains, step=self.h, R0=t.R0, p0=t.p0, t0=t0,
+                              leader=t.leader, known_ids=t.known_ids, limits=t.limits)
 
-    def _reject(self, cause: str, detail: str) -> None:
-        self.rejected[cause] += 1
-        self.get_logger().warning(f'rejected {cause}: {detail} ({self.rejected[cause]} so far)',
+    def _reject(self, cause: str, detail: str, count: int = 1) -> None:
+        self.rejected[cause] += count
+        self.get_logger().warning(f'rejected {detail}: {cause} ({self.rejected[cause]} so far)',
                                   throttle_duration_sec=5.0)
+
+    def _now(self) -> float | None:
+        """The node's clock [s], or None before a simulated clock has ticked (a late joiner's
+        first samples must not look like they come from the future)."""
+        ns = self.get_clock().now().nanoseconds
+        return ns * 1e-9 if ns > 0 else None
 
     # --------------------------------------------------------------------------- inputs
     def on_imu(self, msg: wire.Imu) -> None:
+        if self.imu_frame and msg.header.frame_id != self.imu_frame:
+            return self._reject('wrong_frame', f'imu in frame {msg.header.frame_id!r}')
         try:
             t, omega = wire.decode_imu(msg)
         except wire.WireError as exc:
-            return self._reject('imu', str(exc))
+            return self._reject('malformed', f'imu ({exc})')
         if self.est is None:
             self.est = self._make_estimator(t)
             return
         if not self.ready_timer.is_canceled():
             self.ready_timer.cancel()
-        if not self.est.add_gyro(t, omega):
-            return self._reject('imu', f'stamp {t:.6f} not newer than {self.est.gyro.end:.6f}')
+        cause = self.est.add_gyro(t, omega, now=self._now())
+        if cause in _TIME_EVENTS:
+            self.events[cause] += 1
+            self.get_logger().warning(f'{_TIME_EVENTS[cause]} (t = {t:.3f} s)')
+            self._published_k = -1
+        elif cause is not None:
+            return self._reject(cause, f'imu sample at {t:.6f}')
         # Steps run as soon as the gyro covers them. Waiting for the timer alone can deadlock
         # a lockstep simulation: a clock tick handled before the IMU sample of the same
         # instant fires the timer too early, and the clock then waits for this agent.
         self.on_timer()
 
     def on_bearings(self, msg: wire.PointCloud2) -> None:
+        if self.bearings_frame and msg.header.frame_id != self.bearings_frame:
+            return self._reject('wrong_frame', f'bearings in frame {msg.header.frame_id!r}')
         try:
             t, ids, vectors = wire.decode_vectors(msg)
         except wire.WireError as exc:
-            return self._reject('bearings', str(exc))
+            return self._reject('malformed', f'bearings ({exc})')
         if self.est is None:
             return
-        self.est.add_bearings(t, ids, vectors)
+        for cause, n in Counter(self.est.add_bearings(t, ids, vectors)).items():
+            self._reject(cause, f'{n} bearing(s) at {t:.6f}', n)
         if self.est.k == 0 and self.est.gyro.end <= self.est.t0:
             self._publish(world=True)  # the t0 world bearings, before the first step
 
@@ -175,26 +249,53 @@ class EstimatorNode(Node):
         try:
             t, R, p = wire.decode_pose(msg)
         except wire.WireError as exc:
-            return self._reject('known_pose', str(exc))
+            return self._reject('malformed', f'known_pose ({exc})')
         if self.est is not None:
-            self.est.set_known_pose(t, R, p)
+            cause = self.est.set_known_pose(t, R, p)
+            if cause is not None:
+                self._reject(cause, 'known_pose')
+
+    def _link(self, handler: Callable[[int, object], None], agent_id: int, msg: object) -> None:
+        """A neighbour message through the (optional) injected loss and delay."""
+        if self.drop_rate and self.rng.uniform() < self.drop_rate:
+            self.events['injected_drop'] += 1
+            return
+        if self.delay > 0.0:
+            self._seq += 1
+            heapq.heappush(self._delayed, ((self._now() or 0.0) + self.delay, self._seq,
+                                           lambda: handler(agent_id, msg)))
+            return
+        handler(agent_id, msg)
+
+    def _release_delayed(self) -> None:
+        now = self._now() or 0.0
+        while self._delayed and self._delayed[0][0] <= now:
+            heapq.heappop(self._delayed)[2]()
 
     def on_neighbour_estimate(self, agent_id: int, msg: wire.PoseStamped) -> None:
+        if msg.header.frame_id != wire.WORLD_FRAME:
+            return self._reject('wrong_frame', f'estimate of agent {agent_id} in frame '
+                                f'{msg.header.frame_id!r}')
         try:
             _, _, p = wire.decode_pose(msg)
         except wire.WireError as exc:
-            return self._reject('neighbour_estimate', str(exc))
+            return self._reject('malformed', f'estimate of agent {agent_id} ({exc})')
         self._nbr_p_hat[agent_id] = p
 
     def on_neighbour_bearings(self, agent_id: int, msg: wire.PointCloud2) -> None:
+        if msg.header.frame_id != wire.WORLD_FRAME:
+            return self._reject('wrong_frame', f'world_bearings of agent {agent_id} in frame '
+                                f'{msg.header.frame_id!r}')
         try:
             t, ids, vectors = wire.decode_vectors(msg)
         except wire.WireError as exc:
-            return self._reject('neighbour_bearings', str(exc))
+            return self._reject('malformed', f'world_bearings of agent {agent_id} ({exc})')
         p_hat = self._nbr_p_hat.get(agent_id)
         if self.est is None or p_hat is None:
             return
-        self.est.add_neighbour(agent_id, t, p_hat, dict(zip(ids.tolist(), vectors)))
+        cause = self.est.add_neighbour(agent_id, t, p_hat, dict(zip(ids.tolist(), vectors)))
+        if cause not in (None, 'not_seen'):  # not_seen: j has no bearing to us yet
+            self._reject(cause, f'world_bearings of agent {agent_id} at {t:.6f}')
 
     # --------------------------------------------------------------------------- stepping
     def on_ready_check(self) -> None:
@@ -206,21 +307,15 @@ class EstimatorNode(Node):
     def on_timer(self) -> None:
         if self.est is None:
             return
+        if self._delayed:
+            self._release_delayed()
         while self.est.steps_ready() > 0:
             if self._wall_first_step is None:
                 self._wall_first_step = time.monotonic()
             self.est.advance(1)
-            if self.est.k % self.publish_every == 0:
+            # On the absolute grid origin + n h (k restarts after a time jump or gap).
+            if round((self.est.t - self.est.origin) / self.h) % self.publish_every == 0:
                 self._publish(world=True)
-
-    def destroy_node(self) -> None:
-        """Log what this estimator achieved: steps, the step rate in wall time, rejections."""
-        if self.est is not None and self._wall_first_step is not None:
-            wall = max(time.monotonic() - self._wall_first_step, 1e-9)
-            self.get_logger().info(
-                f'{self.est.k} steps ({self.est.k * self.h:.2f} s of state time) in {wall:.1f} s '
-                f'wall: {self.est.k / wall:.1f} steps/s; rejected: {dict(self.rejected) or 0}')
-        super().destroy_node()
 
     def _publish(self, world: bool, force: bool = False) -> None:
         est = self.est
@@ -235,6 +330,66 @@ class EstimatorNode(Node):
                 ids = np.fromiter(wb.keys(), dtype=np.uint32, count=len(wb))
                 self.pub_world.publish(
                     wire.encode_vectors(t, wire.WORLD_FRAME, ids, np.array(list(wb.values()))))
+
+    # --------------------------------------------------------------------------- health
+    def conditioning(self) -> np.ndarray | None:
+        """Eigenvalues of ``M_i = Σ k_ij b^i_ij b^i_ijᵀ`` from the current own bearings
+        (Lemma 1 wants three distinct ones), or None without bearings to every neighbour."""
+        est = self.est
+        rows = [(nb.k, est.body_bearing(nb.agent_id, est.t)) for nb in est.neighbours]
+        if not rows or any(b is None for _, b in rows):
+            return None
+        return np.linalg.eigvalsh(sum(k * np.outer(b, b) for k, b in rows))
+
+    def publish_diagnostics(self) -> None:
+        """Per-agent health on /diagnostics: rate, rejections by cause, stale neighbours,
+        conditioning of M_i, time events."""
+        status = DiagnosticStatus(name=f'{self.agent}/estimator', hardware_id=self.agent)
+        values = {'state_time_s': 'n/a'}
+        level, problems = DiagnosticStatus.OK, []
+        if self.est is not None:
+            est = self.est
+            steps, wall = self._diag_steps
+            now = time.monotonic()
+            values['state_time_s'] = f'{est.t:.3f}'
+            values['steps_per_wall_second'] = f'{(est.k - steps) / max(now - wall, 1e-9):.1f}'
+            self._diag_steps = (est.k, now)
+            if not est.leader:
+                stale = est.stale_neighbours(est.t)
+                values['stale_neighbours'] = ','.join(stale)
+                values['edges_used'] = str(est.last.edges_used)
+                if stale:
+                    level, problems = DiagnosticStatus.WARN, problems + ['stale neighbours']
+                eig = self.conditioning()
+                if eig is not None:
+                    values['M_eigenvalues'] = ','.join(f'{e:.4g}' for e in eig)
+                    if np.min(np.diff(eig)) <= 1e-6 * max(eig[-1], 1e-300):
+                        level = max(level, DiagnosticStatus.WARN)
+                        problems.append('M_i has repeated eigenvalues (Lemma 1)')
+            values['non_finite_steps'] = str(est.non_finite_steps)
+        for cause, n in sorted(self.rejected.items()):
+            values[f'rejected_{cause}'] = str(n)
+        for cause, n in sorted(self.events.items()):
+            values[f'event_{cause}'] = str(n)
+        if self.rejected:
+            level = max(level, DiagnosticStatus.WARN)
+            problems.append(f'{sum(self.rejected.values())} input(s) rejected')
+        status.level = level
+        status.message = '; '.join(problems) or 'ok'
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(msg)
+
+    def destroy_node(self) -> None:
+        """Log what this estimator achieved: steps, the step rate in wall time, rejections."""
+        if self.est is not None and self._wall_first_step is not None:
+            wall = max(time.monotonic() - self._wall_first_step, 1e-9)
+            self.get_logger().info(
+                f'{self.est.k} steps ({self.est.k * self.h:.2f} s of state time) in {wall:.1f} s '
+                f'wall: {self.est.k / wall:.1f} steps/s; rejected: {dict(self.rejected) or 0}; '
+                f'events: {dict(self.events) or 0}')
+        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> None:

@@ -282,9 +282,13 @@ class ProcessGroup:
 
     # --------------------------------------------------------------- start and inspect
     def start(self, spec: ProcessSpec) -> subprocess.Popen:
-        """Start one child; its output goes to ``spec.log`` (and ours if ``spec.forward``)."""
-        if spec.name in self._children:
-            raise ValueError(f'{spec.name}: already started')
+        """Start one child; its output goes to ``spec.log`` (and ours if ``spec.forward``).
+        A name whose process has stopped may be started again (a restart)."""
+        old = self._children.get(spec.name)
+        if old is not None:
+            if self._still_running([old]):
+                raise ValueError(f'{spec.name}: already running')
+            self._release(old)
         spec.log.parent.mkdir(parents=True, exist_ok=True)
         with _signals_deferred(replay=True):
             if spec.forward:
@@ -400,37 +404,53 @@ class ProcessGroup:
             out[name] = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
         return out
 
+    def stop(self, name: str, grace: float = 10.0, term_grace: float = 5.0) -> int | None:
+        """Stop one child as :meth:`shutdown` does; return its exit code (0: clean)."""
+        with _signals_deferred(replay=False):
+            self._stop([self._children[name]], grace, term_grace)
+        self._release(self._children[name])
+        return self.returncode(name)
+
     def shutdown(self, grace: float = 10.0, term_grace: float = 5.0) -> list[str]:
         """Stop every child: SIGINT in reverse start order, up to ``grace`` s in total; then
         SIGTERM and ``term_grace`` s more; then SIGKILL, reported loudly. Returns the names
         that needed SIGKILL. Safe to call more than once."""
+        with _signals_deferred(replay=False):
+            killed = self._stop(list(reversed(self._children.values())), grace, term_grace)
+            for child in self._children.values():
+                self._release(child)
+        return killed
+
+    def _stop(self, children: list[_Child], grace: float, term_grace: float) -> list[str]:
         err = self._stderr or sys.stderr
         killed: list[str] = []
-        with _signals_deferred(replay=False):
-            alive = self._still_running(list(reversed(self._children.values())))
+        alive = self._still_running(children)
+        for child in alive:
+            self._signal(child, signal.SIGINT)
+        alive = self._wait_all(alive, grace)
+        if alive:
+            print(f'warning: still running {grace:g} s after SIGINT, sending SIGTERM: '
+                  + ', '.join(c.spec.label for c in alive), file=err)
             for child in alive:
-                self._signal(child, signal.SIGINT)
-            alive = self._wait_all(alive, grace)
-            if alive:
-                print(f'warning: still running {grace:g} s after SIGINT, sending SIGTERM: '
-                      + ', '.join(c.spec.label for c in alive), file=err)
-                for child in alive:
-                    self._signal(child, signal.SIGTERM)
-                alive = self._wait_all(alive, term_grace)
-            for child in alive:
-                killed.append(child.spec.name)
-                print(f'WARNING: {child.spec.label} (pid {child.proc.pid}) ignored SIGINT and '
-                      'SIGTERM; KILLING it with SIGKILL. A DDS process killed this way may '
-                      'leave files in /dev/shm.', file=err)
-                self._signal(child, signal.SIGKILL)
-            self._wait_all(alive, 5.0)
-            for child in self._children.values():
-                for thread in child.threads:
-                    thread.join(timeout=2.0)
-                if child.tee_log is not None:
-                    child.tee_log.close()
-                    child.tee_log = None
+                self._signal(child, signal.SIGTERM)
+            alive = self._wait_all(alive, term_grace)
+        for child in alive:
+            killed.append(child.spec.name)
+            print(f'WARNING: {child.spec.label} (pid {child.proc.pid}) ignored SIGINT and '
+                  'SIGTERM; KILLING it with SIGKILL. A DDS process killed this way may '
+                  'leave files in /dev/shm.', file=err)
+            self._signal(child, signal.SIGKILL)
+        self._wait_all(alive, 5.0)
         return killed
+
+    @staticmethod
+    def _release(child: _Child) -> None:
+        """Finish a stopped child's output threads and log."""
+        for thread in child.threads:
+            thread.join(timeout=2.0)
+        if child.tee_log is not None:
+            child.tee_log.close()
+            child.tee_log = None
 
 
 @contextlib.contextmanager

@@ -62,12 +62,36 @@ class RandomInit:
 
 
 @dataclass(frozen=True)
+class BearingPerturbation:
+    """Deterministic bearing perturbation (Tran, Anderson & Ahn 2020): every measured bearing
+    is ``rot_x(θ0 sin(2π f t)) b`` with ``rot_x`` the rotation about the body x axis."""
+
+    amplitude_deg: float   # θ0, in [0, 90]
+    frequency_hz: float    # f > 0
+
+
+@dataclass(frozen=True)
 class Noise:
-    """Measurement noise, zero by default. ``gyro_std`` [rad/s] is white noise on each gyro
-    sample; ``bearing_std`` [rad] is the angle of a random rotation applied to each bearing."""
+    """Measurement noise, all off by default; applied by :mod:`bearing_pose_estimation.noise`.
+
+    - ``gyro_std`` [rad/s]: white noise on each gyro sample (at ``simulation.imu_rate``),
+      per axis; the batch simulator averages it over the samples its step spans.
+    - ``gyro_bias`` [rad/s]: constant body-frame gyro bias, the same for every agent, plus
+      ``gyro_bias_std`` [rad/s]: each agent's own constant bias, drawn once per axis from
+      ``N(0, gyro_bias_std²)``. Measured rate = true + bias + white noise.
+    - ``bearing_std`` [rad]: the angle of a random rotation applied to each bearing.
+    - ``bearing_perturbation``: the deterministic ``rot_x(θ0 sin 2πft)`` of each bearing.
+    - ``outlier_probability``: chance that a bearing is replaced by a uniformly random unit
+      vector.
+    - ``seed``: seeds every random draw, so a scenario and seed give the same run.
+    """
 
     gyro_std: float = 0.0
+    gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gyro_bias_std: float = 0.0
     bearing_std: float = 0.0
+    bearing_perturbation: BearingPerturbation | None = None
+    outlier_probability: float = 0.0
     seed: int = 0
 
 
@@ -302,6 +326,37 @@ def _simulation(ctx: _Ctx, value: Any) -> SimulationRates:
     return SimulationRates(internal_step=dt, **rates)
 
 
+def _noise(ctx: _Ctx, value: Any) -> Noise:
+    m = _mapping(ctx, value, 'noise', {'gyro_std', 'gyro_bias', 'gyro_bias_std', 'bearing_std',
+                                       'bearing_perturbation', 'outlier_probability', 'seed'})
+    perturbation = None
+    if 'bearing_perturbation' in m:
+        bp = _mapping(ctx, m['bearing_perturbation'], 'noise.bearing_perturbation',
+                      {'amplitude_deg', 'frequency_hz'}, {'amplitude_deg', 'frequency_hz'})
+        where = 'noise.bearing_perturbation.amplitude_deg'
+        amplitude = _number(ctx, bp['amplitude_deg'], where)
+        if not 0.0 <= amplitude <= 90.0:
+            raise ctx.fail(where, f'must be in [0, 90] degrees, got {amplitude:g}',
+                           'use an amplitude θ0 between 0 and 90 degrees')
+        frequency = _number(ctx, bp['frequency_hz'], 'noise.bearing_perturbation.frequency_hz',
+                            positive=True)
+        perturbation = BearingPerturbation(amplitude_deg=amplitude, frequency_hz=frequency)
+    p_out = _number(ctx, m.get('outlier_probability', 0.0), 'noise.outlier_probability')
+    if not 0.0 <= p_out < 1.0:
+        raise ctx.fail('noise.outlier_probability', f'must be in [0, 1), got {p_out:g}',
+                       'give the probability that a bearing is an outlier, e.g. 0.01')
+    bias = _vector(ctx, m.get('gyro_bias', [0.0, 0.0, 0.0]), 'noise.gyro_bias')
+    return Noise(
+        gyro_std=_number(ctx, m.get('gyro_std', 0.0), 'noise.gyro_std', non_negative=True),
+        gyro_bias=(float(bias[0]), float(bias[1]), float(bias[2])),
+        gyro_bias_std=_number(ctx, m.get('gyro_bias_std', 0.0), 'noise.gyro_bias_std',
+                              non_negative=True),
+        bearing_std=_number(ctx, m.get('bearing_std', 0.0), 'noise.bearing_std',
+                            non_negative=True),
+        bearing_perturbation=perturbation, outlier_probability=p_out,
+        seed=_integer(ctx, m.get('seed', 0), 'noise.seed'))
+
+
 _TOP_KEYS = {'name', 'description', 'method', 'world_frame', 'gains', 'frequency',
              'publish_rate', 'duration',
              'noise', 'leaders', 'agents', 'initial_estimates', 'simulation'}
@@ -336,12 +391,7 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     duration = _number(ctx, top.get('duration', 60.0), 'duration', positive=True)
     world_frame = _string(ctx, top.get('world_frame', 'world'), 'world_frame')
 
-    nz = _mapping(ctx, top.get('noise', {}), 'noise', {'gyro_std', 'bearing_std', 'seed'})
-    noise = Noise(gyro_std=_number(ctx, nz.get('gyro_std', 0.0), 'noise.gyro_std',
-                                   non_negative=True),
-                  bearing_std=_number(ctx, nz.get('bearing_std', 0.0), 'noise.bearing_std',
-                                      non_negative=True),
-                  seed=_integer(ctx, nz.get('seed', 0), 'noise.seed'))
+    noise = _noise(ctx, top.get('noise', {}))
 
     simulation = _simulation(ctx, top.get('simulation', {}))
 

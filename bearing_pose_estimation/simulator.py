@@ -8,7 +8,10 @@ on measurements taken at the step's start:
 - own bearings ``b^i_ij = R_iᵀ b_ij`` (+ bearing noise),
 - what neighbour j would send: ``R̂_j b^j_ij = -R̂_j b^j_ji`` with j's own measurement
   ``b^j_ji = R_jᵀ b_ji`` (+ noise) and ``p̂_j``, all at the same instant,
-- the gyro increment ``ΔR`` over the step (+ gyro noise).
+- the gyro increment ``ΔR exp(h (bias + noise))`` over the step.
+
+Noise (all off by default) comes from :class:`noise.NoiseModel`, the same models the
+simulator node's world uses; a scenario and its ``noise.seed`` give the same run.
 
 Leaders know their pose: their estimate is their truth.
 """
@@ -22,23 +25,11 @@ from numpy.typing import NDArray
 
 from . import so3
 from .motion import OmegaProfile, magnus_increment
+from .noise import NoiseModel
 from .observer import CascadeGains, Edges, cascade_step
 from .scenario import Scenario, initial_estimates
 
 Array = NDArray[np.float64]
-
-
-def perturb_bearings(b: Array, std: float, rng: np.random.Generator) -> Array:
-    """Rotate each unit bearing by a small random rotation perpendicular to it.
-
-    The rotation vector is ``N(0, std² P_b)``: each of the two angular components
-    orthogonal to ``b`` has standard deviation ``std`` [rad].
-    """
-    if std == 0.0:
-        return b
-    phi = std * rng.normal(size=b.shape)
-    phi -= b * np.sum(phi * b, axis=-1, keepdims=True)
-    return np.einsum('eab,eb->ea', so3.exp(phi), b)
 
 
 def pose_errors(R: Array, p: Array, R_hat: Array, p_hat: Array) -> tuple[Array, Array, Array, Array]:
@@ -97,11 +88,12 @@ class BatchSimulator:
         d = self.p[self.edge_nbr] - self.p[self.edges.agent]
         self.b_world = d / np.linalg.norm(d, axis=1, keepdims=True)  # b_ij, static
         self.gains = CascadeGains(k_R=scenario.k_R, k_p=scenario.k_p)
-        self.rng = np.random.default_rng(scenario.noise.seed)
         self.reset()
 
     def reset(self) -> None:
-        """Back to t = 0: true attitudes and the scenario's initial estimates."""
+        """Back to t = 0: true attitudes, the scenario's initial estimates, and the noise
+        generators (and gyro biases) re-seeded, so a run after reset repeats exactly."""
+        self.noise = NoiseModel(self.scenario.noise, self.n)
         self.t = 0.0
         self.k = 0
         self.R = np.stack([a.attitude for a in self.scenario.agents])
@@ -109,21 +101,19 @@ class BatchSimulator:
 
     def measure(self) -> tuple[Array, Array]:
         """Own body bearings ``b^i_ij`` and neighbours' world bearings ``R̂_j b^j_ij`` now."""
-        std = self.scenario.noise.bearing_std
         i, j = self.edges.agent, self.edge_nbr
         b_own = np.einsum('eba,eb->ea', self.R[i], self.b_world)           # R_iᵀ b_ij
         b_theirs = np.einsum('eba,eb->ea', self.R[j], -self.b_world)       # b^j_ji = R_jᵀ b_ji
-        b_own = perturb_bearings(b_own, std, self.rng)
-        b_theirs = perturb_bearings(b_theirs, std, self.rng)
+        b_own = self.noise.bearings(b_own, self.t)
+        b_theirs = self.noise.bearings(b_theirs, self.t)
         d_world = -np.einsum('eab,eb->ea', self.R_hat[j], b_theirs)
         return b_own, d_world
 
     def gyro_increment(self, delta_R: Array) -> Array:
-        """What the gyro reports over the step: the true increment, plus white noise."""
-        std = self.scenario.noise.gyro_std
-        if std == 0.0:
-            return delta_R
-        return delta_R @ so3.exp(self.h * std * self.rng.normal(size=(self.n, 3)))
+        """What the gyros report over the step: ``ΔR exp(h (bias + noise))`` (body frame),
+        the noise averaged over the IMU samples the step spans (``simulation.imu_rate``)."""
+        samples = self.h * self.scenario.simulation.imu_rate
+        return self.noise.gyro_increment(delta_R, self.h, samples)
 
     def step(self) -> None:
         """Advance truth and every observer by one step ``h``."""

@@ -15,7 +15,7 @@ how loaded the machine is, and runs go as fast as the estimators can. ``real_tim
 also caps the clock at that multiple of wall time.
 
 Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``lockstep``, ``max_lag``
-[s], ``real_time_factor``, ``wait_for_monitor``, ``start_timeout`` [s].
+[s], ``real_time_factor``, ``wait_for_monitor``, ``wait_for_estimators``, ``start_timeout`` [s].
 """
 from __future__ import annotations
 
@@ -46,6 +46,9 @@ class SimulatorNode(Node):
         self.max_lag = p('max_lag', 3.0 / s.publish_rate).value
         self.rtf = p('real_time_factor', 0.0).value
         self.wait_for_monitor = p('wait_for_monitor', True).value
+        # False: start without each estimator's t0 announcement (fault studies: late joiners,
+        # a restarted simulator). Use it with lockstep off, or a silent agent stops the clock.
+        self.wait_for_estimators = p('wait_for_estimators', True).value
         self.start_timeout = p('start_timeout', 120.0).value
 
         self.world = World(s)
@@ -117,7 +120,8 @@ class SimulatorNode(Node):
     def on_tick(self) -> None:
         if self.state == 'waiting':
             missing = self._unmatched()
-            silent = [n for n, t in zip(self.names, self.progress) if t < 0.0]
+            silent = [n for n, t in zip(self.names, self.progress)
+                      if t < 0.0 and self.wait_for_estimators]
             if not missing and not silent:
                 self._start()
             elif time.monotonic() - self.wall_start > self.start_timeout:

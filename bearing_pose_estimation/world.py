@@ -4,9 +4,11 @@
   ``simulation.internal_step`` (1 ms by default), far finer than any published rate.
 - Gyro: each sample is the interval average over the last IMU period,
   ``ω̄ = log(R(t_prev)ᵀ R(t)) / Δt`` (the constant rate that produces the true rotation), plus
-  white noise ``noise.gyro_std``. See :mod:`bearing_pose_estimation.gyro`.
+  the agent's constant bias and white noise. See :mod:`bearing_pose_estimation.gyro`.
 - Bearings: instantaneous ``R_i(t)ᵀ b_ij`` to every agent i senses (its neighbours and its
-  listeners: sensing is two-way), rotated by ``noise.bearing_std``.
+  listeners: sensing is two-way), corrupted by the scenario's bearing noise models.
+
+Noise comes from :class:`noise.NoiseModel`, the same models as the batch simulator.
 """
 from __future__ import annotations
 
@@ -15,8 +17,8 @@ from numpy.typing import NDArray
 
 from . import so3
 from .motion import OmegaProfile, magnus_increment
+from .noise import NoiseModel
 from .scenario import Scenario
-from .simulator import perturb_bearings
 
 Array = NDArray[np.float64]
 
@@ -36,10 +38,11 @@ class World:
         self.names = [a.name for a in scenario.agents]
         self.targets = [np.array([scenario.index[t] for t in scenario.sensing_targets(a.name)],
                                  dtype=np.intp) for a in scenario.agents]
-        self.rng = np.random.default_rng(scenario.noise.seed)
         self.reset()
 
     def reset(self) -> None:
+        """Back to t = 0, with the noise generators (and gyro biases) re-seeded."""
+        self.noise = NoiseModel(self.scenario.noise, len(self.scenario.agents))
         self.tick = 0
         self.R = np.stack([a.attitude for a in self.scenario.agents])
         self._R_last_imu = self.R.copy()
@@ -62,10 +65,7 @@ class World:
         period = self.imu_every * self.dt
         omega = so3.log(np.swapaxes(self._R_last_imu, -1, -2) @ self.R) / period
         self._R_last_imu = self.R.copy()
-        std = self.scenario.noise.gyro_std
-        if std > 0.0:
-            omega = omega + std * self.rng.normal(size=omega.shape)
-        return omega
+        return self.noise.gyro_rate(omega)
 
     def bearings(self, i: int) -> tuple[NDArray[np.intp], Array]:
         """Agent i's measured body bearings now: (0-based target indices, ``(n, 3)`` unit vectors)."""
@@ -73,4 +73,4 @@ class World:
         d = self.p[j] - self.p[i]
         b_world = d / np.linalg.norm(d, axis=1, keepdims=True)
         b_body = b_world @ self.R[i]  # rows: R_iᵀ b_ij
-        return j, perturb_bearings(b_body, self.scenario.noise.bearing_std, self.rng)
+        return j, self.noise.bearings(b_body, self.t)

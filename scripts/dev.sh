@@ -11,7 +11,7 @@ STAMP="$VENV/.dev-setup-stamp"
 BASE_PYTHON="${PYTHON:-python3}"
 # What `scripts/dev.sh demo` runs (extra arguments are appended).
 DEMO_CMD=("$VENV/bin/bearing-pose" run config/paper_8_agents.yaml
-          --duration 60 --out results/paper_8_agents)
+          --duration 60 --out results/paper_8_agents --force)
 
 # Keep any DDS traffic on this machine, on the project's domain unless the caller chose one.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST

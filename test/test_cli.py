@@ -57,6 +57,41 @@ def test_simulate_refuses_a_file_as_output_dir(tmp_path, capsys):
     assert '--out must be a directory' in capsys.readouterr().err
 
 
+def test_simulate_never_overwrites_without_force(tmp_path, capsys):
+    out = tmp_path / 'run'
+    argv = ['simulate', PAPER, '--duration', '1', '--out', str(out), '--quiet']
+    assert main(argv) == 0
+    names = ['metrics.csv', 'summary.json', 'fig2_attitude_error.png', 'fig3_position_error.png']
+    first = {n: (out / n).read_bytes() for n in names}
+    stamps = {n: (out / n).stat().st_mtime_ns for n in names}
+    capsys.readouterr()
+    assert main(argv[:3] + ['2'] + argv[4:]) == 1
+    err = capsys.readouterr().err
+    assert f'{out / "metrics.csv"}: exists' in err and 'refusing to overwrite' in err
+    assert 'Fix: pass --force to overwrite, or choose another --out' in err
+    assert {n: (out / n).read_bytes() for n in names} == first
+    assert {n: (out / n).stat().st_mtime_ns for n in names} == stamps
+    # One existing output is enough to refuse, even with --no-plots.
+    (out / 'metrics.csv').unlink()
+    assert main(argv + ['--no-plots']) == 1
+    assert f'{out / "summary.json"}: exists' in capsys.readouterr().err
+    assert main(argv[:3] + ['2'] + argv[4:] + ['--force']) == 0
+    assert json.loads((out / 'summary.json').read_text())['duration_s'] == pytest.approx(2.0)
+    assert (out / 'metrics.csv').exists()
+
+
+def test_run_refuses_an_output_dir_with_outputs(tmp_path, capsys):
+    """Checked before any process starts; --force lets the run go ahead."""
+    out = tmp_path / 'dds'
+    (out / 'logs').mkdir(parents=True)
+    (out / 'logs' / 'agent_3.log').write_text('old log')
+    assert main(['run', PAPER, '--out', str(out)]) == 1
+    err = capsys.readouterr().err
+    assert f'{out / "logs" / "agent_3.log"}: exists' in err and '--force' in err
+    assert (out / 'logs' / 'agent_3.log').read_text() == 'old log'
+    assert not (out / 'params').exists()
+
+
 def test_simulate_refuses_invalid_scenario(tmp_path, capsys):
     bad = tmp_path / 'cyc.yaml'
     bad.write_text(Path(PAPER).read_text().replace('neighbours: [agent_1, agent_2]',

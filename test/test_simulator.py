@@ -9,8 +9,9 @@ from bearing_pose_estimation.generate import generate_scenario
 from bearing_pose_estimation.graph import check_scenario
 from bearing_pose_estimation.metrics import settling_time
 from bearing_pose_estimation.motion import OmegaProfile, magnus_increment
+from bearing_pose_estimation.noise import perturb_bearings
 from bearing_pose_estimation.scenario import load_scenario, parse_scenario
-from bearing_pose_estimation.simulator import BatchSimulator, perturb_bearings
+from bearing_pose_estimation.simulator import BatchSimulator
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
 

@@ -1,0 +1,191 @@
+"""Faults and bad input against real node processes over DDS (loopback, private domain).
+
+Each test asserts the outcome the README's fault matrix reports: no crash (every process exits
+0 on SIGINT), no non-finite estimate, the fault seen in /diagnostics, and convergence after.
+"""
+import os
+import time
+
+import numpy as np
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+from bearing_pose_estimation import launch, so3
+from bearing_pose_estimation import msg_defs as wire
+from bearing_pose_estimation.scenario import load_scenario
+
+from ros_helpers import observer
+
+DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
+FOUR = {
+    'name': 'four', 'leaders': ['agent_1', 'agent_2'],
+    'initial_estimates': {'random': {'seed': 3, 'position_std': 1.0, 'max_angle_deg': 45}},
+    'agents': [
+        {'name': 'agent_1', 'position': [0, 0, 0], 'angular_velocity': [0.3, -0.5, 0.2]},
+        {'name': 'agent_2', 'position': [2, 0, 0], 'angular_velocity': [{'cos': 1}, 0.4, 0]},
+        {'name': 'agent_3', 'position': [1, 2, 0], 'angular_velocity': [0, {'sin': 2}, 0.5],
+         'neighbours': ['agent_1', 'agent_2']},
+        {'name': 'agent_4', 'position': [1, 1, 2], 'angular_velocity': [0.2, 0, {'sin': 1}],
+         'neighbours': ['agent_2', 'agent_3']}]}
+TOPICS = {**{f'/agent_{k}/estimate': (wire.PoseStamped, wire.ESTIMATE_QOS) for k in (3, 4)},
+          **{f'/agent_{k}/ground_truth': (wire.PoseStamped, wire.SIM_PUB_QOS) for k in (3, 4)},
+          '/diagnostics': (DiagnosticArray, 10)}
+
+
+@pytest.fixture()
+def fleet(tmp_path):
+    """Start the four-agent fleet (no monitor; the simulator paced at half real time without
+    lockstep, so a dead agent cannot stop the clock). Yields (group, observer, specs)."""
+    scenario_file = tmp_path / 'four.yaml'
+    scenario_file.write_text(yaml.safe_dump(FOUR))
+    scenario = load_scenario(scenario_file)
+    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp_path / 'out', duration=600.0,
+                           domain_id=DOMAIN, plots=False, real_time_factor=0.5)
+    cfg.logs_dir.mkdir(parents=True)
+    specs = {s.name: s for s in launch.plan_processes(
+        scenario, launch.write_params(scenario, cfg), cfg.logs_dir, launch.find_executable)}
+    sim = specs['simulator']
+    specs['simulator'] = launch.ProcessSpec(sim.name, sim.kind, sim.argv + (
+        '-p', 'wait_for_monitor:=false', '-p', 'lockstep:=false'), sim.log)
+    shm = launch.count_shm_segments()
+    with observer() as obs, launch.ProcessGroup(env=launch.dds_env(
+            DOMAIN, tmp_path / 'ros')) as group:
+        for name, (msg_type, qos) in TOPICS.items():
+            obs.subscribe(msg_type, name, qos)
+        for name in ('agent_1', 'agent_2', 'agent_3', 'agent_4', 'simulator'):
+            group.start(specs[name])
+        yield group, obs, specs
+        group.shutdown()
+        codes = {n: group.returncode(n) for n in group.pids}
+        logs = {n: launch.log_tail(specs[n].log, 30) for n, c in codes.items() if c != 0}
+        assert set(codes.values()) == {0}, (codes, logs)
+    assert launch.count_shm_segments() <= shm
+
+
+def _latest_t(obs, topic: str) -> float:
+    msgs = obs.messages[topic]
+    return wire.from_stamp(msgs[-1].header.stamp) if msgs else -1.0
+
+
+def _wait_sim(obs, t: float, timeout: float = 120.0) -> None:
+    assert obs.spin_until(lambda: _latest_t(obs, '/agent_4/ground_truth') >= t, timeout), \
+        f'simulated time did not reach {t} s'
+
+
+def _errors(obs, agent: str, since: float = -1.0) -> list[tuple[float, float, float]]:
+    """(t, attitude error, position error) at the stamps where estimate and truth pair up."""
+    truth = {wire.stamp_ns(m.header.stamp): wire.decode_pose(m)
+             for m in obs.messages[f'/{agent}/ground_truth']}
+    out = []
+    for m in obs.messages[f'/{agent}/estimate']:
+        ns = wire.stamp_ns(m.header.stamp)
+        t, R_hat, p_hat = wire.decode_pose(m)
+        assert np.all(np.isfinite(R_hat)) and np.all(np.isfinite(p_hat))
+        if ns in truth and t > since:
+            _, R, p = truth[ns]
+            out.append((t, float(so3.angle(R @ R_hat.T)), float(np.linalg.norm(p - p_hat))))
+    return out
+
+
+def _diagnostics(obs, agent: str) -> dict[str, str]:
+    for msg in reversed(obs.messages['/diagnostics']):
+        for st in msg.status:
+            if st.name == f'{agent}/estimator':
+                return {kv.key: kv.value for kv in st.values} | {'_level': st.level,
+                                                                 '_message': st.message}
+    return {}
+
+
+def test_bad_input_is_rejected_counted_and_reported(fleet):
+    """Garbage on agent_3's inputs (non-finite, absurd, non-unit, unknown ids, wrong frames,
+    malformed clouds, future stamps): rejected by cause in /diagnostics, no crash, no NaN,
+    and agent_3 still converges."""
+    group, obs, _ = fleet
+    _wait_sim(obs, 2.0)
+    node = obs.node
+    imu = node.create_publisher(wire.Imu, '/agent_3/imu', wire.SIM_PUB_QOS)
+    bearings = node.create_publisher(wire.PointCloud2, '/agent_3/bearings', wire.SIM_PUB_QOS)
+    nbr = node.create_publisher(wire.PointCloud2, '/agent_1/world_bearings', wire.ESTIMATE_QOS)
+    assert obs.spin_until(lambda: imu.get_subscription_count() and bearings
+                          .get_subscription_count() and nbr.get_subscription_count(), 30)
+
+    def garbage() -> list:
+        t = _latest_t(obs, '/agent_4/ground_truth')
+        broken = wire.encode_vectors(t, 'agent_3/base_link', [1], [[0, 0, 1.0]])
+        broken.fields = broken.fields[:2]  # no z, no agent_id
+        return [
+            (imu, wire.encode_imu(t + 0.0001, 'agent_3', [np.nan, 0, 0])),
+            (imu, wire.encode_imu(t + 0.0002, 'agent_3', [1e6, 0, 0])),
+            (imu, wire.encode_imu(t + 500.0, 'agent_3', [0.1, 0, 0])),
+            (imu, wire.encode_imu(t + 0.0003, 'agent_9', [0.1, 0, 0])),
+            (bearings, wire.encode_vectors(t, 'agent_3/base_link', [1, 2],
+                                           [[0, 0, 2.0], [0, 0, 0]])),
+            (bearings, wire.encode_vectors(t, 'agent_3/base_link', [42], [[0, 0, 1.0]])),
+            (bearings, wire.encode_vectors(t, 'camera', [1], [[0, 0, 1.0]])),
+            (bearings, broken),
+            (nbr, wire.encode_vectors(t, 'world', [3], [[np.inf, 0, 0]])),
+            (nbr, wire.encode_vectors(t, 'agent_1/base_link', [3], [[0, 0, 1.0]]))]
+
+    def reported() -> bool:
+        d = _diagnostics(obs, 'agent_3')
+        return all(f'rejected_{c}' in d for c in ('non_finite', 'absurd_rate', 'future_stamp',
+                                                 'wrong_frame', 'not_unit', 'zero_vector',
+                                                 'unknown_id', 'malformed'))
+    start = _latest_t(obs, '/agent_4/ground_truth')
+    # A best-effort reader may not have matched us yet when we see it: repeat until reported.
+    deadline = time.monotonic() + 60
+    while not reported() and time.monotonic() < deadline:
+        for pub, msg in garbage():
+            pub.publish(msg)
+        obs.spin_until(reported, 1.0)
+    assert reported(), sorted(_diagnostics(obs, 'agent_3').items())
+    assert _diagnostics(obs, 'agent_3')['_level'] == DiagnosticStatus.WARN
+    _wait_sim(obs, start + 10.0)
+    err = _errors(obs, 'agent_3', since=start)
+    assert err and err[-1][1] < 0.02 and err[-1][2] < 0.2, err[-1]
+    assert all(c is None for c in (group.returncode(n) for n in group.pids))  # all alive
+
+
+def test_neighbour_killed_then_restarted(fleet):
+    """agent_3 (agent_4's neighbour) is stopped at ~6 s: agent_4 reports it stale, keeps
+    publishing finite estimates from its gyro and its other neighbour. agent_3 is started
+    again (a late joiner from its initial estimate): both re-converge."""
+    group, obs, specs = fleet
+    _wait_sim(obs, 6.0)
+    pre = _errors(obs, 'agent_4')[-1]
+    assert group.stop('agent_3') == 0  # a clean SIGINT exit
+    killed_at = _latest_t(obs, '/agent_4/ground_truth')
+    assert obs.spin_until(lambda: 'agent_3' in _diagnostics(obs, 'agent_4')
+                          .get('stale_neighbours', ''), 30)
+    _wait_sim(obs, killed_at + 3.0)
+    during = _errors(obs, 'agent_4', since=killed_at)
+    assert len(during) > 10  # agent_4 kept publishing
+    group.start(specs['agent_3'])
+    restarted_at = _latest_t(obs, '/agent_4/ground_truth')
+    _wait_sim(obs, restarted_at + 20.0, timeout=240)
+    after3 = _errors(obs, 'agent_3', since=restarted_at)
+    after4 = _errors(obs, 'agent_4', since=restarted_at)
+    assert after3[0][1] > 0.1  # restarted from its (wrong) initial estimate
+    assert after3[-1][1] < 0.01 and after3[-1][2] < 0.1, after3[-1]
+    assert after4[-1][1] < max(0.01, pre[1]) and after4[-1][2] < max(0.1, pre[2]), after4[-1]
+    assert not _diagnostics(obs, 'agent_4').get('stale_neighbours')
+
+
+def test_simulator_restart_jumps_the_clock_back(fleet):
+    """The simulator is restarted: its clock starts again at 0. Every estimator sees the jump
+    (event_time_jump), restarts from its initial estimate and converges again; no crash."""
+    group, obs, specs = fleet
+    _wait_sim(obs, 5.0)
+    assert group.stop('simulator') == 0
+    obs.messages['/agent_4/ground_truth'].clear()
+    for topic in ('/agent_3/estimate', '/agent_4/estimate', '/agent_3/ground_truth'):
+        obs.messages[topic].clear()
+    sim = specs['simulator']
+    group.start(launch.ProcessSpec(sim.name, sim.kind, sim.argv + (
+        '-p', 'wait_for_estimators:=false'), sim.log))
+    _wait_sim(obs, 12.0, timeout=240)
+    for agent in ('agent_3', 'agent_4'):
+        assert int(_diagnostics(obs, agent).get('event_time_jump', 0)) >= 1, agent
+    err = _errors(obs, 'agent_3', since=8.0)
+    assert err and err[-1][1] < 0.02, err[-1]
