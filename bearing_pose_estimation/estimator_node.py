@@ -200,6 +200,16 @@ class EstimatorNode(Node):
         self.get_logger().warning(f'rejected {detail}: {cause} ({self.rejected[cause]} so far)',
                                   throttle_duration_sec=5.0)
 
+    def _decoded(self, msg: object, decode: Callable, frame: str, what: str) -> tuple | None:
+        """``decode(msg)``, or None after counting the rejection: wrong frame (unless ``frame``
+        is empty) or a malformed message."""
+        if frame and msg.header.frame_id != frame:
+            return self._reject('wrong_frame', f'{what} in frame {msg.header.frame_id!r}')
+        try:
+            return decode(msg)
+        except wire.WireError as exc:
+            return self._reject('malformed', f'{what} ({exc})')
+
     def _now(self) -> float | None:
         """The node's clock [s], or None before a simulated clock has ticked (a late joiner's
         first samples must not look like they come from the future)."""
@@ -208,12 +218,10 @@ class EstimatorNode(Node):
 
     # --------------------------------------------------------------------------- inputs
     def on_imu(self, msg: wire.Imu) -> None:
-        if self.imu_frame and msg.header.frame_id != self.imu_frame:
-            return self._reject('wrong_frame', f'imu in frame {msg.header.frame_id!r}')
-        try:
-            t, omega = wire.decode_imu(msg)
-        except wire.WireError as exc:
-            return self._reject('malformed', f'imu ({exc})')
+        decoded = self._decoded(msg, wire.decode_imu, self.imu_frame, 'imu')
+        if decoded is None:
+            return
+        t, omega = decoded
         if self.est is None:
             self.est = self._make_estimator(t)
             return
@@ -232,25 +240,19 @@ class EstimatorNode(Node):
         self.on_timer()
 
     def on_bearings(self, msg: wire.PointCloud2) -> None:
-        if self.bearings_frame and msg.header.frame_id != self.bearings_frame:
-            return self._reject('wrong_frame', f'bearings in frame {msg.header.frame_id!r}')
-        try:
-            t, ids, vectors = wire.decode_vectors(msg)
-        except wire.WireError as exc:
-            return self._reject('malformed', f'bearings ({exc})')
-        if self.est is None:
+        decoded = self._decoded(msg, wire.decode_vectors, self.bearings_frame, 'bearings')
+        if decoded is None or self.est is None:
             return
+        t, ids, vectors = decoded
         for cause, n in Counter(self.est.add_bearings(t, ids, vectors)).items():
             self._reject(cause, f'{n} bearing(s) at {t:.6f}', n)
         if self.est.k == 0 and self.est.gyro.end <= self.est.t0:
             self._publish(world=True)  # the t0 world bearings, before the first step
 
     def on_known_pose(self, msg: wire.PoseStamped) -> None:
-        try:
-            t, R, p = wire.decode_pose(msg)
-        except wire.WireError as exc:
-            return self._reject('malformed', f'known_pose ({exc})')
-        if self.est is not None:
+        decoded = self._decoded(msg, wire.decode_pose, wire.WORLD_FRAME, 'known_pose')
+        if decoded is not None and self.est is not None:
+            t, R, p = decoded
             cause = self.est.set_known_pose(t, R, p)
             if cause is not None:
                 self._reject(cause, 'known_pose')
@@ -273,26 +275,18 @@ class EstimatorNode(Node):
             heapq.heappop(self._delayed)[2]()
 
     def on_neighbour_estimate(self, agent_id: int, msg: wire.PoseStamped) -> None:
-        if msg.header.frame_id != wire.WORLD_FRAME:
-            return self._reject('wrong_frame', f'estimate of agent {agent_id} in frame '
-                                f'{msg.header.frame_id!r}')
-        try:
-            _, _, p = wire.decode_pose(msg)
-        except wire.WireError as exc:
-            return self._reject('malformed', f'estimate of agent {agent_id} ({exc})')
-        self._nbr_p_hat[agent_id] = p
+        decoded = self._decoded(msg, wire.decode_pose, wire.WORLD_FRAME,
+                                f'estimate of agent {agent_id}')
+        if decoded is not None:
+            self._nbr_p_hat[agent_id] = decoded[2]
 
     def on_neighbour_bearings(self, agent_id: int, msg: wire.PointCloud2) -> None:
-        if msg.header.frame_id != wire.WORLD_FRAME:
-            return self._reject('wrong_frame', f'world_bearings of agent {agent_id} in frame '
-                                f'{msg.header.frame_id!r}')
-        try:
-            t, ids, vectors = wire.decode_vectors(msg)
-        except wire.WireError as exc:
-            return self._reject('malformed', f'world_bearings of agent {agent_id} ({exc})')
+        decoded = self._decoded(msg, wire.decode_vectors, wire.WORLD_FRAME,
+                                f'world_bearings of agent {agent_id}')
         p_hat = self._nbr_p_hat.get(agent_id)
-        if self.est is None or p_hat is None:
+        if decoded is None or self.est is None or p_hat is None:
             return
+        t, ids, vectors = decoded
         cause = self.est.add_neighbour(agent_id, t, p_hat, dict(zip(ids.tolist(), vectors)))
         if cause not in (None, 'not_seen'):  # not_seen: j has no bearing to us yet
             self._reject(cause, f'world_bearings of agent {agent_id} at {t:.6f}')

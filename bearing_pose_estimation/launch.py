@@ -81,9 +81,40 @@ def dds_env(domain_id: int, ros_log_dir: Path,
     return env
 
 
-def count_shm_segments() -> int:
-    """Fast DDS shared-memory files; compared before and after a run to spot leaks."""
-    return len(glob.glob(SHM_GLOB))
+def shm_files() -> set[str]:
+    """Fast DDS shared-memory files now (segments, ports and their ``_el`` lock files)."""
+    return set(glob.glob(SHM_GLOB))
+
+
+def _shm_in_use() -> set[str]:
+    """Fast DDS files some live process maps (segments, ports) or holds open (locks)."""
+    used: set[str] = set()
+    prefix = str(Path(SHM_GLOB).parent / 'fastrtps_')
+    for maps in glob.glob('/proc/[0-9]*/maps'):
+        with contextlib.suppress(OSError):
+            for line in Path(maps).read_text().splitlines():
+                at = line.find(prefix)
+                if at >= 0:
+                    used.add(line[at:].removesuffix(' (deleted)'))
+    for fd in glob.glob('/proc/[0-9]*/fd/*'):
+        with contextlib.suppress(OSError):
+            target = os.readlink(fd)
+            if target.startswith(prefix):
+                used.add(target)
+    return used
+
+
+def leaked_shm(before: set[str]) -> list[str]:
+    """Fast DDS files created since ``before`` that no live process uses: what a participant
+    killed without a clean shutdown leaves. Other processes' live files do not count, so this
+    works on a machine where other ROS programs (or test runs) are active."""
+    new = shm_files() - before
+    if not new:
+        return []
+    used = _shm_in_use()
+    return sorted(f for f in new
+                  if f not in used and f.removesuffix('_el') not in used
+                  and f + '_el' not in used)
 
 
 @dataclass(frozen=True)
@@ -492,7 +523,7 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
     params = write_params(scenario, cfg)
     specs = plan_processes(scenario, params, cfg.logs_dir, exes.__getitem__)
     env = dds_env(cfg.domain_id, cfg.logs_dir / 'ros')
-    shm_before = count_shm_segments()
+    shm_before = shm_files()
     started = time.time()
     wall = time.perf_counter()
     result = RunResult(ok=False, wall_s=0.0)
@@ -522,14 +553,14 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
     return result
 
 
-def _warn_shm(before: int) -> None:
-    after = count_shm_segments()
-    if after > before:
+def _warn_shm(before: set[str]) -> None:
+    leaked = leaked_shm(before)
+    if leaked:
         fastdds = Path(sys.executable).parent / 'fastdds'
         tool = str(fastdds) if fastdds.exists() else 'fastdds'
-        print(f'warning: {after - before} new Fast DDS shared-memory file(s) in /dev/shm '
-              f'({after} in all) after the run. Fix: `{tool} shm clean` (removes only '
-              'segments no process uses)', file=sys.stderr)
+        print(f'warning: {len(leaked)} new Fast DDS shared-memory file(s) in /dev/shm that no '
+              f'process uses after the run ({", ".join(leaked[:3])}). Fix: `{tool} shm clean` '
+              '(removes only segments no process uses)', file=sys.stderr)
 
 
 def _fresh_files(out_dir: Path, since: float) -> list[Path]:

@@ -9,7 +9,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import rclpy
-from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future
@@ -54,19 +53,24 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     except (KeyboardInterrupt, ExternalShutdownException):
         if node is not None and on_interrupt is not None:
             on_interrupt(node)
-    except (RCLError, RuntimeError):
-        # Ctrl-C shuts the context down from a signal handler; an executor caught between its
-        # checks then fails to build a wait set (RCLError) or to take a message (pybind11's
-        # RuntimeError). After shutdown that is the shutdown itself; before, a real error.
-        if rclpy.ok():
-            raise
-        if node is not None and on_interrupt is not None:
-            on_interrupt(node)
     except ScenarioError as exc:
         rclpy.logging.get_logger(name).fatal(str(exc))
         code = 1
+    except Exception as exc:  # noqa: BLE001
+        # Ctrl-C shuts the context down from a signal handler; an executor caught between its
+        # checks then fails to build a wait set (RCLError), to take a message (pybind11's
+        # RuntimeError) or to use a handle being destroyed. After shutdown that is the shutdown
+        # itself (said, not hidden); while the context is valid it is a real error.
+        if rclpy.ok():
+            raise
+        rclpy.logging.get_logger(name).info(f'shutdown interrupted a callback: {exc!r}')
+        if node is not None and on_interrupt is not None:
+            on_interrupt(node)
     finally:
         if node is not None:
-            node.destroy_node()
+            try:
+                node.destroy_node()  # releases the DDS participant: no files left in /dev/shm
+            except Exception as exc:  # noqa: BLE001
+                rclpy.logging.get_logger(name).warning(f'destroy_node failed: {exc!r}')
         rclpy.try_shutdown()
     return code

@@ -37,9 +37,9 @@ THREE_AGENTS = {
 @pytest.fixture()
 def no_leftovers():
     """Every test here must leave no process and no Fast DDS file in /dev/shm."""
-    before = launch.count_shm_segments()
+    before = launch.shm_files()
     yield
-    assert launch.count_shm_segments() <= before, 'Fast DDS files left in /dev/shm'
+    assert launch.leaked_shm(before) == [], 'Fast DDS files left in /dev/shm'
 
 
 def _start(group: launch.ProcessGroup, scenario_file: Path, out: Path, duration: float,

@@ -48,7 +48,7 @@ def fleet(tmp_path):
     sim = specs['simulator']
     specs['simulator'] = launch.ProcessSpec(sim.name, sim.kind, sim.argv + (
         '-p', 'wait_for_monitor:=false', '-p', 'lockstep:=false'), sim.log)
-    shm = launch.count_shm_segments()
+    shm = launch.shm_files()
     with observer() as obs, launch.ProcessGroup(env=launch.dds_env(
             DOMAIN, tmp_path / 'ros')) as group:
         for name, (msg_type, qos) in TOPICS.items():
@@ -60,7 +60,7 @@ def fleet(tmp_path):
         codes = {n: group.returncode(n) for n in group.pids}
         logs = {n: launch.log_tail(specs[n].log, 30) for n, c in codes.items() if c != 0}
         assert set(codes.values()) == {0}, (codes, logs)
-    assert launch.count_shm_segments() <= shm
+    assert launch.leaked_shm(shm) == []
 
 
 def _latest_t(obs, topic: str) -> float:

@@ -312,3 +312,17 @@ def test_interrupting_run_stops_every_child(standins, small, tmp_path, monkeypat
     assert '  t = 0 s progress line' in stdout
     assert_all_gone(recs)
     assert json.loads((out / 'summary.json').read_text())['partial'] is True
+
+
+def test_leaked_shm_ignores_files_live_processes_use(tmp_path, monkeypatch):
+    """Only orphans count as leaks: another program's live segment (here, held open by this
+    process) does not, so the check works beside other ROS programs and test runs."""
+    monkeypatch.setattr(launch, 'SHM_GLOB', str(tmp_path / 'fastrtps_*'))
+    before = launch.shm_files()
+    live = tmp_path / 'fastrtps_port7001_el'
+    orphan = tmp_path / 'fastrtps_0123abcd'
+    live.write_bytes(b'\0')
+    orphan.write_bytes(b'\0')
+    with live.open('rb'):
+        assert launch.leaked_shm(before) == [str(orphan)]
+    assert launch.leaked_shm(before) == sorted([str(live), str(orphan)])
