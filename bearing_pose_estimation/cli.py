@@ -70,7 +70,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .simulator import BatchSimulator
 
     scenario = _load_checked(args.scenario)
-    out = _out_dir(args.out, ['metrics.csv', 'summary.json']
+    out = _out_dir(args.out or f'results/{scenario.name}', ['metrics.csv', 'summary.json']
                    + ([] if args.no_plots else PLOT_FILES), args.force)
     duration = args.duration if args.duration is not None else scenario.duration
     sim = BatchSimulator(scenario, step=args.step)
@@ -225,7 +225,8 @@ def build_parser() -> argparse.ArgumentParser:
                        '--force.')
     p.add_argument('scenario', help='scenario YAML file')
     p.add_argument('--duration', type=float, help='simulated time [s] (default: the scenario\'s)')
-    p.add_argument('--out', default='results', help='output directory (default: results)')
+    p.add_argument('--out', metavar='DIR',
+                   help='output directory (default: results/<scenario name>)')
     p.add_argument('--step', type=float, help='step [s] (default: 1 / scenario frequency)')
     p.add_argument('--record-every', type=float, default=0.1,
                    help='metrics row interval [s] (default: 0.1)')
