@@ -55,8 +55,10 @@ def _described(text: str, low: float | None = None, high: float | None = None
 
 
 class EstimatorNode(Node):
-    def __init__(self) -> None:
-        super().__init__('estimator')
+    def __init__(self, **node_kwargs) -> None:
+        """``node_kwargs`` go to rclpy's Node (``namespace``, ``context``,
+        ``parameter_overrides``, ``cli_args``, ...): several agents can share one process."""
+        super().__init__('estimator', **node_kwargs)
         p = self.declare_parameter
         scenario_file = p('scenario_file', '', _described('scenario YAML; empty: explicit '
                                                           'parameters')).value
