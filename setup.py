@@ -10,6 +10,7 @@ package_name = 'bearing_pose_estimation'
 console_scripts = [
     'bearing-pose = bearing_pose_estimation.cli:main',
     'estimator = bearing_pose_estimation.estimator_node:main',
+    'estimators = bearing_pose_estimation.estimator_group:main',
     'simulator = bearing_pose_estimation.simulator_node:main',
     'monitor = bearing_pose_estimation.monitor_node:main',
 ]

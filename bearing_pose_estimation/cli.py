@@ -150,7 +150,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         scenario_file=Path(args.scenario).resolve(), out_dir=out,
         duration=args.duration if args.duration is not None else scenario.duration,
         domain_id=domain_id, real_time_factor=args.real_time_factor, plots=not args.no_plots,
-        timeout=args.timeout)
+        timeout=args.timeout, agents_per_process=args.agents_per_process)
     pace = (f'at most {cfg.real_time_factor:g}x real time' if cfg.real_time_factor > 0
             else 'as fast as the estimators keep up')
     print(f'running {scenario.name} over DDS: {len(scenario.agents)} estimators, monitor, '
@@ -170,10 +170,11 @@ def cmd_run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 1
     # The monitor's forwarded output has already shown the summary.
-    est_cpu = [result.cpu_s[a.name] for a in scenario.agents if a.name in result.cpu_s]
+    est_cpu = sum(v for k, v in result.cpu_s.items() if k not in ('simulator', 'monitor'))
     if est_cpu:
-        print(f'CPU: {sum(est_cpu) / len(est_cpu):.1f} s per estimator on average '
-              f'({100 * sum(est_cpu) / len(est_cpu) / result.wall_s:.0f} % of a core), '
+        per_agent = est_cpu / len(scenario.agents)
+        print(f'CPU: {per_agent:.1f} s per agent on average '
+              f'({100 * per_agent / result.wall_s:.0f} % of a core), '
               f'simulator {result.cpu_s.get("simulator", float("nan")):.1f} s, over '
               f'{result.wall_s:.1f} s wall for {cfg.duration:g} s simulated')
     print(f'wall time {result.wall_s:.1f} s; wrote ' + ', '.join(str(f) for f in result.files)
@@ -272,6 +273,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='cap on simulated seconds per wall second; 0: no cap, as fast as the '
                    'estimators keep up (default: 0)')
     p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
+    p.add_argument('--agents-per-process', type=int, default=1, metavar='K',
+                   help='run K agents per process (one executor, one node each) with the '
+                   '`estimators` executable; 1: one `estimator` process per agent (default)')
     p.add_argument('--timeout', type=float, metavar='S',
                    help='wall-time safety net [s] (default: 10 x duration / F + 120 for F < 1, '
                    'else 10 x duration + 120)')
@@ -302,6 +306,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error('--runs must be at least 1')
         if args.jobs is not None and args.jobs < 1:
             parser.error('--jobs must be at least 1')
+    if getattr(args, 'agents_per_process', 1) < 1:
+        parser.error('--agents-per-process must be at least 1')
     if getattr(args, 'domain_id', None) is not None and not 0 <= args.domain_id <= 232:
         parser.error('--domain-id must be in 0..232 (ROS 2 domain ids)')
     rtf = getattr(args, 'real_time_factor', None)

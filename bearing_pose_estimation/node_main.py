@@ -25,25 +25,29 @@ def scenario_parameter(node: Node) -> Scenario:
     return load_scenario(path)
 
 
-def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None,
-             until: Callable[[Node], Future] | None = None,
+def run_node(factory: Callable[[], Node | list[Node]], name: str,
+             args: list[str] | None = None, until: Callable[[Node], Future] | None = None,
              on_interrupt: Callable[[Node], None] | None = None) -> int:
-    """Create the node, spin it (until ``until(node)`` completes, or until shut down), and
-    shut down cleanly. Returns the process exit code.
+    """Create the node (or nodes: one executor spins them all), spin it (until ``until(node)``
+    completes, or until shut down), and shut down cleanly. Returns the process exit code.
 
     Args:
-        factory: builds the node (after ``rclpy.init``).
+        factory: builds the node, or a list of nodes (after ``rclpy.init``).
         name: logger name for fatal configuration errors.
         until: a future whose completion ends the spin (e.g. "outputs written").
         on_interrupt: called on Ctrl-C / external shutdown (e.g. write partial outputs).
     """
     rclpy.init(args=args)
     node = None
+    nodes: list[Node] = []
     code = 0
     try:
-        node = factory()
+        made = factory()
+        nodes = made if isinstance(made, list) else [made]
+        node = nodes[0]
         executor = SingleThreadedExecutor()
-        executor.add_node(node)
+        for each in nodes:
+            executor.add_node(each)
         if until is None:
             executor.spin()
         else:
@@ -67,10 +71,10 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         if node is not None and on_interrupt is not None:
             on_interrupt(node)
     finally:
-        if node is not None:
+        for each in nodes:
             try:
-                node.destroy_node()  # releases the DDS participant: no files left in /dev/shm
+                each.destroy_node()
             except Exception as exc:  # noqa: BLE001
                 rclpy.logging.get_logger(name).warning(f'destroy_node failed: {exc!r}')
-        rclpy.try_shutdown()
+        rclpy.try_shutdown()  # releases the DDS participant: no files left in /dev/shm
     return code

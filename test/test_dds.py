@@ -159,3 +159,19 @@ def test_paper_scenario_converges_over_dds_like_the_batch_simulator(tmp_path, no
     assert dds[20.0][0] < 1e-3 and dds[20.0][1] < 0.15
     assert sorted((out / 'params').glob('*.yaml'))
     assert launch.live_process_groups() is not None  # /proc readable: no_leftovers is meaningful
+
+
+def test_several_agents_per_process(tmp_path, no_leftovers):
+    """`--agents-per-process 4`: two `estimators` processes host the eight agents' nodes; the
+    run tracks the batch simulator as closely as one process per agent does."""
+    out = tmp_path / 'run'
+    assert main(['run', str(PAPER), '--duration', '10', '--out', str(out), '--agents-per-process',
+                 '4', '--domain-id', str(DOMAIN), '--no-plots']) == 0
+    assert sorted(p.name for p in (out / 'logs').glob('estimators_*.log')) == [
+        'estimators_0.log', 'estimators_1.log']
+    dds = _read_metrics(out / 'metrics.csv')
+    rec = BatchSimulator(load_scenario(PAPER)).run(10.0, record_every=0.1)
+    for t in (5.0, 10.0):
+        k = int(round(t / 0.1))
+        att_b, pos_b = rec.att_err[k].mean(), rec.pos_err[k].mean()
+        assert abs(dds[t][0] - att_b) <= 0.1 * att_b and abs(dds[t][1] - pos_b) <= 0.1 * pos_b

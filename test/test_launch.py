@@ -76,6 +76,12 @@ tmp.write_text(json.dumps(record))
 tmp.rename(tmp.with_suffix('.json'))
 
 if behaviour == 'crash':
+    # Crash once the monitor is up (it records itself after installing its SIGINT handler):
+    # the test checks that the monitor, stopped because of this crash, writes partial outputs.
+    monitor_up = Path(os.environ['STANDIN_DIR'], 'monitor.json')
+    deadline = time.monotonic() + 30
+    while not monitor_up.exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
     print('boom: something went wrong', flush=True)
     sys.exit(3)
 if behaviour == 'spawn':
@@ -323,6 +329,8 @@ def test_leaked_shm_ignores_files_live_processes_use(tmp_path, monkeypatch):
     orphan = tmp_path / 'fastrtps_0123abcd'
     live.write_bytes(b'\0')
     orphan.write_bytes(b'\0')
+    port = tmp_path / 'fastrtps_port7002'  # Fast DDS's own lock-less port file: not a leak
+    port.write_bytes(b'\0')
     with live.open('rb'):
         assert launch.leaked_shm(before) == [str(orphan)]
     assert launch.leaked_shm(before) == sorted([str(live), str(orphan)])
