@@ -484,7 +484,11 @@ class ProcessGroup:
         alive = self._wait_all(alive, grace)
         if alive:
             print(f'warning: still running {grace:g} s after SIGINT, sending SIGTERM: '
-                  + ', '.join(c.spec.label for c in alive), file=err)
+                  + ', '.join(c.spec.label for c in alive) + ' (their logs get a stack dump)',
+                  file=err)
+            for child in alive:  # the nodes dump their threads' stacks on SIGUSR1
+                self._signal(child, signal.SIGUSR1)
+            time.sleep(0.5)
             for child in alive:
                 self._signal(child, signal.SIGTERM)
             alive = self._wait_all(alive, term_grace)

@@ -6,6 +6,8 @@ fix and give exit code 1, without a traceback.
 """
 from __future__ import annotations
 
+import faulthandler
+import signal
 from collections.abc import Callable
 
 import rclpy
@@ -37,9 +39,13 @@ def run_node(factory: Callable[[], Node | list[Node]], name: str,
         until: a future whose completion ends the spin (e.g. "outputs written").
         on_interrupt: called on Ctrl-C / external shutdown (e.g. write partial outputs).
     """
+    # SIGUSR1 dumps every thread's stack to stderr (the log): `bearing-pose run` sends it to a
+    # node that did not stop on SIGINT, so a hang explains itself.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     rclpy.init(args=args)
     node = None
     nodes: list[Node] = []
+    executor = None
     code = 0
     try:
         made = factory()
@@ -71,6 +77,10 @@ def run_node(factory: Callable[[], Node | list[Node]], name: str,
         if node is not None and on_interrupt is not None:
             on_interrupt(node)
     finally:
+        if executor is not None:
+            # Release the executor's hold on the nodes before destroying them; do not wait
+            # long for a callback that a dying context cannot finish.
+            executor.shutdown(timeout_sec=2.0)
         for each in nodes:
             try:
                 each.destroy_node()

@@ -62,6 +62,7 @@ def write_outputs(partial):
 
 
 signal.signal(signal.SIGINT, stop)
+signal.signal(signal.SIGUSR1, signal.SIG_IGN)  # the real nodes dump their stacks on it
 if behaviour == 'deaf':          # ignores SIGINT, dies on SIGTERM
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 if behaviour == 'stubborn':      # ignores SIGINT and SIGTERM: needs SIGKILL
