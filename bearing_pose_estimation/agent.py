@@ -327,13 +327,16 @@ class AgentEstimator:
         return out
 
 
-def estimator_for(scenario: Scenario, name: str, limits: Limits = Limits()) -> AgentEstimator:
+def estimator_for(scenario: Scenario, name: str, limits: Limits = Limits(),
+                  initial: tuple[Array, Array] | None = None) -> AgentEstimator:
     """The estimator of agent ``name`` as the scenario defines it (gains, neighbours and their
-    ids, initial estimate, rate; leader mode for leaders)."""
+    ids, initial estimate, rate; leader mode for leaders). ``initial``: the fleet's
+    ``initial_estimates(scenario)``, when the caller builds many estimators (it draws them
+    all, so computing it once per fleet saves O(N²) work)."""
     from .scenario import initial_estimates
 
     i = scenario.index[name]
-    R0, p0 = initial_estimates(scenario)
+    R0, p0 = initial if initial is not None else initial_estimates(scenario)
     nbrs = [(n.name, scenario.agent_id(n.name), n.k) for n in scenario.agents[i].neighbours]
     return AgentEstimator(agent_id=scenario.agent_id(name), neighbours=nbrs,
                           gains=CascadeGains(k_R=scenario.k_R, k_p=scenario.k_p),

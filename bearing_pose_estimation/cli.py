@@ -100,6 +100,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_montecarlo(args: argparse.Namespace) -> int:
     from . import montecarlo as mc
+    from .metrics import write_summary_json
 
     scenario = _load_checked(args.scenario)
     out = _out_dir(args.out or f'results/{scenario.name}_montecarlo', list(mc.OUTPUT_FILES),
@@ -127,7 +128,7 @@ def cmd_montecarlo(args: argparse.Namespace) -> int:
                            wall_time_s=round(wall, 3))
     files = [out / name for name in mc.OUTPUT_FILES]
     mc.write_runs_csv(results, files[0])
-    mc.write_summary_json(summary, files[1])
+    write_summary_json(summary, files[1])
     mc.write_plot(results, files[2])
     print(mc.format_table(summary))
     print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))

@@ -21,7 +21,6 @@ Outputs: ``runs.csv`` (one row per run), ``summary.json`` (statistics over runs)
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 from collections.abc import Callable
@@ -163,10 +162,6 @@ def write_runs_csv(results: list[RunResult], path: Path) -> None:
         w.writerow(RUN_COLUMNS)
         for r in results:
             w.writerow([r.run, r.seed] + [_csv_value(r.values[q]) for q in QUANTITIES])
-
-
-def write_summary_json(summary: dict[str, Any], path: Path) -> None:
-    path.write_text(json.dumps(summary, indent=2) + '\n')
 
 
 def format_table(summary: dict[str, Any]) -> str:

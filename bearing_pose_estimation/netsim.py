@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .agent import AgentEstimator, Limits, estimator_for
-from .scenario import Scenario
+from .scenario import Scenario, initial_estimates
 from .simulator import Recording, pose_errors
 from .world import World
 
@@ -50,7 +50,9 @@ def run_network(scenario: Scenario, duration: float, record_every: float = 0.1,
     world = World(scenario)
     rng = np.random.default_rng(links.seed)
     names = [a.name for a in scenario.agents]
-    agents: dict[str, AgentEstimator] = {n: estimator_for(scenario, n, limits) for n in names}
+    initial = initial_estimates(scenario)  # drawn once for the whole fleet
+    agents: dict[str, AgentEstimator] = {n: estimator_for(scenario, n, limits, initial)
+                                         for n in names}
     per_step = int(round(scenario.step / world.dt))
     per_publish = per_step * scenario.publish_every
     per_record = int(round(record_every / world.dt))
@@ -98,7 +100,7 @@ def run_network(scenario: Scenario, duration: float, record_every: float = 0.1,
         t = world.t
         for o in outages:  # a restarted process starts from its initial estimate
             if o.restart and abs(t - o.end) < 0.5 * world.dt:
-                agents[o.agent] = estimator_for(scenario, o.agent, limits)
+                agents[o.agent] = estimator_for(scenario, o.agent, limits, initial)
         if world.due(world.imu_every):
             for name, w in zip(names, world.imu()):
                 if not down(name, t):
