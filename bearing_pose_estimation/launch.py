@@ -458,6 +458,20 @@ class ProcessGroup:
             out[name] = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
         return out
 
+    def rss_mb(self) -> dict[str, float]:
+        """Resident memory [MB] of each live child, from /proc (Linux)."""
+        out = {}
+        for name, child in self._children.items():
+            try:
+                status = Path(f'/proc/{child.proc.pid}/status').read_text()
+            except OSError:
+                continue  # already gone
+            kib = next((line.split()[1] for line in status.splitlines()
+                        if line.startswith('VmRSS:')), None)
+            if kib is not None:
+                out[name] = int(kib) / 1024.0
+        return out
+
     def stop(self, name: str, grace: float = 10.0, term_grace: float = 5.0) -> int | None:
         """Stop one child as :meth:`shutdown` does; return its exit code (0: clean)."""
         with _signals_deferred(replay=False):
@@ -539,6 +553,7 @@ class RunResult:
     killed: list[str] = field(default_factory=list)
     files: list[Path] = field(default_factory=list)   # outputs written by this run
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per live process
+    rss_mb: dict[str, float] = field(default_factory=dict)  # resident memory per process, at end
 
 
 def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = None) -> RunResult:
@@ -569,6 +584,7 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
                         'raise --timeout') if result.failure.timed_out else ''
                 print(f'error: {result.failure.format()}{hint}', file=sys.stderr)
             result.cpu_s = group.cpu_seconds()
+            result.rss_mb = group.rss_mb()
             result.killed = group.shutdown()
     finally:
         result.wall_s = time.perf_counter() - wall

@@ -73,13 +73,24 @@ class OmegaProfile:
                     self.phase[i, axis, k] = term.phase
         # Skip the trigonometry entirely for constant-rate fleets (common in large scenarios).
         self._has_terms = bool(np.any(self.amplitude != 0.0))
+        # Term-major contiguous copies: a loop over the few terms beats a sum over a short
+        # last axis (numpy reduces length-1..3 axes slowly).
+        self._terms = [(np.ascontiguousarray(self.amplitude[..., k]),
+                        np.ascontiguousarray(self.frequency[..., k]),
+                        np.ascontiguousarray(self.phase[..., k])) for k in range(n_terms)]
+
+    @property
+    def is_constant(self) -> bool:
+        """Every agent's ω is constant in time."""
+        return not self._has_terms
 
     def __call__(self, t: float) -> NDArray[np.float64]:
         """ω of every agent at time ``t``, shape ``(N, 3)``."""
-        if not self._has_terms:
-            return self.constant.copy()
-        return self.constant + np.sum(
-            self.amplitude * np.sin(self.frequency * t + self.phase), axis=-1)
+        out = self.constant.copy()
+        if self._has_terms:
+            for amplitude, frequency, phase in self._terms:
+                out += amplitude * np.sin(frequency * t + phase)
+        return out
 
 
 def magnus_increment(omega: OmegaProfile, t: float, h: float) -> NDArray[np.float64]:

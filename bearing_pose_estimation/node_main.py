@@ -1,8 +1,10 @@
 """The life cycle shared by every node's ``main``: init, spin, clean shutdown on Ctrl-C.
 
 Clean shutdown matters: a node that dies without destroying its DDS participant leaves Fast DDS
-files in /dev/shm. Configuration errors (:class:`ScenarioError`) are logged as fatal with their
-fix and give exit code 1, without a traceback.
+files in /dev/shm. SIGINT and SIGTERM only ask the spin loop to stop; everything after happens
+on the main thread, in order (see :class:`_StopRequest`). Configuration errors
+(:class:`ScenarioError`) are logged as fatal with their fix and give exit code 1, without a
+traceback.
 """
 from __future__ import annotations
 
@@ -11,8 +13,9 @@ import signal
 from collections.abc import Callable
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
 from .scenario import Scenario, ScenarioError, load_scenario
@@ -27,22 +30,53 @@ def scenario_parameter(node: Node) -> Scenario:
     return load_scenario(path)
 
 
+# How long one executor wait may block: the longest delay between a stop signal and the
+# spin loop noticing it when no timer or message wakes the executor.
+_POLL_S = 0.1
+
+
+class _StopRequest:
+    """SIGINT/SIGTERM handler that only records the request; a second signal interrupts.
+
+    rclpy's own handler shuts the context down from its signal thread while the executor may be
+    taking a message or destroying a handle; on shutdown that race crashed (SIGSEGV), hung in
+    ``destroy_node`` or raised from ``take_message`` in about one fleet shutdown in twelve
+    (``bench/shutdown_stress.py`` reproduces it). Stopping from the spin loop instead leaves one
+    thread doing everything, in order.
+    """
+
+    def __init__(self) -> None:
+        self.signal: int | None = None
+        self._previous = {sig: signal.signal(sig, self._handle)
+                          for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def _handle(self, signum: int, _frame: object) -> None:
+        if self.signal is not None:  # asked twice: stop waiting for the loop
+            raise KeyboardInterrupt
+        self.signal = signum
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
 def run_node(factory: Callable[[], Node | list[Node]], name: str,
              args: list[str] | None = None, until: Callable[[Node], Future] | None = None,
              on_interrupt: Callable[[Node], None] | None = None) -> int:
     """Create the node (or nodes: one executor spins them all), spin it (until ``until(node)``
-    completes, or until shut down), and shut down cleanly. Returns the process exit code.
+    completes, or until SIGINT/SIGTERM), and shut down cleanly. Returns the process exit code.
 
     Args:
         factory: builds the node, or a list of nodes (after ``rclpy.init``).
         name: logger name for fatal configuration errors.
         until: a future whose completion ends the spin (e.g. "outputs written").
-        on_interrupt: called on Ctrl-C / external shutdown (e.g. write partial outputs).
+        on_interrupt: called when a signal stopped the spin (e.g. write partial outputs).
     """
     # SIGUSR1 dumps every thread's stack to stderr (the log): `bearing-pose run` sends it to a
     # node that did not stop on SIGINT, so a hang explains itself.
     faulthandler.register(signal.SIGUSR1, all_threads=True)
-    rclpy.init(args=args)
+    stop = _StopRequest()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     nodes: list[Node] = []
     executor = None
@@ -54,32 +88,24 @@ def run_node(factory: Callable[[], Node | list[Node]], name: str,
         executor = SingleThreadedExecutor()
         for each in nodes:
             executor.add_node(each)
-        if until is None:
-            executor.spin()
-        else:
-            executor.spin_until_future_complete(until(node))
-            result = until(node).result()
-            code = 0 if result in (None, True) else 1
-    except (KeyboardInterrupt, ExternalShutdownException):
+        future = until(node) if until is not None else None
+        while stop.signal is None and (future is None or not future.done()):
+            executor.spin_once(timeout_sec=_POLL_S)
+        if stop.signal is not None:
+            rclpy.logging.get_logger(name).info(
+                f'{signal.Signals(stop.signal).name}: shutting down')
+            if on_interrupt is not None:
+                on_interrupt(node)
+        elif future is not None:
+            code = 0 if future.result() in (None, True) else 1
+    except KeyboardInterrupt:  # a second signal while stopping, or one during start-up
         if node is not None and on_interrupt is not None:
             on_interrupt(node)
     except ScenarioError as exc:
         rclpy.logging.get_logger(name).fatal(str(exc))
         code = 1
-    except Exception as exc:  # noqa: BLE001
-        # Ctrl-C shuts the context down from a signal handler; an executor caught between its
-        # checks then fails to build a wait set (RCLError), to take a message (pybind11's
-        # RuntimeError) or to use a handle being destroyed. After shutdown that is the shutdown
-        # itself (said, not hidden); while the context is valid it is a real error.
-        if rclpy.ok():
-            raise
-        rclpy.logging.get_logger(name).info(f'shutdown interrupted a callback: {exc!r}')
-        if node is not None and on_interrupt is not None:
-            on_interrupt(node)
     finally:
         if executor is not None:
-            # Release the executor's hold on the nodes before destroying them; do not wait
-            # long for a callback that a dying context cannot finish.
             executor.shutdown(timeout_sec=2.0)
         for each in nodes:
             try:
@@ -87,4 +113,5 @@ def run_node(factory: Callable[[], Node | list[Node]], name: str,
             except Exception as exc:  # noqa: BLE001
                 rclpy.logging.get_logger(name).warning(f'destroy_node failed: {exc!r}')
         rclpy.try_shutdown()  # releases the DDS participant: no files left in /dev/shm
+        stop.restore()
     return code

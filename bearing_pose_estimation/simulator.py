@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from . import so3
 from .motion import OmegaProfile, magnus_increment
 from .noise import NoiseModel
-from .observer import CascadeGains, Edges, cascade_step
+from .observer import REORTHONORMALIZE_EVERY, CascadeGains, Edges, cascade_step
 from .scenario import Scenario, initial_estimates
 
 Array = NDArray[np.float64]
@@ -87,7 +87,12 @@ class BatchSimulator:
         self.edges = Edges(agent=np.array(owner, dtype=np.intp), k=np.array(k), n_agents=self.n)
         d = self.p[self.edge_nbr] - self.p[self.edges.agent]
         self.b_world = d / np.linalg.norm(d, axis=1, keepdims=True)  # b_ij, static
+        self._ends = np.concatenate([self.edges.agent, self.edge_nbr])
+        self._ends_b_world = np.concatenate([self.b_world, -self.b_world])
         self.gains = CascadeGains(k_R=scenario.k_R, k_p=scenario.k_p)
+        # Constant rates (common in generated fleets): the truth's increment never changes.
+        self._constant_delta_R = (magnus_increment(self.omega, 0.0, self.h)
+                                  if self.omega.is_constant else None)
         self.reset()
 
     def reset(self) -> None:
@@ -101,12 +106,12 @@ class BatchSimulator:
 
     def measure(self) -> tuple[Array, Array]:
         """Own body bearings ``b^i_ij`` and neighbours' world bearings ``R̂_j b^j_ij`` now."""
-        i, j = self.edges.agent, self.edge_nbr
-        b_own = np.einsum('eba,eb->ea', self.R[i], self.b_world)           # R_iᵀ b_ij
-        b_theirs = np.einsum('eba,eb->ea', self.R[j], -self.b_world)       # b^j_ji = R_jᵀ b_ji
+        # Both ends' body bearings in one product: R_iᵀ b_ij and b^j_ji = R_jᵀ b_ji = -R_jᵀ b_ij.
+        both = np.einsum('eba,eb->ea', np.take(self.R, self._ends, axis=0), self._ends_b_world)
+        b_own, b_theirs = both[:len(self.edges)], both[len(self.edges):]
         b_own = self.noise.bearings(b_own, self.t)
         b_theirs = self.noise.bearings(b_theirs, self.t)
-        d_world = -np.einsum('eab,eb->ea', self.R_hat[j], b_theirs)
+        d_world = -np.einsum('eab,eb->ea', np.take(self.R_hat, self.edge_nbr, axis=0), b_theirs)
         return b_own, d_world
 
     def gyro_increment(self, delta_R: Array) -> Array:
@@ -117,11 +122,18 @@ class BatchSimulator:
 
     def step(self) -> None:
         """Advance truth and every observer by one step ``h``."""
-        delta_R = magnus_increment(self.omega, self.t, self.h)
+        delta_R = self._constant_delta_R
+        if delta_R is None:
+            delta_R = magnus_increment(self.omega, self.t, self.h)
         b_own, d_world = self.measure()
+        fix = (self.k + 1) % REORTHONORMALIZE_EVERY == 0
         res = cascade_step(self.R_hat, self.p_hat, self.gyro_increment(delta_R), self.h,
-                           self.edges, b_own, d_world, self.p_hat[self.edge_nbr], self.gains)
-        self.R = so3.reorthonormalize(self.R @ delta_R)
+                           self.edges, b_own, d_world, np.take(self.p_hat, self.edge_nbr, axis=0),
+                           self.gains,
+                           reorthonormalize=fix)
+        self.R = so3.matmul(self.R, delta_R)
+        if fix:
+            self.R = so3.reorthonormalize(self.R)
         self.R_hat, self.p_hat = res.R_hat, res.p_hat
         # Leaders know their pose (Assumption 2b).
         self.R_hat[self.leader_idx] = self.R[self.leader_idx]

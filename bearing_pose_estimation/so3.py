@@ -68,15 +68,37 @@ def exp(phi: ArrayLike) -> Array:
     phi = np.asarray(phi, dtype=float)
     if phi.shape == (3,):
         return _exp_one(phi)
-    theta2 = np.sum(phi * phi, axis=-1)
+    x, y, z = phi[..., 0], phi[..., 1], phi[..., 2]
+    theta2 = x * x + y * y + z * z
     theta = np.sqrt(theta2)
-    small = theta < _SMALL_ANGLE
-    safe = np.where(small, 1.0, theta)
-    # a = sin θ/θ, b = (1 - cos θ)/θ², with their series near 0.
-    a = np.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - np.cos(safe)) / safe**2)
-    K = hat(phi)
-    return _I3 + a[..., None, None] * K + b[..., None, None] * (K @ K)
+    # Half-angle form: a = sin θ/θ = 2 s c/θ, b = (1 - cos θ)/θ² = 2 (s/θ)² with s = sin(θ/2),
+    # c = cos(θ/2) = √(1 - s²) (one sine, no cosine) while θ ≤ π/2, where c ≥ 0.7 keeps it exact.
+    s = np.sin(0.5 * theta)
+    c = np.sqrt(1.0 - s * s) if theta.size and theta.max() <= 0.5 * np.pi else np.cos(0.5 * theta)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        s_over = s / theta
+    a = 2.0 * s_over * c
+    b = 2.0 * s_over * s_over
+    small = theta2 < _SMALL_ANGLE**2
+    if small.any():  # their series near 0 (also θ = 0, where the ratios are 0/0)
+        t2 = theta2[small]
+        a[small] = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
+        b[small] = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+    # I + a K + b K² entry by entry (K² = φφᵀ - θ² I): no 3x3 products, ~4x faster in batch.
+    out = np.empty(phi.shape[:-1] + (3, 3))
+    bx, by, bz = b * x, b * y, b * z
+    ax, ay, az = a * x, a * y, a * z
+    diag = 1.0 - b * theta2
+    out[..., 0, 0] = diag + bx * x
+    out[..., 1, 1] = diag + by * y
+    out[..., 2, 2] = diag + bz * z
+    out[..., 0, 1] = bx * y - az
+    out[..., 1, 0] = bx * y + az
+    out[..., 0, 2] = bx * z + ay
+    out[..., 2, 0] = bx * z - ay
+    out[..., 1, 2] = by * z - ax
+    out[..., 2, 1] = by * z + ax
+    return out
 
 
 def _exp_one(phi: Array) -> Array:
@@ -105,6 +127,12 @@ def cross(a: ArrayLike, b: ArrayLike) -> Array:
     return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
                      a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+def dot(a: Array, b: Array) -> Array:
+    """``a · b`` over the last axis (of size 3). Written out: numpy's reductions over a
+    length-3 axis cost ~4x more than three products."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
 def log(R: ArrayLike) -> Array:
@@ -182,12 +210,40 @@ def axis_angle(axis: ArrayLike, theta: float) -> Array:
     return exp(v / np.linalg.norm(v) * theta)
 
 
+# Above this many matrices, :func:`matmul` multiplies in a components-last layout: numpy's
+# stacked ``@`` loops over 3x3 products one by one: 2.4x slower at 1 000 (61 vs 149 µs here).
+_COMPONENTS_LAST_FROM = 64
+
+
+def matmul(*mats: Array) -> Array:
+    """``mats[0] @ mats[1] @ ...`` for stacks ``(N, 3, 3)`` (same N; a single ``(3, 3)`` is
+    broadcast in the small path only). Large stacks are multiplied as nine length-N vectors per
+    matrix, which numpy vectorises far better than N separate 3x3 products."""
+    if len(mats) == 1:
+        return mats[0]
+    first = mats[0]
+    if first.ndim != 3 or first.shape[0] < _COMPONENTS_LAST_FROM or any(
+            m.shape != first.shape for m in mats):
+        out = first
+        for m in mats[1:]:
+            out = out @ m
+        return out
+    acc = np.ascontiguousarray(first.transpose(1, 2, 0))
+    for m in mats[1:]:
+        b = np.ascontiguousarray(m.transpose(1, 2, 0))
+        nxt = acc[:, 0, None, :] * b[None, 0]
+        nxt += acc[:, 1, None, :] * b[None, 1]
+        nxt += acc[:, 2, None, :] * b[None, 2]
+        acc = nxt
+    return np.ascontiguousarray(acc.transpose(2, 0, 1))
+
+
 def reorthonormalize(R: ArrayLike) -> Array:
     """Pull a nearly orthonormal ``R`` back onto SO(3): one Newton-Schulz step of the polar
     factor, ``R (3I - RᵀR)/2``. The residual ``RᵀR - I`` is squared, so rounding errors of
     long products never accumulate (two matrix products, far cheaper than an SVD)."""
     R = np.asarray(R, dtype=float)
-    return 0.5 * R @ (3.0 * _I3 - np.swapaxes(R, -1, -2) @ R)
+    return 0.5 * matmul(R, 3.0 * _I3 - matmul(np.swapaxes(R, -1, -2), R))
 
 
 def orthonormality_error(R: ArrayLike) -> Array:

@@ -32,13 +32,34 @@ def test_rotation_conjugates_hat():
     np.testing.assert_allclose(lhs, rhs, atol=1e-13)
 
 
-@pytest.mark.parametrize('scale', [1e-9, 1e-5, 1e-3, 1.0, 3.0])
+@pytest.mark.parametrize('scale', [1e-9, 1e-5, 1e-3, 1.0, 1.5, 3.0, np.pi - 1e-6])
 def test_exp_matches_scipy_and_stays_on_so3(scale):
     phi = scale * VECS / np.linalg.norm(VECS, axis=1, keepdims=True) * RNG.uniform(0.1, 1.0, (50, 1))
     R = so3.exp(phi)
     np.testing.assert_allclose(R, Rotation.from_rotvec(phi).as_matrix(), atol=1e-15)
     assert so3.orthonormality_error(R).max() < 4e-15  # a few ulps
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-15)
+
+
+def test_exp_batch_mixing_every_branch_matches_the_one_vector_path():
+    """Zero, series-range, half-angle (θ ≤ π/2) and cosine (θ > π/2) rows in one batch give the
+    same matrices as the scalar path, row by row."""
+    phi = np.vstack([np.zeros(3), 1e-6 * VECS[:5], 0.3 * VECS[:5], 2.5 * VECS[:5]])
+    batch = so3.exp(phi)
+    for row, R in zip(phi, batch):
+        np.testing.assert_allclose(R, so3.exp(row), atol=2e-15)
+    # Without the large rows the batch takes the half-angle branch: same answers.
+    np.testing.assert_allclose(so3.exp(phi[:11]), batch[:11], atol=2e-15)
+
+
+@pytest.mark.parametrize('n', [3, 64, 500])
+def test_matmul_matches_numpy_for_small_and_large_stacks(n):
+    """Stacks of 64 or more go through the components-last path; the product is the same."""
+    A, B, C = (Rotation.random(n, random_state=s).as_matrix() for s in (1, 2, 4))
+    np.testing.assert_allclose(so3.matmul(A, B, C), A @ B @ C, atol=1e-15)
+    np.testing.assert_allclose(so3.matmul(A, B), A @ B, atol=1e-15)
+    np.testing.assert_allclose(so3.dot(VECS, VECS[::-1]), np.sum(VECS * VECS[::-1], axis=1),
+                               atol=1e-14)
 
 
 def test_log_inverts_exp_and_angle_is_accurate_near_zero():
