@@ -9,7 +9,10 @@ traceback.
 from __future__ import annotations
 
 import faulthandler
+import os
 import signal
+import sys
+import threading
 from collections.abc import Callable
 
 import rclpy
@@ -18,7 +21,13 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
+from .executor import DrainingExecutor
 from .scenario import Scenario, ScenarioError, load_scenario
+
+# Which executor spins the nodes: 'draining' (ours, the default; see executor.py and
+# BENCHMARKS.md) or 'rclpy' (its SingleThreadedExecutor), kept for comparisons.
+EXECUTOR_ENV = 'BEARING_POSE_EXECUTOR'
+EXECUTORS = {'draining': DrainingExecutor, 'rclpy': SingleThreadedExecutor}
 
 
 def scenario_parameter(node: Node) -> Scenario:
@@ -82,10 +91,14 @@ def run_node(factory: Callable[[], Node | list[Node]], name: str,
     executor = None
     code = 0
     try:
+        choice = os.environ.get(EXECUTOR_ENV, 'draining')
+        if choice not in EXECUTORS:
+            raise ScenarioError(f'{EXECUTOR_ENV}={choice!r} is not an executor. Fix: one of '
+                                f'{", ".join(EXECUTORS)}, or unset it')
         made = factory()
         nodes = made if isinstance(made, list) else [made]
         node = nodes[0]
-        executor = SingleThreadedExecutor()
+        executor = EXECUTORS[choice]()
         for each in nodes:
             executor.add_node(each)
         future = until(node) if until is not None else None
@@ -105,6 +118,9 @@ def run_node(factory: Callable[[], Node | list[Node]], name: str,
         rclpy.logging.get_logger(name).fatal(str(exc))
         code = 1
     finally:
+        watchdog = threading.Timer(TEARDOWN_TIMEOUT_S, _teardown_hung, (name, code))
+        watchdog.daemon = True
+        watchdog.start()
         if executor is not None:
             executor.shutdown(timeout_sec=2.0)
         for each in nodes:
@@ -113,5 +129,23 @@ def run_node(factory: Callable[[], Node | list[Node]], name: str,
             except Exception as exc:  # noqa: BLE001
                 rclpy.logging.get_logger(name).warning(f'destroy_node failed: {exc!r}')
         rclpy.try_shutdown()  # releases the DDS participant: no files left in /dev/shm
+        watchdog.cancel()
         stop.restore()
     return code
+
+
+# Destroying nodes takes well under a second. Fast DDS (2.14, in the Jazzy wheels) sometimes
+# deadlocks inside rcl_node_fini when many participants leave at once: about one process in
+# 200 in bench/shutdown_stress.py, always in rclpy's Node.destroy_node. Nothing can unblock it.
+TEARDOWN_TIMEOUT_S = 5.0
+
+
+def _teardown_hung(name: str, code: int) -> None:
+    """The watchdog's end: say what hung, with the stacks, and exit with the node's own code
+    (its work is done) instead of waiting for SIGKILL."""
+    sys.stderr.write(f'[ERROR] [{name}]: DDS teardown did not finish in {TEARDOWN_TIMEOUT_S:g} s '
+                     '(a Fast DDS deadlock in node destruction); exiting without it. Its files '
+                     'may stay in /dev/shm: `fastdds shm clean` removes them. Stacks:\n')
+    faulthandler.dump_traceback(all_threads=True)
+    sys.stderr.flush()
+    os._exit(code)

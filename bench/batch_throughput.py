@@ -4,7 +4,7 @@ Fleets from `bearing-pose generate` (seed 0; 8 agents: the paper scenario). Time
 `BatchSimulator.step()` (truth, measurements, every observer) after a warm-up; prints the
 median over repeats.
 
-    OMP_NUM_THREADS=1 .venv/bin/python bench/batch_throughput.py [--agents 8 100 1000 10000]
+    OMP_NUM_THREADS=1 .venv/bin/python bench/batch_throughput.py [--agents 8 100 1000 ...]
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--agents', type=int, nargs='+', default=[8, 100, 1000, 10000])
+    ap.add_argument('--agents', type=int, nargs='+', default=[8, 100, 1000, 2000, 5000, 10000])
     args = ap.parse_args()
     print('| agents | edges | us per step | agent-steps per second |')
     print('|---|---|---|---|')

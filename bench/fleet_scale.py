@@ -15,7 +15,8 @@ than the wall, and lockstep slows it when estimators fall behind) and reports:
 A fleet "runs in real time" when speed >= 0.99 and missed < 1 %.
 
     .venv/bin/python bench/fleet_scale.py [--agents 8 16 32] [--per-process 1 4]
-        [--frequency 50] [--imu-rate 50] [--duration 20]
+        [--frequency 50] [--publish-rate 50] [--imu-rate 50] [--duration 20]
+        [--executor draining|rclpy]
 """
 from __future__ import annotations
 
@@ -32,6 +33,7 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from bearing_pose_estimation import launch  # noqa: E402
 from bearing_pose_estimation.generate import generate_scenario  # noqa: E402
+from bearing_pose_estimation.node_main import EXECUTOR_ENV, EXECUTORS  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 
 _DONE = re.compile(r'reached t = \S+ s in (?P<wall>\S+) s wall \(x(?P<speed>\S+) real time\).*'
@@ -42,6 +44,7 @@ _MATCHED = re.compile(r'all matched after (?P<s>\S+) s')
 def run_one(n: int, k: int, args: argparse.Namespace, tmp: Path) -> dict[str, float | str]:
     data = generate_scenario(n, seed=0)
     data['frequency'] = args.frequency
+    data['publish_rate'] = args.publish_rate
     data['simulation'] = {'imu_rate': args.imu_rate}
     if args.position_std is not None:
         data['initial_estimates']['random']['position_std'] = args.position_std
@@ -79,10 +82,16 @@ def main() -> None:
     ap.add_argument('--frequency', type=float, default=50.0, help='estimator rate [Hz]')
     ap.add_argument('--imu-rate', type=float, default=50.0, help='gyro samples [Hz]')
     ap.add_argument('--duration', type=float, default=20.0, help='simulated seconds')
+    ap.add_argument('--publish-rate', type=float, default=50.0,
+                    help='estimates and world bearings sent to neighbours [Hz]')
     ap.add_argument('--position-std', type=float, help='initial position error std [m]')
+    ap.add_argument('--executor', choices=sorted(EXECUTORS), default='draining',
+                    help='executor of every node (default: draining, as in production)')
     args = ap.parse_args()
-    print(f'estimators at {args.frequency:g} Hz, gyro at {args.imu_rate:g} Hz, '
-          f'{args.duration:g} s simulated, --real-time-factor 1\n')
+    os.environ[EXECUTOR_ENV] = args.executor  # the children inherit it
+    print(f'estimators at {args.frequency:g} Hz, publishing at {args.publish_rate:g} Hz, gyro at '
+          f'{args.imu_rate:g} Hz, {args.executor} executor, {args.duration:g} s simulated, '
+          '--real-time-factor 1\n')
     print('| agents | agents/process | speed | missed | CPU/agent | simulator CPU | '
           'RSS/process | RSS/agent | discovery | errors at end (rad, m) |')
     print('|---|---|---|---|---|---|---|---|---|---|')

@@ -1,0 +1,60 @@
+"""run_node's life cycle in a real process: a signal stops the spin loop and the node is torn
+down in order (exit 0); a teardown that hangs is cut short by the watchdog, said loudly."""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+CHILD = r'''
+import sys, time
+from rclpy.node import Node
+from bearing_pose_estimation import node_main
+
+node_main.TEARDOWN_TIMEOUT_S = 1.0
+hang = sys.argv[1] == 'hang'
+
+class Probe(Node):
+    def __init__(self):
+        super().__init__('probe')
+        self.create_timer(0.01, lambda: None)
+        print('READY', flush=True)
+
+    def destroy_node(self):
+        print('DESTROYING', flush=True)
+        if hang:
+            time.sleep(60)  # what a deadlocked DDS teardown looks like from Python
+        super().destroy_node()
+
+raise SystemExit(node_main.run_node(Probe, 'probe'))
+'''
+
+
+def _start(mode: str) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, '-c', CHILD, mode], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=dict(os.environ))
+    assert proc.stdout.readline().strip() == 'READY'
+    return proc
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_stops_the_loop_and_the_node_exits_0(sig):
+    proc = _start('clean')
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert 'DESTROYING' in out
+    assert f'{signal.Signals(sig).name}: shutting down' in err
+
+
+def test_a_hung_teardown_is_cut_short_by_the_watchdog():
+    proc = _start('hang')
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    assert time.monotonic() - t0 < 10.0
+    assert proc.returncode == 0  # the node's own result: its work was done
+    assert 'DDS teardown did not finish in 1 s' in err and 'fastdds shm clean' in err
+    assert 'in destroy_node' in err  # the stack dump shows where it hung
