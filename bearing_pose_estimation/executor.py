@@ -5,7 +5,9 @@ runs *one* callback, wrapped in a Task; its cost per message grows with the numb
 in the process. Measured with ``bench/executor_ceiling.py`` (receiver CPU per message, all
 threads): 262 µs with one subscription, 436-553 µs with 8 (one agent), 1 644 µs with 40 (five
 agents), against 99-144 µs for a loop that waits once and then takes *every* queued message of
-each ready subscription. This is that loop, for the entities our nodes use.
+each ready subscription. This is that loop, for the entities our nodes use. The messages taken
+in one go are handed to their callbacks in arrival order across subscriptions (DDS reception
+stamps), so a node sees the same sequence as with a one-message-at-a-time executor.
 
 Semantics kept from rclpy: timers fire when ready (``call_timer`` then the callback), services
 answer (the parameter services), QoS event handlers (waitables) run, guard-condition callbacks
@@ -45,8 +47,8 @@ def _run_coroutine(coro: Any) -> None:
 
 class DrainingExecutor(Executor):
     """Wait once on every entity of every node, then run everything that is ready: all queued
-    messages of each ready subscription (in arrival order per subscription), then timers,
-    services, QoS events and guard conditions."""
+    messages of every ready subscription, in the order they arrived, then timers, services,
+    QoS events and guard conditions."""
 
     def add_node(self, node: Node) -> bool:
         if any(True for _ in node.clients):  # a generator, always truthy itself
@@ -84,9 +86,20 @@ class DrainingExecutor(Executor):
             return
 
         ready = ws.get_ready_entities('subscription')
+        taken: list[tuple[int, int, Subscription, tuple]] = []
         for s in subs:
             if s.handle.pointer in ready:
-                self._drain(s)
+                while (msg_info := s.handle.take_message(s.msg_type, s.raw)) is not None:
+                    taken.append((msg_info[1]['received_timestamp'], len(taken), s, msg_info))
+        # In arrival order across subscriptions, as one-at-a-time executors would see them
+        # (an estimator must see the bearing that arrived before the gyro sample completing a
+        # step before it runs the step).
+        taken.sort(key=lambda item: (item[0], item[1]))
+        for _, _, s, msg_info in taken:
+            if s._callback_type is Subscription.CallbackType.MessageOnly:
+                _call(s.callback, msg_info[0])
+            else:
+                _call(s.callback, *msg_info)
         ready = ws.get_ready_entities('timer')
         for t in timers:
             # is_timer_ready: rcl may report a cancelled timer as ready
@@ -106,15 +119,6 @@ class DrainingExecutor(Executor):
         for g in guards:
             if g.handle.pointer in ready and g.callback is not None:
                 _call(g.callback)
-
-    @staticmethod
-    def _drain(sub: Subscription) -> None:
-        with_info = sub._callback_type is not Subscription.CallbackType.MessageOnly
-        while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
-            if with_info:
-                _call(sub.callback, *taken)
-            else:
-                _call(sub.callback, taken[0])
 
     def spin_once_until_future_complete(self, future: Any,
                                         timeout_sec: float | None = None) -> None:

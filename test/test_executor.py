@@ -55,6 +55,33 @@ def test_every_message_arrives_once_in_order_and_timers_fire(context):
         receiver.destroy_node()
 
 
+def test_messages_of_several_topics_run_in_arrival_order(context):
+    """Two topics published alternately, drained in one go: the callbacks interleave as the
+    messages arrived, not topic by topic."""
+    sender = rclpy.create_node('sender2', context=context)
+    receiver = rclpy.create_node('receiver2', context=context)
+    got = []
+    for topic in ('first', 'second'):
+        receiver.create_subscription(Int32, topic, lambda m, t=topic: got.append((t, m.data)),
+                                     RELIABLE)
+    pubs = [sender.create_publisher(Int32, t, RELIABLE) for t in ('first', 'second')]
+    executor = DrainingExecutor(context=context)
+    executor.add_node(receiver)  # the sender is not spun: everything queues up first
+    try:
+        assert _spin_until(executor, lambda: all(p.get_subscription_count() == 1 for p in pubs))
+        expected = []
+        for k in range(50):
+            pub = pubs[k % 2]
+            pub.publish(Int32(data=k))
+            expected.append((pub.topic_name.lstrip('/'), k))
+        assert _spin_until(executor, lambda: len(got) >= 50)
+        assert got == expected
+    finally:
+        executor.shutdown()
+        sender.destroy_node()
+        receiver.destroy_node()
+
+
 def test_parameter_services_still_answer(context):
     """`ros2 param get` on a node spun by DrainingExecutor: served from another executor."""
     served = rclpy.create_node('served', context=context)
