@@ -333,8 +333,13 @@ def estimator_for(scenario: Scenario, name: str, limits: Limits = Limits(),
     ids, initial estimate, rate; leader mode for leaders). ``initial``: the fleet's
     ``initial_estimates(scenario)``, when the caller builds many estimators (it draws them
     all, so computing it once per fleet saves O(N²) work)."""
-    from .scenario import initial_estimates
+    from .scenario import ScenarioError, initial_estimates
 
+    if scenario.method != 'boughellaba_tayebi':
+        raise ScenarioError(f'{scenario.source}: method: {scenario.method!r} runs in the batch '
+                            'simulator only so far (bearing-pose simulate / montecarlo); the '
+                            'estimator node implements boughellaba_tayebi. Fix: set `method: '
+                            'boughellaba_tayebi` to run over DDS')
     i = scenario.index[name]
     R0, p0 = initial if initial is not None else initial_estimates(scenario)
     nbrs = [(n.name, scenario.agent_id(n.name), n.k) for n in scenario.agents[i].neighbours]

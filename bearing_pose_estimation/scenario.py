@@ -20,7 +20,10 @@ from numpy.typing import NDArray
 from . import so3
 from .motion import AngularVelocity, Component, Sinusoid
 
-METHODS = ('boughellaba_tayebi',)
+METHODS = ('boughellaba_tayebi', 'tran_anderson_ahn')
+# Gains each method reads from `gains:` (k_ij: every edge's default weight).
+_METHOD_GAINS = {'boughellaba_tayebi': {'k_R', 'k_p', 'k_ij'},
+                 'tran_anderson_ahn': {'k_omega', 'k_c', 'k_p', 'k_ij'}}
 # Agent names become ROS namespaces and frame prefixes (`agent_3/base_link`).
 _NAME_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
@@ -119,6 +122,8 @@ class Scenario:
     description: str = ''
     k_R: float = 1.0
     k_p: float = 1.0
+    k_omega: float = 2.0       # Tran et al.: damping of the gyro-correction state Ω̃
+    k_c: float = 1.0           # Tran et al.: the extra direction of two-neighbour followers
     frequency: float = 100.0   # estimator rate [Hz]; batch step h = 1/frequency
     publish_rate: float = 50.0  # estimators publish estimate + world bearings [Hz]
     duration: float = 60.0     # default run length [s]
@@ -377,8 +382,10 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     if method not in METHODS:
         raise ctx.fail('method', f'unknown method {method!r}', f'use one of: {", ".join(METHODS)}')
 
-    gains = _mapping(ctx, top.get('gains', {}), 'gains', {'k_R', 'k_p', 'k_ij'})
+    gains = _mapping(ctx, top.get('gains', {}), 'gains', _METHOD_GAINS[method])
     k_R = _number(ctx, gains.get('k_R', 1.0), 'gains.k_R', positive=True)
+    k_omega = _number(ctx, gains.get('k_omega', 2.0), 'gains.k_omega', positive=True)
+    k_c = _number(ctx, gains.get('k_c', 1.0), 'gains.k_c', positive=True)
     k_p = _number(ctx, gains.get('k_p', 1.0), 'gains.k_p', positive=True)
     k_ij = _number(ctx, gains.get('k_ij', 1.0), 'gains.k_ij', positive=True)
     frequency = _number(ctx, top.get('frequency', 100.0), 'frequency', positive=True)
@@ -485,6 +492,7 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
 
     return Scenario(name=name, agents=tuple(agents), leaders=tuple(leaders), method=method,
                     description=str(top.get('description', '')), k_R=k_R, k_p=k_p,
+                    k_omega=k_omega, k_c=k_c,
                     frequency=frequency, publish_rate=publish_rate, duration=duration,
                     world_frame=world_frame,
                     noise=noise, random_init=random_init, simulation=simulation, source=source)

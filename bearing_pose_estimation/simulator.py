@@ -2,8 +2,9 @@
 
 Truth: positions are static; every attitude follows ``dR_i/dt = R_i [ω_i(t)]x``, propagated by
 the 4th-order Magnus increment (:func:`motion.magnus_increment`). Each step, every follower's
-observer advances with :func:`observer.cascade_step`, the same function the estimator node calls,
-on measurements taken at the step's start:
+observer advances with :func:`observer.cascade_step`, the same function the estimator node calls
+(or, for ``method: tran_anderson_ahn``, :func:`tran.tran_step`; batch only so far), on
+measurements taken at the step's start:
 
 - own bearings ``b^i_ij = R_iᵀ b_ij`` (+ bearing noise),
 - what neighbour j would send: ``R̂_j b^j_ij = -R̂_j b^j_ji`` with j's own measurement
@@ -28,6 +29,7 @@ from .motion import OmegaProfile, magnus_increment
 from .noise import NoiseModel
 from .observer import REORTHONORMALIZE_EVERY, CascadeGains, Edges, cascade_step
 from .scenario import Scenario, initial_estimates
+from .tran import TranGains, TwoNeighbourPairs, tran_step
 
 Array = NDArray[np.float64]
 
@@ -89,7 +91,12 @@ class BatchSimulator:
         self.b_world = d / np.linalg.norm(d, axis=1, keepdims=True)  # b_ij, static
         self._ends = np.concatenate([self.edges.agent, self.edge_nbr])
         self._ends_b_world = np.concatenate([self.b_world, -self.b_world])
-        self.gains = CascadeGains(k_R=scenario.k_R, k_p=scenario.k_p)
+        self.method = scenario.method
+        if self.method == 'tran_anderson_ahn':
+            self.gains = TranGains(k_omega=scenario.k_omega, k_p=scenario.k_p, k_c=scenario.k_c)
+            self.pairs = TwoNeighbourPairs.of(self.edges)
+        else:
+            self.gains = CascadeGains(k_R=scenario.k_R, k_p=scenario.k_p)
         # Constant rates (common in generated fleets): the truth's increment never changes.
         self._constant_delta_R = (magnus_increment(self.omega, 0.0, self.h)
                                   if self.omega.is_constant else None)
@@ -103,6 +110,7 @@ class BatchSimulator:
         self.k = 0
         self.R = np.stack([a.attitude for a in self.scenario.agents])
         self.R_hat, self.p_hat = initial_estimates(self.scenario)
+        self.Omega_tilde = np.zeros((self.n, 3))  # Tran et al.'s Ω̃(0) = 0
 
     def measure(self) -> tuple[Array, Array]:
         """Own body bearings ``b^i_ij`` and neighbours' world bearings ``R̂_j b^j_ij`` now."""
@@ -127,10 +135,17 @@ class BatchSimulator:
             delta_R = magnus_increment(self.omega, self.t, self.h)
         b_own, d_world = self.measure()
         fix = (self.k + 1) % REORTHONORMALIZE_EVERY == 0
-        res = cascade_step(self.R_hat, self.p_hat, self.gyro_increment(delta_R), self.h,
-                           self.edges, b_own, d_world, np.take(self.p_hat, self.edge_nbr, axis=0),
-                           self.gains,
-                           reorthonormalize=fix)
+        p_nbr = np.take(self.p_hat, self.edge_nbr, axis=0)
+        if self.method == 'tran_anderson_ahn':
+            res = tran_step(self.R_hat, self.Omega_tilde, self.p_hat,
+                            self.gyro_increment(delta_R), self.h, self.edges, self.pairs, b_own,
+                            d_world, p_nbr, self.gains, reorthonormalize=fix)
+            self.Omega_tilde = res.Omega_tilde
+            self.Omega_tilde[self.leader_idx] = 0.0
+        else:
+            res = cascade_step(self.R_hat, self.p_hat, self.gyro_increment(delta_R), self.h,
+                               self.edges, b_own, d_world, p_nbr, self.gains,
+                               reorthonormalize=fix)
         self.R = so3.matmul(self.R, delta_R)
         if fix:
             self.R = so3.reorthonormalize(self.R)
