@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from . import so3
 from .gyro import GyroBuffer
 from .observer import CascadeGains, Edges, cascade_step
+from .tran import TranGains, TwoNeighbourPairs, tran_step
 
 if TYPE_CHECKING:
     from .scenario import Scenario
@@ -69,6 +70,7 @@ class StepInfo:
     t: float = 0.0
     edges_used: int = 0
     stale: tuple[str, ...] = ()     # neighbours not used for being silent too long
+    # The innovation: σ_i (world) for the cascade, the torque driving Ω̃_i (body) for Tran et al.
     sigma: Array = field(default_factory=lambda: np.zeros(3))
 
 
@@ -104,7 +106,8 @@ class AgentEstimator:
     Args:
         agent_id: this agent's id (how others' bearing messages name it).
         neighbours: ``(name, agent_id, k_ij)`` of each neighbour j ∈ N_i (empty for leaders).
-        gains: ``k_R``, ``k_p``.
+        gains: :class:`observer.CascadeGains` (Boughellaba & Tayebi) or
+            :class:`tran.TranGains` (Tran, Anderson & Ahn): the type selects the observer.
         step: the observer step ``h`` [s] (1 / estimator frequency).
         R0, p0: initial estimate ``R̂_i(t0)``, ``p̂_i(t0)`` (a leader's true pose).
         t0: the scenario's start time; the first gyro interval starts here.
@@ -114,7 +117,7 @@ class AgentEstimator:
     """
 
     def __init__(self, agent_id: int, neighbours: list[tuple[str, int, float]],
-                 gains: CascadeGains, step: float, R0: Array, p0: Array, t0: float = 0.0,
+                 gains: CascadeGains | TranGains, step: float, R0: Array, p0: Array, t0: float = 0.0,
                  leader: bool = False, gyro_horizon: float = 2.0,
                  known_ids: set[int] | None = None, limits: Limits = Limits()) -> None:
         self.agent_id = agent_id
@@ -130,6 +133,7 @@ class AgentEstimator:
         self.p0 = np.array(p0, dtype=float).reshape(3)
         self.R_hat = self.R0.copy()[None]
         self.p_hat = self.p0.copy()[None]
+        self.Omega_tilde = np.zeros((1, 3))  # Tran et al.'s state; unused by the cascade
         self.neighbours = [NeighbourState(n, int(i), float(k)) for n, i, k in neighbours]
         self._by_id = {nb.agent_id: nb for nb in self.neighbours}
         self.gyro = GyroBuffer(t0, gyro_horizon)
@@ -152,6 +156,7 @@ class AgentEstimator:
         self._bearings.clear()
         if reset_estimate:
             self.R_hat, self.p_hat = self.R0.copy()[None], self.p0.copy()[None]
+            self.Omega_tilde = np.zeros((1, 3))
             for nb in self.neighbours:
                 nb.d_world = nb.p_hat = nb.stamp = None
         self.last = StepInfo(t=self.t)
@@ -295,15 +300,22 @@ class AgentEstimator:
                 b_body = d_world = p_nbr = np.zeros((0, 3))
                 k = np.zeros(0)
             edges = Edges(agent=np.zeros(len(rows), dtype=np.intp), k=k, n_agents=1)
-            res = cascade_step(self.R_hat, self.p_hat, delta_R, self.h, edges, b_body, d_world,
-                               p_nbr, self.gains)
-            if np.all(np.isfinite(res.R_hat)) and np.all(np.isfinite(res.p_hat)):
-                self.R_hat, self.p_hat = res.R_hat, res.p_hat
+            if isinstance(self.gains, TranGains):
+                res = tran_step(self.R_hat, self.Omega_tilde, self.p_hat, delta_R, self.h, edges,
+                                TwoNeighbourPairs.of(edges), b_body, d_world, p_nbr, self.gains)
+                innovation, Omega = res.torque[0], res.Omega_tilde
+            else:
+                res = cascade_step(self.R_hat, self.p_hat, delta_R, self.h, edges, b_body,
+                                   d_world, p_nbr, self.gains)
+                innovation, Omega = res.sigma[0], self.Omega_tilde
+            if (np.all(np.isfinite(res.R_hat)) and np.all(np.isfinite(res.p_hat))
+                    and np.all(np.isfinite(Omega))):
+                self.R_hat, self.p_hat, self.Omega_tilde = res.R_hat, res.p_hat, Omega
             else:  # cannot happen with validated inputs; never let it reach the estimate
                 self.non_finite_steps += 1
                 self.R_hat = so3.reorthonormalize(self.R_hat @ delta_R)
             self.last = StepInfo(t=t, edges_used=len(rows), stale=tuple(stale),
-                                 sigma=res.sigma[0])
+                                 sigma=innovation)
         self.k += 1
 
     def _apply_known_pose(self, t: float) -> None:
@@ -327,24 +339,26 @@ class AgentEstimator:
         return out
 
 
+def gains_for(scenario: Scenario) -> CascadeGains | TranGains:
+    """The scenario's method, as the gains type that selects it."""
+    if scenario.method == 'tran_anderson_ahn':
+        return TranGains(k_omega=scenario.k_omega, k_p=scenario.k_p, k_c=scenario.k_c)
+    return CascadeGains(k_R=scenario.k_R, k_p=scenario.k_p)
+
+
 def estimator_for(scenario: Scenario, name: str, limits: Limits = Limits(),
                   initial: tuple[Array, Array] | None = None) -> AgentEstimator:
     """The estimator of agent ``name`` as the scenario defines it (gains, neighbours and their
     ids, initial estimate, rate; leader mode for leaders). ``initial``: the fleet's
     ``initial_estimates(scenario)``, when the caller builds many estimators (it draws them
     all, so computing it once per fleet saves O(N²) work)."""
-    from .scenario import ScenarioError, initial_estimates
+    from .scenario import initial_estimates
 
-    if scenario.method != 'boughellaba_tayebi':
-        raise ScenarioError(f'{scenario.source}: method: {scenario.method!r} runs in the batch '
-                            'simulator only so far (bearing-pose simulate / montecarlo); the '
-                            'estimator node implements boughellaba_tayebi. Fix: set `method: '
-                            'boughellaba_tayebi` to run over DDS')
     i = scenario.index[name]
     R0, p0 = initial if initial is not None else initial_estimates(scenario)
     nbrs = [(n.name, scenario.agent_id(n.name), n.k) for n in scenario.agents[i].neighbours]
     return AgentEstimator(agent_id=scenario.agent_id(name), neighbours=nbrs,
-                          gains=CascadeGains(k_R=scenario.k_R, k_p=scenario.k_p),
+                          gains=gains_for(scenario),
                           step=scenario.step, R0=R0[i], p0=p0[i],
                           leader=name in scenario.leaders,
                           known_ids=set(range(1, len(scenario.agents) + 1)), limits=limits)

@@ -139,11 +139,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     from . import launch
 
     scenario = _load_checked(args.scenario)
-    if scenario.method != 'boughellaba_tayebi':
-        raise ScenarioError(f'{args.scenario}: method: {scenario.method!r} runs in the batch '
-                            'simulator only so far; the estimator node implements '
-                            'boughellaba_tayebi. Fix: `bearing-pose simulate` for this method, or '
-                            'set `method: boughellaba_tayebi` to run over DDS')
     processes = [a.name for a in scenario.agents] + ['simulator', 'monitor']
     outputs = (['metrics.csv', 'summary.json'] + ([] if args.no_plots else PLOT_FILES)
                + [f'params/{p}.yaml' for p in processes] + [f'logs/{p}.log' for p in processes])

@@ -1,4 +1,5 @@
-"""``estimator``: one agent's cascaded observer as a ROS 2 node (run one per agent, in /<agent>).
+"""``estimator``: one agent's observer as a ROS 2 node (run one per agent, in /<agent>): the
+cascaded observer of Boughellaba & Tayebi, or Tran, Anderson & Ahn's (the scenario's ``method``).
 
 A thin adapter: it decodes messages (``msg_defs``), feeds :class:`agent.AgentEstimator`, runs
 its fixed steps ``h = 1/frequency`` as soon as the gyro data covers them (checked on every gyro
@@ -14,7 +15,8 @@ diagnostics; it never stops the node and never reaches the estimate.
 Parameters (read-only): either ``scenario_file`` (+ ``agent``, default: the namespace) or the
 explicit set ``agent_id``, ``leader``, ``neighbours``, ``neighbour_ids``, ``neighbour_gains``,
 ``initial_position``, ``initial_orientation`` (x, y, z, w); ``frequency`` [Hz], ``publish_rate``
-[Hz], ``k_R``, ``k_p`` (0: from the scenario, or 100 Hz / 50 Hz / 1.0 in explicit mode);
+[Hz], ``k_R``, ``k_p`` (0: from the scenario, or 100 Hz / 50 Hz / 1.0 in explicit mode;
+``k_R`` is an error with a tran_anderson_ahn scenario, whose other gains come from the file);
 ``start_time`` [s] (the scenario's t = 0 on the node's clock; negative: the first gyro stamp);
 the input limits ``sensor_timeout``, ``neighbour_timeout``, ``max_rate``; the expected frames
 ``imu_frame``, ``bearings_frame`` (empty: accept any); ``diagnostics_period`` [s]; and the fault
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import heapq
 import time
+from dataclasses import replace
 from collections import Counter
 from collections.abc import Callable
 
@@ -39,6 +42,7 @@ from . import so3
 from .agent import AgentEstimator, Limits, estimator_for
 from .node_main import run_node
 from .observer import CascadeGains
+from .tran import TranGains
 from .scenario import ScenarioError, load_scenario
 
 # Causes that are events of the time rules, not bad input (see AgentEstimator).
@@ -111,7 +115,14 @@ class EstimatorNode(Node):
         else:
             template = self._explicit_estimator(explicit, limits)
             publish_rate = publish_rate or 50.0
-        gains = CascadeGains(k_R=k_R or template.gains.k_R, k_p=k_p or template.gains.k_p)
+        if isinstance(template.gains, TranGains):
+            if k_R:
+                raise ScenarioError('parameter k_R is a boughellaba_tayebi gain, but the scenario '
+                                    'uses method tran_anderson_ahn. Fix: remove k_R (set its '
+                                    'gains k_omega, k_c in the scenario)')
+            gains = replace(template.gains, k_p=k_p or template.gains.k_p)
+        else:
+            gains = CascadeGains(k_R=k_R or template.gains.k_R, k_p=k_p or template.gains.k_p)
         self.template = template
         self.gains = gains
         self.h = 1.0 / frequency if frequency > 0 else template.h
@@ -161,7 +172,8 @@ class EstimatorNode(Node):
         faults = (f'; INJECTING drop {self.drop_rate:g}, delay {self.delay:g} s on neighbour '
                   'messages' if self.drop_rate or self.delay else '')
         self.get_logger().info(f'{self.agent} (id {template.agent_id}, {role}) at '
-                               f'{1.0 / self.h:g} Hz, k_R={gains.k_R:g}, k_p={gains.k_p:g}'
+                               f'{1.0 / self.h:g} Hz, '
+                               + ', '.join(f'{k}={v:g}' for k, v in vars(gains).items())
                                + faults)
 
     # --------------------------------------------------------------------------- set-up

@@ -3,7 +3,7 @@
 Truth: positions are static; every attitude follows ``dR_i/dt = R_i [ω_i(t)]x``, propagated by
 the 4th-order Magnus increment (:func:`motion.magnus_increment`). Each step, every follower's
 observer advances with :func:`observer.cascade_step`, the same function the estimator node calls
-(or, for ``method: tran_anderson_ahn``, :func:`tran.tran_step`; batch only so far), on
+(or, for ``method: tran_anderson_ahn``, :func:`tran.tran_step`, as the node does), on
 measurements taken at the step's start:
 
 - own bearings ``b^i_ij = R_iᵀ b_ij`` (+ bearing noise),

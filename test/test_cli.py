@@ -92,23 +92,6 @@ def test_run_refuses_an_output_dir_with_outputs(tmp_path, capsys):
     assert not (out / 'params').exists()
 
 
-def test_tran_method_simulates_in_batch_and_run_refuses_it(tmp_path, capsys):
-    """method: tran_anderson_ahn works in `simulate`; `run` refuses it (the nodes implement
-    only boughellaba_tayebi) before any process starts, with the fix."""
-    scenario = tmp_path / 'tran.yaml'
-    scenario.write_text(Path(PAPER).read_text().replace(
-        'method: boughellaba_tayebi', 'method: tran_anderson_ahn').replace(
-        'k_R: 1.0', 'k_omega: 2.0'))
-    assert main(['simulate', str(scenario), '--duration', '5', '--out', str(tmp_path / 's'),
-                 '--no-plots']) == 0
-    assert (tmp_path / 's' / 'summary.json').exists()
-    capsys.readouterr()
-    assert main(['run', str(scenario), '--out', str(tmp_path / 'r')]) == 1
-    err = capsys.readouterr().err
-    assert "'tran_anderson_ahn' runs in the batch simulator only so far" in err and 'Fix' in err
-    assert not (tmp_path / 'r' / 'params').exists()
-
-
 def test_simulate_refuses_invalid_scenario(tmp_path, capsys):
     bad = tmp_path / 'cyc.yaml'
     bad.write_text(Path(PAPER).read_text().replace('neighbours: [agent_1, agent_2]',

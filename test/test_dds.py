@@ -175,3 +175,24 @@ def test_several_agents_per_process(tmp_path, no_leftovers):
         k = int(round(t / 0.1))
         att_b, pos_b = rec.att_err[k].mean(), rec.pos_err[k].mean()
         assert abs(dds[t][0] - att_b) <= 0.1 * att_b and abs(dds[t][1] - pos_b) <= 0.1 * pos_b
+
+
+def test_tran_method_converges_over_dds_like_the_batch_simulator(tmp_path, no_leftovers):
+    """method: tran_anderson_ahn over DDS (four agents per process, to keep it short): the
+    nodes run Tran, Anderson & Ahn's observer and track the batch simulator within 10 %."""
+    data = yaml.safe_load(PAPER.read_text())
+    data['method'] = 'tran_anderson_ahn'
+    data['gains'] = {'k_omega': 2.0, 'k_c': 1.0, 'k_p': 1.0}
+    scenario_file = tmp_path / 'tran.yaml'
+    scenario_file.write_text(yaml.safe_dump(data, sort_keys=False))
+    out = tmp_path / 'run'
+    assert main(['run', str(scenario_file), '--duration', '10', '--out', str(out),
+                 '--agents-per-process', '4', '--domain-id', str(DOMAIN), '--no-plots']) == 0
+    assert 'k_omega=2' in (out / 'logs' / 'estimators_0.log').read_text()
+    dds = _read_metrics(out / 'metrics.csv')
+    rec = BatchSimulator(load_scenario(scenario_file)).run(10.0, record_every=0.1)
+    for t in (5.0, 10.0):
+        k = int(round(t / 0.1))
+        att_b, pos_b = rec.att_err[k].mean(), rec.pos_err[k].mean()
+        assert abs(dds[t][0] - att_b) <= 0.1 * att_b and abs(dds[t][1] - pos_b) <= 0.1 * pos_b
+    assert dds[10.0][0] < 0.1 * dds[0.0][0]
