@@ -117,8 +117,8 @@ class AgentEstimator:
     """
 
     def __init__(self, agent_id: int, neighbours: list[tuple[str, int, float]],
-                 gains: CascadeGains | TranGains, step: float, R0: Array, p0: Array, t0: float = 0.0,
-                 leader: bool = False, gyro_horizon: float = 2.0,
+                 gains: CascadeGains | TranGains, step: float, R0: Array, p0: Array,
+                 t0: float = 0.0, leader: bool = False, gyro_horizon: float = 2.0,
                  known_ids: set[int] | None = None, limits: Limits = Limits()) -> None:
         self.agent_id = agent_id
         self.gains = gains

@@ -38,7 +38,8 @@ from bearing_pose_estimation import msg_defs as wire  # noqa: E402
 QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 # What the nodes exchange: gyro samples, bearing sets (3 bearings), estimates.
 SAMPLES = {'Imu': lambda: wire.encode_imu(0.0, 'agent_1', [0.1, 0.2, 0.3]),
-           'PointCloud2': lambda: wire.encode_vectors(0.0, 'agent_1/base_link', np.array([2, 3, 4]),
+           'PointCloud2': lambda: wire.encode_vectors(0.0, 'agent_1/base_link',
+                                                      np.array([2, 3, 4]),
                                                       [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]),
            'PoseStamped': PoseStamped}
 
@@ -91,7 +92,8 @@ def receive(kind: str, mode: str, idle: int, expected: int, seconds: float) -> N
     rclpy.init()
     node = rclpy.create_node('ceiling_sub')
     count = [0]
-    node.create_subscription(type(SAMPLES[kind]()), '/ceiling', lambda _m: count.__setitem__(0, count[0] + 1), QOS)
+    node.create_subscription(type(SAMPLES[kind]()), '/ceiling',
+                             lambda _m: count.__setitem__(0, count[0] + 1), QOS)
     for k in range(idle):
         node.create_subscription(Imu, f'/silent_{k}', lambda _m: None, QOS)
     node.create_timer(0.01, lambda: None)
@@ -128,7 +130,8 @@ def main() -> None:
     if args.role == 'pub':
         return publish(args.type, args.rate, args.seconds)
     if args.role == 'sub':
-        return receive(args.type, args.mode, args.idle[0], int(args.rate * args.seconds), args.seconds)
+        return receive(args.type, args.mode, args.idle[0], int(args.rate * args.seconds),
+                       args.seconds)
     print(f'{args.type} at {args.rate:g}/s for {args.seconds:g} s; receiver CPU (all threads) per '
           'message\n')
     print('| subscriptions in the process | rclpy SingleThreadedExecutor [µs/msg] | '

@@ -71,7 +71,8 @@ def run_one(n: int, k: int, args: argparse.Namespace, tmp: Path) -> dict[str, fl
     summary = cfg.out_dir / 'summary.json'
     if summary.exists():
         final = json.loads(summary.read_text())['final']
-        row.update(att_err=final['attitude_error_mean_rad'], pos_err=final['position_error_mean_m'])
+        row.update(att_err=final['attitude_error_mean_rad'],
+                   pos_err=final['position_error_mean_m'])
     return row
 
 
