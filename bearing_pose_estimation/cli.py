@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 
 from .graph import check_scenario
-from .scenario import Scenario, ScenarioError, load_scenario, parse_scenario
+from .scenario import METHODS, Scenario, ScenarioError, load_scenario, parse_scenario
 
 
 def _load_checked(path: str) -> Scenario:
@@ -94,6 +94,30 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if not args.no_plots:
         files += write_plots(rec, out)
     print(format_summary(summary))
+    print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from . import compare
+    from .plots import write_compare_plot
+
+    scenario = _load_checked(args.scenario)
+    outputs = [f for f in compare.OUTPUT_FILES if not (args.no_plots and f.endswith('.png'))]
+    out = _out_dir(args.out or f'results/{scenario.name}_compare', outputs, args.force)
+    duration = args.duration if args.duration is not None else scenario.duration
+    print(f'comparing {", ".join(args.methods)} on {scenario.name}: {len(scenario.agents)} '
+          f'agents, {duration:g} s, batch simulator', file=sys.stderr)
+    wall = time.perf_counter()
+    recs = compare.run_methods(scenario, args.methods, duration, args.record_every)
+    wall = time.perf_counter() - wall
+    text = compare.table(compare.rows(scenario, recs), duration)
+    compare.write_csv(recs, out / 'compare.csv')
+    (out / 'compare.md').write_text(f'# {scenario.name}: {", ".join(args.methods)}\n\n' + text)
+    files = [out / 'compare.csv', out / 'compare.md']
+    if not args.no_plots:
+        files.append(write_compare_plot(recs, out / 'compare_errors.png'))
+    print(text)
     print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
     return 0
 
@@ -237,6 +261,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--force', action='store_true',
                    help='overwrite outputs already in DIR')
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser('compare', help='run several estimators on one scenario; table and plot',
+                       description='Run each method in the batch simulator on the same scenario '
+                       '(same truth, initial estimates and noise; only `method` changes; gains '
+                       'of the scenario\'s own method from its file, the others\' defaults). '
+                       'Writes DIR/compare.csv (mean errors per method over time), '
+                       'DIR/compare.md (the table it prints) and DIR/compare_errors.png '
+                       '(overlaid errors); refuses to overwrite any of them without --force.')
+    p.add_argument('scenario', help='scenario YAML file')
+    p.add_argument('--methods', nargs='+', default=list(METHODS), choices=METHODS,
+                   metavar='METHOD', help=f'methods to run (default: all: {", ".join(METHODS)})')
+    p.add_argument('--duration', type=float, help='simulated time [s] (default: the scenario\'s)')
+    p.add_argument('--out', metavar='DIR',
+                   help='output directory (default: results/<scenario name>_compare)')
+    p.add_argument('--record-every', type=float, default=0.1,
+                   help='row interval of compare.csv [s] (default: 0.1)')
+    p.add_argument('--no-plots', action='store_true', help='skip the PNG plot')
+    p.add_argument('--force', action='store_true', help='overwrite outputs already in DIR')
+    p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser('montecarlo', help='many batch runs with different seeds; statistics',
                        description='Run the batch simulator N times on all cores. Run i uses '

@@ -49,3 +49,26 @@ def write_plots(rec: Recording, out_dir: Path) -> list[Path]:
             'Average position estimation error norm (Fig. 3)',
             r'$\|p_i - \tilde R_i \hat p_i\|$ [m]', pos)
     return [att, pos]
+
+
+def write_compare_plot(recs: dict[str, Recording], path: Path) -> Path:
+    """Mean attitude and position errors of several methods, overlaid (log scale)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, (att, pos) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    for method, rec in recs.items():
+        att.plot(rec.t, np.maximum(rec.att_err.mean(axis=1), 1e-17), lw=1.5, label=method)
+        pos.plot(rec.t, np.maximum(rec.pos_err.mean(axis=1), 1e-17), lw=1.5, label=method)
+    for ax, title, ylabel in ((att, 'Mean attitude error', 'angle of $R_i \\hat R_i^T$ [rad]'),
+                              (pos, 'Mean position error', r'$\|p_i - \hat p_i\|$ [m]')):
+        ax.set_yscale('log')
+        ax.set_title(title)
+        ax.set_xlabel('time [s]')
+        ax.set_ylabel(ylabel)
+        ax.grid(True, which='both', alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

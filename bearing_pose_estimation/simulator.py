@@ -27,7 +27,8 @@ from numpy.typing import NDArray
 from . import so3
 from .motion import OmegaProfile, magnus_increment
 from .noise import NoiseModel
-from .observer import REORTHONORMALIZE_EVERY, CascadeGains, Edges, cascade_step
+from .agent import gains_for
+from .observer import REORTHONORMALIZE_EVERY, Edges, cascade_step
 from .scenario import Scenario, initial_estimates
 from .tran import TranGains, TwoNeighbourPairs, tran_step
 
@@ -91,12 +92,8 @@ class BatchSimulator:
         self.b_world = d / np.linalg.norm(d, axis=1, keepdims=True)  # b_ij, static
         self._ends = np.concatenate([self.edges.agent, self.edge_nbr])
         self._ends_b_world = np.concatenate([self.b_world, -self.b_world])
-        self.method = scenario.method
-        if self.method == 'tran_anderson_ahn':
-            self.gains = TranGains(k_omega=scenario.k_omega, k_p=scenario.k_p, k_c=scenario.k_c)
-            self.pairs = TwoNeighbourPairs.of(self.edges)
-        else:
-            self.gains = CascadeGains(k_R=scenario.k_R, k_p=scenario.k_p)
+        self.gains = gains_for(scenario)  # its type selects the observer, as in the node
+        self.pairs = TwoNeighbourPairs.of(self.edges)
         # Constant rates (common in generated fleets): the truth's increment never changes.
         self._constant_delta_R = (magnus_increment(self.omega, 0.0, self.h)
                                   if self.omega.is_constant else None)
@@ -136,7 +133,7 @@ class BatchSimulator:
         b_own, d_world = self.measure()
         fix = (self.k + 1) % REORTHONORMALIZE_EVERY == 0
         p_nbr = np.take(self.p_hat, self.edge_nbr, axis=0)
-        if self.method == 'tran_anderson_ahn':
+        if isinstance(self.gains, TranGains):
             res = tran_step(self.R_hat, self.Omega_tilde, self.p_hat,
                             self.gyro_increment(delta_R), self.h, self.edges, self.pairs, b_own,
                             d_world, p_nbr, self.gains, reorthonormalize=fix)

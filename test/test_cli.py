@@ -92,6 +92,35 @@ def test_run_refuses_an_output_dir_with_outputs(tmp_path, capsys):
     assert not (out / 'params').exists()
 
 
+def test_compare_runs_each_method_on_the_same_scenario(tmp_path, capsys):
+    """`compare`: one table row and two CSV columns per method; each method's numbers are what
+    the batch simulator gives for the scenario with that method; outputs are not overwritten
+    without --force."""
+    import csv
+    import dataclasses
+
+    from bearing_pose_estimation.scenario import load_scenario
+    from bearing_pose_estimation.simulator import BatchSimulator
+
+    out = tmp_path / 'cmp'
+    assert main(['compare', PAPER, '--duration', '5', '--out', str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert '| boughellaba_tayebi | k_R=1, k_p=1 |' in printed
+    assert '| tran_anderson_ahn | k_omega=2, k_p=1, k_c=1 |' in printed
+    assert (out / 'compare_errors.png').stat().st_size > 10_000
+    assert (out / 'compare.md').read_text().count('\n| ') == 3  # separator + two methods
+    with (out / 'compare.csv').open() as fh:
+        last = list(csv.DictReader(fh))[-1]
+    for method in ('boughellaba_tayebi', 'tran_anderson_ahn'):
+        rec = BatchSimulator(dataclasses.replace(load_scenario(PAPER), method=method)).run(5.0)
+        assert float(last[f'{method}_attitude_error_mean_rad']) == pytest.approx(
+            rec.att_err[-1].mean(), rel=1e-8)
+        assert float(last[f'{method}_position_error_mean_m']) == pytest.approx(
+            rec.pos_err[-1].mean(), rel=1e-8)
+    assert main(['compare', PAPER, '--duration', '5', '--out', str(out)]) == 1
+    assert '--force' in capsys.readouterr().err
+
+
 def test_simulate_refuses_invalid_scenario(tmp_path, capsys):
     bad = tmp_path / 'cyc.yaml'
     bad.write_text(Path(PAPER).read_text().replace('neighbours: [agent_1, agent_2]',
