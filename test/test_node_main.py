@@ -8,6 +8,8 @@ import time
 
 import pytest
 
+from bearing_pose_estimation import launch
+
 CHILD = r'''
 import sys, time
 from rclpy.node import Node
@@ -24,9 +26,9 @@ class Probe(Node):
 
     def destroy_node(self):
         print('DESTROYING', flush=True)
+        super().destroy_node()  # the last node: the DDS participant goes with it
         if hang:
-            time.sleep(60)  # what a deadlocked DDS teardown looks like from Python
-        super().destroy_node()
+            time.sleep(60)  # what a deadlocked teardown looks like from Python
 
 raise SystemExit(node_main.run_node(Probe, 'probe'))
 '''
@@ -50,6 +52,7 @@ def test_a_signal_stops_the_loop_and_the_node_exits_0(sig):
 
 
 def test_a_hung_teardown_is_cut_short_by_the_watchdog():
+    shm = launch.shm_files()
     proc = _start('hang')
     t0 = time.monotonic()
     proc.send_signal(signal.SIGINT)
@@ -58,3 +61,4 @@ def test_a_hung_teardown_is_cut_short_by_the_watchdog():
     assert proc.returncode == 0  # the node's own result: its work was done
     assert 'DDS teardown did not finish in 1 s' in err and 'fastdds shm clean' in err
     assert 'in destroy_node' in err  # the stack dump shows where it hung
+    assert not launch.leaked_shm(shm)  # the hang came after the participant was released
