@@ -93,7 +93,8 @@ class BatchSimulator:
         self._ends = np.concatenate([self.edges.agent, self.edge_nbr])
         self._ends_b_world = np.concatenate([self.b_world, -self.b_world])
         self.gains = gains_for(scenario)  # its type selects the observer, as in the node
-        self.pairs = TwoNeighbourPairs.of(self.edges)
+        self.pairs = (TwoNeighbourPairs.of(self.edges) if isinstance(self.gains, TranGains)
+                      else None)
         # Constant rates (common in generated fleets): the truth's increment never changes.
         self._constant_delta_R = (magnus_increment(self.omega, 0.0, self.h)
                                   if self.omega.is_constant else None)

@@ -63,10 +63,11 @@ class TwoNeighbourPairs:
     @staticmethod
     def of(edges: Edges) -> TwoNeighbourPairs:
         counts = np.bincount(edges.agent, minlength=edges.n_agents)
-        owners = np.flatnonzero(counts == 2)
-        first = np.array([np.flatnonzero(edges.agent == i)[0] for i in owners], dtype=np.intp)
-        second = np.array([np.flatnonzero(edges.agent == i)[1] for i in owners], dtype=np.intp)
-        return TwoNeighbourPairs(agent=owners.astype(np.intp), first=first, second=second)
+        owners = np.flatnonzero(counts == 2).astype(np.intp)
+        order = np.argsort(edges.agent, kind='stable')  # each agent's edges, in edge order
+        start = np.searchsorted(edges.agent[order], owners)
+        return TwoNeighbourPairs(agent=owners, first=order[start].astype(np.intp),
+                                 second=order[start + 1].astype(np.intp))
 
 
 @dataclass(frozen=True)

@@ -24,3 +24,16 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 def repo_root() -> Path:
     """Root of the repository (the folder holding package.xml)."""
     return REPO_ROOT
+
+
+@pytest.fixture()
+def context():
+    """A fresh rclpy context for in-process nodes (rclpy imported here, after the environment
+    above is set)."""
+    import rclpy
+    from rclpy.context import Context
+
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.shutdown(context=ctx)

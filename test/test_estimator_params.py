@@ -2,22 +2,12 @@
 and its parameter errors: built in-process, no other node needed."""
 import numpy as np
 import pytest
-import rclpy
-from rclpy.context import Context
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.parameter import Parameter
 
 from bearing_pose_estimation import so3
 from bearing_pose_estimation.estimator_node import EstimatorNode
 from bearing_pose_estimation.scenario import ScenarioError
-
-
-@pytest.fixture()
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.shutdown(context=ctx)
 
 
 def _node(context, **params):

@@ -6,7 +6,6 @@ import time
 import pytest
 import rclpy
 from rcl_interfaces.srv import GetParameters
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Int32
@@ -14,14 +13,6 @@ from std_msgs.msg import Int32
 from bearing_pose_estimation.executor import DrainingExecutor
 
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-
-
-@pytest.fixture()
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.shutdown(context=ctx)
 
 
 def _spin_until(executor, condition, timeout=10.0):

@@ -104,25 +104,18 @@ def test_the_node_logic_matches_the_batch_simulator():
     assert net.att_err[-1].mean() < 1e-2 * net.att_err[0].mean()
 
 
-def test_the_node_refuses_k_R_for_this_method(tmp_path):
+def test_the_node_refuses_k_R_for_this_method(tmp_path, context):
     """A k_R override on a Tran scenario is a configuration error naming the fix."""
-    import rclpy
-    from rclpy.context import Context
     from rclpy.parameter import Parameter
 
     from bearing_pose_estimation.estimator_node import EstimatorNode
 
     path = tmp_path / 'tran.yaml'
     path.write_text(yaml.safe_dump(_paper_tran()))
-    ctx = Context()
-    rclpy.init(context=ctx)
-    try:
-        with pytest.raises(ScenarioError, match='k_R is a boughellaba_tayebi gain.*Fix'):
-            EstimatorNode(namespace='/agent_3', context=ctx, parameter_overrides=[
-                Parameter('scenario_file', value=str(path)), Parameter('k_R', value=2.0)])
-        node = EstimatorNode(namespace='/agent_3', context=ctx, parameter_overrides=[
-            Parameter('scenario_file', value=str(path)), Parameter('k_p', value=1.5)])
-        assert node.gains == TranGains(k_omega=2.0, k_p=1.5, k_c=1.0)
-        node.destroy_node()
-    finally:
-        rclpy.shutdown(context=ctx)
+    with pytest.raises(ScenarioError, match='k_R is a boughellaba_tayebi gain.*Fix'):
+        EstimatorNode(namespace='/agent_3', context=context, parameter_overrides=[
+            Parameter('scenario_file', value=str(path)), Parameter('k_R', value=2.0)])
+    node = EstimatorNode(namespace='/agent_3', context=context, parameter_overrides=[
+        Parameter('scenario_file', value=str(path)), Parameter('k_p', value=1.5)])
+    assert node.gains == TranGains(k_omega=2.0, k_p=1.5, k_c=1.0)
+    node.destroy_node()
