@@ -117,6 +117,13 @@ def innovation(R_hat: Array, edges: Edges, b_body: Array, d_world: Array) -> tup
     return sigma, y
 
 
+def bearing_pull(p_hat: Array, edges: Edges, y: Array, p_hat_nbr: Array) -> Array:
+    """``Σ_j P_{y_ij} (p̂_i - p̂_j)`` per agent, ``(N, 3)``, with ``P_y e = e - y (y·e)/‖y‖²``:
+    the position correction of both observers (``y_ij = R̂_i b^i_ij``, ``(E, 3)``)."""
+    e = np.take(p_hat, edges.agent, axis=0) - p_hat_nbr
+    return edges.sum_by_agent(e - y * (so3.dot(y, e) / so3.dot(y, y))[:, None])
+
+
 def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Edges,
                  b_body: Array, d_world: Array, p_hat_nbr: Array,
                  gains: CascadeGains, reorthonormalize: bool = True) -> StepResult:
@@ -140,10 +147,7 @@ def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Ed
         The estimates at ``t + h`` and the innovation used.
     """
     sigma, y = innovation(R_hat, edges, b_body, d_world)
-    # Σ_j P_y (p̂_i - p̂_j), with P_y e = e - y (y·e)/‖y‖².
-    e = np.take(p_hat, edges.agent, axis=0) - p_hat_nbr
-    proj = e - y * (so3.dot(y, e) / so3.dot(y, y))[:, None]
-    pull = edges.sum_by_agent(proj)
+    pull = bearing_pull(p_hat, edges, y, p_hat_nbr)
     Q = so3.exp(-h * gains.k_R * sigma)
     # Re-orthonormalise so R̂ stays on SO(3) to machine precision over hours of steps.
     R_next = so3.matmul(Q, R_hat, delta_R)

@@ -32,12 +32,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import so3
-from .observer import REORTHONORMALIZE_EVERY, Edges
+from .observer import Edges, bearing_pull
 
 Array = NDArray[np.float64]
 
-__all__ = ['REORTHONORMALIZE_EVERY', 'TranGains', 'TranStepResult', 'TwoNeighbourPairs',
-           'tran_step']
+__all__ = ['TranGains', 'TranStepResult', 'TwoNeighbourPairs', 'tran_step']
 
 
 @dataclass(frozen=True)
@@ -104,10 +103,7 @@ def tran_step(R_hat: Array, Omega_tilde: Array, p_hat: Array, delta_R: Array, h:
         c_world = _unit(so3.cross(d_world[pairs.first], d_world[pairs.second]))
         c_est = np.einsum('nba,nb->na', np.take(R_hat, pairs.agent, axis=0), c_world)
         torque[pairs.agent] += gains.k_c * so3.cross(c_est, c_body)
-    # Σ_j P_y (p̂_i - p̂_j) with y = R̂_i b^i_ij, as in the cascaded observer.
-    y = np.einsum('eab,eb->ea', R_i, b_body)
-    e = np.take(p_hat, edges.agent, axis=0) - p_hat_nbr
-    pull = edges.sum_by_agent(e - y * (so3.dot(y, e) / so3.dot(y, y))[:, None])
+    pull = bearing_pull(p_hat, edges, np.einsum('eab,eb->ea', R_i, b_body), p_hat_nbr)
 
     R_next = so3.matmul(R_hat, so3.exp(-h * Omega_tilde), delta_R)
     if reorthonormalize:
