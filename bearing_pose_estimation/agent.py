@@ -49,6 +49,12 @@ class NeighbourState:
     stamp: float | None = None    # j's state time for the values above
 
 
+# Causes that are events of the time rules, not bad input (see AgentEstimator), with what
+# they mean for the log.
+TIME_EVENTS = {'time_jump': 'the clock jumped back: restarted from the initial estimate',
+               'gyro_gap': 'gyro gap: the state time restarts after it, keeping the estimate'}
+
+
 @dataclass(frozen=True)
 class Limits:
     """Input checks and timeouts. Inputs outside them are rejected with a named cause, never

@@ -1,44 +1,143 @@
 """Several estimators on one scenario, side by side (``bearing-pose compare``); no rclpy.
 
-Each method runs in the batch simulator on the same scenario: same truth, same initial
-estimates, same noise seed. Only ``method`` changes. Each method's gains are the scenario's
-(``gains:`` holds the gains of the scenario's own method; the other methods use their defaults,
-shown in the table).
+Each method runs on the same scenario: same truth, same initial estimates, same noise seed.
+Only ``method`` and the gains change. :func:`method_data` derives, from the scenario file's
+content, one scenario per method: its ``gains:`` block holds the method's own gains, taken from
+the file where the file's method uses them, else the defaults, then ``--gains`` overrides. The
+batch runs and the optional distributed runs (one ``bearing-pose run`` per method, whose
+estimator nodes read the derived file) use that same derived scenario, so they can be compared
+row by row.
 """
 from __future__ import annotations
 
+import copy
 import csv
-import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .agent import gains_for
 from .metrics import ATT_THRESHOLD_RAD, POS_THRESHOLD_M, settling_time
-from .scenario import METHODS, Scenario
+from .scenario import METHOD_GAINS, METHODS, Scenario, ScenarioError, parse_scenario
 from .simulator import BatchSimulator, Recording
 
 OUTPUT_FILES = ('compare.csv', 'compare.md', 'compare_errors.png')
+# Scalar gains a --gains override may set; k_ij is per edge (each neighbour's `k`).
+_SCALAR = {'k_R': 'k_R', 'k_omega': 'k_omega', 'k_c': 'k_c', 'k_p': 'k_p'}
 
 
-def run_methods(scenario: Scenario, methods: list[str], duration: float,
-                record_every: float = 0.1) -> dict[str, Recording]:
-    """One batch run per method; every run starts from the same state."""
+@dataclass(frozen=True)
+class Run:
+    """One method's errors on the scenario, from the batch simulator or over DDS."""
+
+    method: str
+    mode: str            # 'batch' or 'dds'
+    scenario: Scenario   # the derived scenario this run used
+    rec: Recording
+
+    @property
+    def label(self) -> str:
+        return self.method if self.mode == 'batch' else f'{self.method} (DDS)'
+
+
+def parse_gain_overrides(texts: list[str]) -> dict[str, dict[str, float]]:
+    """``['tran_anderson_ahn:k_omega=3,k_c=2', ...]`` → ``{method: {gain: value}}``.
+
+    Raises:
+        ValueError: naming the bad text and the fix.
+    """
+    out: dict[str, dict[str, float]] = {}
+    for text in texts:
+        method, sep, assignments = text.partition(':')
+        if not sep or method not in METHODS:
+            raise ValueError(f'--gains {text!r}: expected METHOD:GAIN=VALUE[,GAIN=VALUE...] with '
+                             f'METHOD one of {", ".join(METHODS)}')
+        allowed = sorted(METHOD_GAINS[method] & set(_SCALAR))
+        for item in assignments.split(','):
+            key, eq, value = item.partition('=')
+            key = key.strip()
+            if not eq or key not in allowed:
+                raise ValueError(f'--gains {text!r}: {key or item!r} is not a gain of {method}; '
+                                 f'use one of {", ".join(allowed)} (k_ij is per edge: set it '
+                                 'in the scenario file)')
+            try:
+                number = float(value)
+            except ValueError:
+                number = math.nan
+            if not (math.isfinite(number) and number > 0):
+                raise ValueError(f'--gains {text!r}: {key} must be a positive number, '
+                                 f'got {value!r}')
+            out.setdefault(method, {})[key] = number
+    return out
+
+
+def method_data(data: Mapping[str, Any], scenario: Scenario, method: str,
+                overrides: Mapping[str, float] | None = None) -> dict[str, Any]:
+    """The scenario file's content (``data``; ``scenario`` is it parsed) with ``method`` and a
+    ``gains:`` block of that method: every scalar gain it reads (the file's value or the
+    default, as parsed into ``scenario``, then ``overrides``), and the file's ``k_ij`` if any."""
+    derived = copy.deepcopy(dict(data))
+    derived['method'] = method
+    gains = {key: float(getattr(scenario, attr)) for key, attr in _SCALAR.items()
+             if key in METHOD_GAINS[method]}
+    gains.update(overrides or {})
+    if 'k_ij' in (data.get('gains') or {}):
+        gains['k_ij'] = data['gains']['k_ij']
+    derived['gains'] = gains
+    return derived
+
+
+def method_scenarios(data: Mapping[str, Any], scenario: Scenario, methods: list[str],
+                     overrides: Mapping[str, Mapping[str, float]] | None = None
+                     ) -> dict[str, tuple[dict[str, Any], Scenario]]:
+    """Per method: the derived file content and the scenario parsed from it."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
-        raise ValueError(f'unknown method {unknown[0]!r}; use one of: {", ".join(METHODS)}')
-    return {m: BatchSimulator(dataclasses.replace(scenario, method=m)).run(
-        duration, record_every=record_every) for m in methods}
+        raise ScenarioError(f'unknown method {unknown[0]!r}; use one of: {", ".join(METHODS)}')
+    out = {}
+    for m in methods:
+        d = method_data(data, scenario, m, (overrides or {}).get(m))
+        out[m] = (d, parse_scenario(d, source=f'{scenario.source} (method {m})'))
+    return out
 
 
-def rows(scenario: Scenario, recs: dict[str, Recording]) -> list[dict[str, Any]]:
-    """Per method: gains, final mean and max errors, settling times of the mean errors."""
+def run_batch(scenarios: Mapping[str, Scenario], duration: float,
+              record_every: float = 0.1) -> list[Run]:
+    """One batch run per method; every run starts from the same state."""
+    return [Run(m, 'batch', s, BatchSimulator(s).run(duration, record_every=record_every))
+            for m, s in scenarios.items()]
+
+
+def read_metrics_csv(path: Path) -> Recording:
+    """A ``metrics.csv`` (see :mod:`metrics`) back as a :class:`Recording`. The file holds
+    only the geodesic and position errors; the paper's Fig. 2/3 quantities are NaN."""
+    with path.open(newline='') as fh:
+        reader = csv.reader(fh)
+        header = next(reader)
+        values = np.array([[float(x) for x in row] for row in reader], dtype=float)
+    followers = [h[4:] for h in header if h.startswith('att_')]
+    f = len(followers)
+    att, pos = values[:, 3:3 + f], values[:, 3 + f:3 + 2 * f]
+    nan = np.full_like(att, np.nan)
+    return Recording(t=values[:, 0], followers=followers, att_err=att, pos_err=pos,
+                     att_dist_I=nan, pos_err_paper=nan.copy())
+
+
+def rows(runs: list[Run]) -> list[dict[str, Any]]:
+    """Per run: gains, final mean and max errors, settling times of the mean errors."""
     out = []
-    for method, rec in recs.items():
+    for run in runs:
+        rec = run.rec
         att, pos = rec.att_err.mean(axis=1), rec.pos_err.mean(axis=1)
-        gains = gains_for(dataclasses.replace(scenario, method=method))
         out.append({
-            'method': method,
-            'gains': ', '.join(f'{k}={v:g}' for k, v in vars(gains).items()),
+            'method': run.method,
+            'mode': run.mode,
+            'gains': ', '.join(f'{k}={v:g}' for k, v in vars(gains_for(run.scenario)).items()),
+            'duration_s': float(rec.t[-1]),
             'final_attitude_error_mean_rad': float(att[-1]),
             'final_position_error_mean_m': float(pos[-1]),
             'final_attitude_error_max_rad': float(rec.att_err[-1].max()),
@@ -49,30 +148,35 @@ def rows(scenario: Scenario, recs: dict[str, Recording]) -> list[dict[str, Any]]
     return out
 
 
-def write_csv(recs: dict[str, Recording], path: Path) -> None:
-    """``t`` then, per method, its mean attitude [rad] and position [m] errors."""
-    methods = list(recs)
-    t = recs[methods[0]].t
+def write_csv(runs: list[Run], path: Path) -> None:
+    """``t`` then, per run, its mean attitude [rad] and position [m] errors, on the batch
+    runs' time grid (DDS runs, recorded at the monitor's rows, are interpolated onto it)."""
+    t = runs[0].rec.t
     with path.open('w', newline='') as fh:
         w = csv.writer(fh)
-        w.writerow(['t'] + [f'{m}_{q}' for m in methods
+        w.writerow(['t'] + [f'{_column(r)}_{q}' for r in runs
                             for q in ('attitude_error_mean_rad', 'position_error_mean_m')])
+        series = [np.interp(t, r.rec.t, e.mean(axis=1), right=np.nan)
+                  for r in runs for e in (r.rec.att_err, r.rec.pos_err)]
         for k, tk in enumerate(t):
-            w.writerow([f'{tk:.6f}'] + [f'{x:.9e}' for m in methods
-                                        for x in (recs[m].att_err[k].mean(),
-                                                  recs[m].pos_err[k].mean())])
+            w.writerow([f'{tk:.6f}'] + [f'{s[k]:.9e}' for s in series])
 
 
-def table(rows_: list[dict[str, Any]], duration: float) -> str:
+def _column(run: Run) -> str:
+    return run.method if run.mode == 'batch' else f'{run.method}_dds'
+
+
+def table(rows_: list[dict[str, Any]]) -> str:
     """The comparison as a Markdown table."""
     def when(x: float | None) -> str:
         return 'never' if x is None else f'{x:.1f} s'
 
-    lines = [f'| method | gains | mean attitude error at {duration:g} s [rad] | mean position '
-             f'error at {duration:g} s [m] | attitude < {ATT_THRESHOLD_RAD:g} rad from | '
-             f'position < {POS_THRESHOLD_M:g} m from |', '|---|---|---|---|---|---|']
+    lines = ['| method | run | gains | at [s] | mean attitude error [rad] | mean position error '
+             f'[m] | attitude < {ATT_THRESHOLD_RAD:g} rad from | position < {POS_THRESHOLD_M:g} '
+             'm from |', '|---|---|---|---|---|---|---|---|']
     for r in rows_:
-        lines.append(f"| {r['method']} | {r['gains']} | {r['final_attitude_error_mean_rad']:.3e} "
-                     f"| {r['final_position_error_mean_m']:.3e} | "
+        lines.append(f"| {r['method']} | {r['mode']} | {r['gains']} | {r['duration_s']:g} | "
+                     f"{r['final_attitude_error_mean_rad']:.3e} | "
+                     f"{r['final_position_error_mean_m']:.3e} | "
                      f"{when(r['attitude_settles_s'])} | {when(r['position_settles_s'])} |")
     return '\n'.join(lines) + '\n'

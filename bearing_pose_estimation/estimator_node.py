@@ -14,48 +14,63 @@ diagnostics; it never stops the node and never reaches the estimate.
 
 Parameters (read-only): either ``scenario_file`` (+ ``agent``, default: the namespace) or the
 explicit set ``agent_id``, ``leader``, ``neighbours``, ``neighbour_ids``, ``neighbour_gains``,
-``initial_position``, ``initial_orientation`` (x, y, z, w); ``frequency`` [Hz], ``publish_rate``
-[Hz], ``k_R``, ``k_p`` (0: from the scenario, or 100 Hz / 50 Hz / 1.0 in explicit mode;
-``k_R`` is an error with a tran_anderson_ahn scenario, whose other gains come from the file);
+``initial_position``, ``initial_orientation`` (x, y, z, w), with ``method``
+(``boughellaba_tayebi``, the default, or ``tran_anderson_ahn``); ``frequency`` [Hz],
+``publish_rate`` [Hz] and the gains ``k_R``, ``k_p`` (boughellaba_tayebi) or ``k_omega``,
+``k_c``, ``k_p`` (tran_anderson_ahn): 0 means the scenario's value, or 100 Hz / 50 Hz / the
+method's default gains in explicit mode; a gain of the other method is an error.
 ``start_time`` [s] (the scenario's t = 0 on the node's clock; negative: the first gyro stamp);
 the input limits ``sensor_timeout``, ``neighbour_timeout``, ``max_rate``; the expected frames
 ``imu_frame``, ``bearings_frame`` (empty: accept any); ``diagnostics_period`` [s]; and the fault
 injection for tests and studies: ``inject_drop_rate`` (probability of dropping each neighbour
 message), ``inject_delay`` [s] (extra delay of each neighbour message), ``inject_seed``.
+Integers are accepted for numbers; a wrong type or range stops the node with a one-line error,
+and unknown keys in a parameter file are warned about (see :func:`node_main.declare`).
 """
 from __future__ import annotations
 
 import heapq
 import time
-from dataclasses import replace
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import fields, replace
+from functools import partial
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from . import msg_defs as wire
 from . import so3
-from .agent import AgentEstimator, Limits, estimator_for
-from .node_main import run_node
+from .agent import TIME_EVENTS, AgentEstimator, Limits, estimator_for
+from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
 from .observer import CascadeGains
+from .scenario import METHODS, ScenarioError, load_scenario
 from .tran import TranGains
-from .scenario import ScenarioError, load_scenario
 
-# Causes that are events of the time rules, not bad input (see AgentEstimator).
-_TIME_EVENTS = {'time_jump': 'the clock jumped back: restarted from the initial estimate',
-                'gyro_gap': 'gyro gap: the state time restarts after it, keeping the estimate'}
+# The gains each method takes as parameters (0: the scenario's, or the method's default).
+_GAINS = {'boughellaba_tayebi': CascadeGains, 'tran_anderson_ahn': TranGains}
+_GAIN_HELP = {'k_R': 'attitude gain (boughellaba_tayebi)', 'k_p': 'position gain',
+              'k_omega': 'damping of the gyro correction (tran_anderson_ahn)',
+              'k_c': 'third direction of two-neighbour followers (tran_anderson_ahn)'}
+# Used only without a scenario file.
+_EXPLICIT = ('agent_id', 'leader', 'neighbours', 'neighbour_ids', 'neighbour_gains',
+             'initial_position', 'initial_orientation')
 
 
-def _described(text: str, low: float | None = None, high: float | None = None
-               ) -> ParameterDescriptor:
-    d = ParameterDescriptor(description=text, read_only=True)
-    if low is not None:
-        d.floating_point_range = [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
-    return d
+def _with_gains(base: CascadeGains | TranGains, given: dict[str, float], where: str,
+                fix: str) -> CascadeGains | TranGains:
+    """``base`` with the non-zero ``given`` gains; a gain of the other method is an error."""
+    method = next(m for m, cls in _GAINS.items() if isinstance(base, cls))
+    own = [f.name for f in fields(base)]
+    for gain, value in given.items():
+        if value and gain not in own:
+            other = next(m for m, cls in _GAINS.items()
+                         if gain in [f.name for f in fields(cls)])
+            raise ScenarioError(f'parameter {gain} is a {other} gain, but {where} is {method}. '
+                                f'Fix: remove {gain} ({method} takes {", ".join(own)}); {fix}')
+    return replace(base, **{g: v for g, v in given.items() if v})
 
 
 class EstimatorNode(Node):
@@ -63,66 +78,77 @@ class EstimatorNode(Node):
         """``node_kwargs`` go to rclpy's Node (``namespace``, ``context``,
         ``parameter_overrides``, ``cli_args``, ...): several agents can share one process."""
         super().__init__('estimator', **node_kwargs)
-        p = self.declare_parameter
-        scenario_file = p('scenario_file', '', _described('scenario YAML; empty: explicit '
-                                                          'parameters')).value
+        p = partial(declare, self)
+        scenario_file = p('scenario_file', '', 'scenario YAML; empty: explicit parameters')
         default_agent = self.get_namespace().strip('/').split('/')[-1]
-        self.agent = p('agent', default_agent, _described('agent name (default: namespace)')).value
-        frequency = p('frequency', 0.0, _described('estimator rate [Hz]; 0: scenario / 100',
-                                                   0.0, 10000.0)).value
-        publish_rate = p('publish_rate', 0.0, _described('estimate and world-bearing rate [Hz];'
-                                                         ' 0: scenario / 50', 0.0, 10000.0)).value
-        k_R = p('k_R', 0.0, _described('attitude gain; 0: scenario / 1', 0.0, 1e6)).value
-        k_p = p('k_p', 0.0, _described('position gain; 0: scenario / 1', 0.0, 1e6)).value
-        self.start_time = p('start_time', 0.0, _described(
-            't = 0 of the scenario on this clock [s]; negative: the first gyro stamp')).value
+        self.agent = p('agent', default_agent, 'agent name (default: namespace)')
+        frequency = p('frequency', 0.0, 'estimator rate [Hz]; 0: scenario / 100', 0.0, 10000.0)
+        publish_rate = p('publish_rate', 0.0, 'estimate and world-bearing rate [Hz]; '
+                         '0: scenario / 50', 0.0, 10000.0)
+        method = p('method', '', f'observer, {" or ".join(METHODS)}; empty: the scenario\'s '
+                   '(explicit mode: boughellaba_tayebi)')
+        given_gains = {g: p(g, 0.0, f'{text}; 0: scenario / default', 0.0, 1e6)
+                       for g, text in _GAIN_HELP.items()}
+        self.start_time = p('start_time', 0.0, 't = 0 of the scenario on this clock [s]; '
+                            'negative: the first gyro stamp')
         d = Limits()
         limits = Limits(
-            sensor_timeout=p('sensor_timeout', d.sensor_timeout, _described(
-                'own bearings older than this are not used [s]', 0.0, 1e6)).value,
-            neighbour_timeout=p('neighbour_timeout', d.neighbour_timeout, _described(
-                'a neighbour silent for longer is stale and not used [s]', 0.0, 1e6)).value,
-            max_rate=p('max_rate', d.max_rate, _described(
-                'gyro rates above this are rejected [rad/s]', 0.0, 1e6)).value)
-        self.imu_frame = p('imu_frame', wire.body_frame(self.agent), _described(
-            'expected Imu frame_id; empty: any')).value
-        self.bearings_frame = p('bearings_frame', wire.body_frame(self.agent), _described(
-            'expected bearings frame_id; empty: any')).value
-        diagnostics_period = p('diagnostics_period', 1.0, _described(
-            '/diagnostics period [s]', 0.01, 3600.0)).value
-        self.drop_rate = p('inject_drop_rate', 0.0, _described(
-            'fault injection: probability of dropping each neighbour message', 0.0, 1.0)).value
-        self.delay = p('inject_delay', 0.0, _described(
-            'fault injection: extra delay of each neighbour message [s]', 0.0, 60.0)).value
-        self.rng = np.random.default_rng(p('inject_seed', 0, _described(
-            'fault injection: random seed')).value)
+            sensor_timeout=p('sensor_timeout', d.sensor_timeout,
+                             'own bearings older than this are not used [s]', 0.0, 1e6),
+            neighbour_timeout=p('neighbour_timeout', d.neighbour_timeout,
+                                'a neighbour silent for longer is stale and not used [s]',
+                                0.0, 1e6),
+            max_rate=p('max_rate', d.max_rate, 'gyro rates above this are rejected [rad/s]',
+                       0.0, 1e6))
+        self.imu_frame = p('imu_frame', wire.body_frame(self.agent),
+                           'expected Imu frame_id; empty: any')
+        self.bearings_frame = p('bearings_frame', wire.body_frame(self.agent),
+                                'expected bearings frame_id; empty: any')
+        diagnostics_period = p('diagnostics_period', 1.0, '/diagnostics period [s]',
+                               0.01, 3600.0)
+        self.drop_rate = p('inject_drop_rate', 0.0, 'fault injection: probability of dropping '
+                           'each neighbour message', 0.0, 1.0)
+        self.delay = p('inject_delay', 0.0, 'fault injection: extra delay of each neighbour '
+                       'message [s]', 0.0, 60.0)
+        self.rng = np.random.default_rng(p('inject_seed', 0, 'fault injection: random seed',
+                                           0, 2**31 - 1))
         explicit = {
-            'agent_id': p('agent_id', 0).value,
-            'leader': p('leader', False).value,
-            'neighbours': p('neighbours', ['']).value,
-            'neighbour_ids': p('neighbour_ids', [0]).value,
-            'neighbour_gains': p('neighbour_gains', [0.0]).value,
-            'initial_position': p('initial_position', [0.0, 0.0, 0.0]).value,
-            'initial_orientation': p('initial_orientation', [0.0, 0.0, 0.0, 1.0]).value,
+            'agent_id': p('agent_id', 0, 'explicit mode: this agent\'s id (1-based)'),
+            'leader': p('leader', False, 'explicit mode: a leader (known pose, no neighbours)'),
+            'neighbours': p('neighbours', [''], 'explicit mode: neighbour names'),
+            'neighbour_ids': p('neighbour_ids', [0], 'explicit mode: neighbour ids'),
+            'neighbour_gains': p('neighbour_gains', [0.0], 'explicit mode: k_ij per neighbour'),
+            'initial_position': p('initial_position', [0.0, 0.0, 0.0],
+                                  'explicit mode: initial p̂ [m]'),
+            'initial_orientation': p('initial_orientation', [0.0, 0.0, 0.0, 1.0],
+                                     'explicit mode: initial R̂ as a quaternion x, y, z, w'),
         }
+        if method and method not in METHODS:
+            raise ScenarioError(f'parameter method: unknown method {method!r}. Fix: one of '
+                                f'{", ".join(METHODS)}, or empty')
         if scenario_file:
             scenario = load_scenario(scenario_file)
             if self.agent not in scenario.index:
                 raise ScenarioError(f'{scenario_file}: agent {self.agent!r} is not in the '
                                     'scenario. Fix: set the `agent` parameter or the namespace')
+            if method and method != scenario.method:
+                raise ScenarioError(f'parameter method is {method}, but {scenario_file} uses '
+                                    f'method {scenario.method}. Fix: remove the parameter (the '
+                                    'scenario file chooses the method)')
+            ignored = sorted(set(_EXPLICIT) & set(parameter_overrides(self)))
+            if ignored:
+                self.get_logger().warning(f'{", ".join(ignored)} ignored: they are for running '
+                                          'without a scenario_file, which is set')
             template = estimator_for(scenario, self.agent, limits)
             publish_rate = publish_rate or scenario.publish_rate
+            where, fix = "the scenario's method", 'the scenario file sets the method'
         else:
-            template = self._explicit_estimator(explicit, limits)
+            method = method or METHODS[0]
+            template = self._explicit_estimator(explicit, limits, _GAINS[method]())
             publish_rate = publish_rate or 50.0
-        if isinstance(template.gains, TranGains):
-            if k_R:
-                raise ScenarioError('parameter k_R is a boughellaba_tayebi gain, but the scenario '
-                                    'uses method tran_anderson_ahn. Fix: remove k_R (set its '
-                                    'gains k_omega, k_c in the scenario)')
-            gains = replace(template.gains, k_p=k_p or template.gains.k_p)
-        else:
-            gains = CascadeGains(k_R=k_R or template.gains.k_R, k_p=k_p or template.gains.k_p)
+            where = 'the method parameter'
+            fix = f'or set method: {" / ".join(m for m in METHODS if m != method)}'
+        gains = _with_gains(template.gains, given_gains, where, fix)
         self.template = template
         self.gains = gains
         self.h = 1.0 / frequency if frequency > 0 else template.h
@@ -148,8 +174,11 @@ class EstimatorNode(Node):
                 self.create_subscription(wire.PointCloud2, wire.BEARINGS, self.on_bearings,
                                          qos_in)]
         if template.leader:
+            # Best effort matches both a reliable publisher (the simulator) and a best-effort
+            # one (many mocap and GNSS drivers); a reliable reader would miss the latter. A lost
+            # sample costs nothing: the gyro carries the pose to the next one.
             subs.append(self.create_subscription(wire.PoseStamped, wire.KNOWN_POSE,
-                                                 self.on_known_pose, qos_est))
+                                                 self.on_known_pose, qos_in))
         self._nbr_p_hat: dict[int, np.ndarray] = {}
         for nb in template.neighbours:
             subs.append(self.create_subscription(
@@ -175,9 +204,11 @@ class EstimatorNode(Node):
                                f'{1.0 / self.h:g} Hz, '
                                + ', '.join(f'{k}={v:g}' for k, v in vars(gains).items())
                                + faults)
+        warn_unknown_parameters(self)
 
     # --------------------------------------------------------------------------- set-up
-    def _explicit_estimator(self, e: dict, limits: Limits) -> AgentEstimator:
+    def _explicit_estimator(self, e: dict, limits: Limits,
+                            gains: CascadeGains | TranGains) -> AgentEstimator:
         names = [n for n in e['neighbours'] if n]
         if e['agent_id'] <= 0:
             raise ScenarioError('parameter agent_id must be > 0 without a scenario_file. Fix: '
@@ -198,7 +229,7 @@ class EstimatorNode(Node):
         if p0.shape != (3,) or not np.all(np.isfinite(p0)):
             raise ScenarioError('parameter initial_position must be 3 finite numbers [m]')
         nbrs = [] if e['leader'] else list(zip(names, e['neighbour_ids'], e['neighbour_gains']))
-        return AgentEstimator(agent_id=e['agent_id'], neighbours=nbrs, gains=CascadeGains(),
+        return AgentEstimator(agent_id=e['agent_id'], neighbours=nbrs, gains=gains,
                               step=0.01, leader=e['leader'], R0=so3.from_quat(q), p0=p0,
                               limits=limits)
 
@@ -242,9 +273,9 @@ class EstimatorNode(Node):
         if not self.ready_timer.is_canceled():
             self.ready_timer.cancel()
         cause = self.est.add_gyro(t, omega, now=self._now())
-        if cause in _TIME_EVENTS:
+        if cause in TIME_EVENTS:
             self.events[cause] += 1
-            self.get_logger().warning(f'{_TIME_EVENTS[cause]} (t = {t:.3f} s)')
+            self.get_logger().warning(f'{TIME_EVENTS[cause]} (t = {t:.3f} s)')
             self._published_k = -1
         elif cause is not None:
             return self._reject(cause, f'imu sample at {t:.6f}')

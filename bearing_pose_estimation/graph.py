@@ -7,7 +7,10 @@ the agent order, with at least two non-collinear bearings.
 
 Lemma 1 needs ``M_i = Σ_j k_ij b_ij b_ijᵀ`` to have three distinct eigenvalues; an agent can
 check it locally on its body-frame bearings (same spectrum). A violation is a warning: the
-paper's own agent 8 has spectrum {0, 1, 1} and still converges.
+paper's own agent 8 has spectrum {0, 1, 1} and still converges. For ``method:
+tran_anderson_ahn`` the matrix is Tran et al.'s ``K_i`` (their (9); with exactly two
+neighbours it includes ``k_c c cᵀ`` for the third direction ``c = b_ij × b_ik / ‖·‖``), which
+must be positive definite (non-coplanar bearings) with distinct eigenvalues (their Lemma 2).
 """
 from __future__ import annotations
 
@@ -45,6 +48,7 @@ class Finding:
 class CheckReport:
     findings: list[Finding] = field(default_factory=list)
     spectra: dict[str, NDArray[np.float64]] = field(default_factory=dict)  # eig(M_i), ascending
+    spectra_of: str = 'M_i = Σ_j k_ij b_ij b_ijᵀ'   # Tran et al.: their K_i
 
     @property
     def errors(self) -> list[Finding]:
@@ -61,7 +65,7 @@ class CheckReport:
     def format(self, max_spectra: int = 50) -> str:
         lines = [str(f) for f in self.findings]
         if self.spectra:
-            lines.append('M_i spectra (eigenvalues of Σ_j k_ij b_ij b_ijᵀ):')
+            lines.append(f'spectra (eigenvalues of {self.spectra_of}):')
             for k, (name, eig) in enumerate(self.spectra.items()):
                 if k == max_spectra:
                     lines.append(f'  ... {len(self.spectra) - max_spectra} more')
@@ -116,6 +120,8 @@ def _reachable_from(scenario: Scenario, leader: str) -> set[str]:
 def check_scenario(scenario: Scenario) -> CheckReport:
     """All Assumption 2 conditions and the M_i spectra of every follower."""
     report = CheckReport()
+    if scenario.method == 'tran_anderson_ahn':
+        report.spectra_of = 'K_i = Σ_j k_ij b_ij b_ijᵀ, + k_c c cᵀ with two neighbours'
     add = report.findings.append
     pos = np.stack([a.position for a in scenario.agents])
     order = scenario.index
@@ -169,12 +175,24 @@ def check_scenario(scenario: Scenario) -> CheckReport:
                             'position estimate', 'add a neighbour in another direction'))
         k = np.array([n.k for n in a.neighbours])
         M = np.einsum('e,ea,eb->ab', k, b, b)
+        tran = scenario.method == 'tran_anderson_ahn'
+        if tran and len(idx) == 2 and np.linalg.norm(np.cross(b[0], b[1])) > 0:
+            c = np.cross(b[0], b[1])  # Tran et al.'s third direction for two neighbours
+            M += scenario.k_c * np.outer(c, c) / (c @ c)
         eig = np.linalg.eigvalsh(M)
         report.spectra[a.name] = eig
-        if np.min(np.diff(eig)) <= EIGEN_GAP_REL * max(eig[-1], 1e-300):
-            add(Finding('warning', a.name, 'neighbours', 'M_i = Σ k_ij b_ij b_ijᵀ has repeated '
-                        f'eigenvalues {{{", ".join(f"{e:.3g}" for e in eig)}}}: Lemma 1\'s '
-                        'hypothesis fails (convergence is then not guaranteed)',
-                        f'use different per-edge gains, e.g. `neighbours: [{{name: '
-                        f'{a.neighbours[0].name}, k: 2.0}}, ...]`'))
+        fix = (f'use different per-edge gains, e.g. `neighbours: [{{name: '
+               f'{a.neighbours[0].name}, k: 2.0}}, ...]`')
+        eigs = '{' + ', '.join(f'{e:.3g}' for e in eig) + '}'
+        if tran and eig[0] <= EIGEN_GAP_REL * max(eig[-1], 1e-300):
+            add(Finding('warning', a.name, 'neighbours', f'K_i = Σ k_ij b_ij b_ijᵀ is singular '
+                        f'(eigenvalues {eigs}): its bearings are coplanar, so Tran et al.\'s '
+                        'attitude observer cannot converge (K_i must be positive definite, (9))',
+                        'add a neighbour out of the plane of the current ones'))
+        elif np.min(np.diff(eig)) <= EIGEN_GAP_REL * max(eig[-1], 1e-300):
+            what, ref = (('K_i = Σ k_ij b_ij b_ijᵀ (+ k_c c cᵀ)', 'Tran et al.\'s Lemma 2')
+                         if tran else ('M_i = Σ k_ij b_ij b_ijᵀ', 'Lemma 1\'s'))
+            add(Finding('warning', a.name, 'neighbours', f'{what} has repeated eigenvalues '
+                        f'{eigs}: {ref} hypothesis fails (convergence is then not guaranteed)',
+                        fix + (' or another gains.k_c' if tran and len(idx) == 2 else '')))
     return report

@@ -545,7 +545,8 @@ def sigterm_as_interrupt() -> Iterator[None]:
 # ----------------------------------------------------------------------------- the run
 @dataclass
 class RunResult:
-    """ok: the monitor finished and wrote summary.json (``killed`` is reported, not fatal)."""
+    """ok: the monitor finished and wrote summary.json, every process then stopped with exit
+    code 0 (none needed SIGKILL), and the run left nothing in /dev/shm."""
 
     ok: bool
     wall_s: float
@@ -554,6 +555,7 @@ class RunResult:
     files: list[Path] = field(default_factory=list)   # outputs written by this run
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per live process
     rss_mb: dict[str, float] = field(default_factory=dict)  # resident memory per process, at end
+    exit_codes: dict[str, int | None] = field(default_factory=dict)  # per process, after stop
 
 
 def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = None) -> RunResult:
@@ -586,19 +588,39 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
             result.cpu_s = group.cpu_seconds()
             result.rss_mb = group.rss_mb()
             result.killed = group.shutdown()
+            result.exit_codes = {s.name: group.returncode(s.name) for s in specs}
     finally:
         result.wall_s = time.perf_counter() - wall
-        _warn_shm(shm_before)
+        leaked = _warn_shm(shm_before)
     result.files = _fresh_files(cfg.out_dir, started)
-    if result.failure is None and cfg.out_dir / 'summary.json' not in result.files:
-        result.failure = Failure('monitor', f'exited with code 0 but wrote no '
-                                 f'{cfg.out_dir / "summary.json"}')
-        print(f'error: {result.failure.format()}', file=sys.stderr)
+    if result.failure is None:  # earlier failures were reported when they happened
+        result.failure = _failure_after_stop(cfg, specs, result, leaked)
+        if result.failure is not None:
+            print(f'error: {result.failure.format()}', file=sys.stderr)
     result.ok = result.failure is None
     return result
 
 
-def _warn_shm(before: set[str]) -> None:
+def _failure_after_stop(cfg: RunConfig, specs: list[ProcessSpec], result: RunResult,
+                        leaked: list[str]) -> Failure | None:
+    """A run whose monitor finished is clean only if the monitor wrote its summary, every
+    process stopped with exit code 0 and nothing was left in /dev/shm."""
+    if cfg.out_dir / 'summary.json' not in result.files:
+        return Failure('monitor', f'exited with code 0 but wrote no '
+                       f'{cfg.out_dir / "summary.json"}')
+    unclean = [s for s in specs if result.exit_codes.get(s.name) not in (0, None)]
+    if unclean:
+        s = unclean[0]
+        more = f' (and {len(unclean) - 1} more process(es))' if len(unclean) > 1 else ''
+        return Failure(s.label, f'{describe_exit(result.exit_codes[s.name])} when stopped at '
+                       f'the end of the run{more}', s.log, log_tail(s.log))
+    if leaked:
+        return Failure('the run', f'left {len(leaked)} file(s) in /dev/shm')
+    return None
+
+
+def _warn_shm(before: set[str]) -> list[str]:
+    """Warn about (and return) Fast DDS files the run left in /dev/shm."""
     leaked = leaked_shm(before)
     if leaked:
         fastdds = Path(sys.executable).parent / 'fastdds'
@@ -606,6 +628,7 @@ def _warn_shm(before: set[str]) -> None:
         print(f'warning: {len(leaked)} new Fast DDS shared-memory file(s) in /dev/shm that no '
               f'process uses after the run ({", ".join(leaked[:3])}). Fix: `{tool} shm clean` '
               '(removes only segments no process uses)', file=sys.stderr)
+    return leaked
 
 
 def _fresh_files(out_dir: Path, since: float) -> list[Path]:

@@ -27,10 +27,10 @@ def settling_time(t: NDArray[np.float64], err: NDArray[np.float64],
     """First time after which ``err`` stays below ``threshold`` (None if it never does)."""
     above = np.flatnonzero(err >= threshold)
     if above.size == 0:
-        return float(t[0])
+        return round(float(t[0]), 9)
     if above[-1] == err.size - 1:
         return None
-    return float(t[above[-1] + 1])
+    return round(float(t[above[-1] + 1]), 9)  # 14.7, not 14.700000000000001
 
 
 def write_metrics_csv(rec: Recording, path: Path) -> None:

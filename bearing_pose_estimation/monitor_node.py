@@ -21,20 +21,23 @@ from rclpy.task import Future
 
 from . import msg_defs as wire
 from .metrics import format_summary, summarize, write_metrics_csv, write_summary_json
-from .node_main import run_node, scenario_parameter
+from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
 from .simulator import Recording, pose_errors
 
 
 class MonitorNode(Node):
     def __init__(self) -> None:
         super().__init__('monitor')
-        p = self.declare_parameter
         self.scenario = s = scenario_parameter(self)
-        self.duration = p('duration', 0.0).value or s.duration
-        self.out_dir = Path(p('out_dir', 'results').value)
-        self.record_ns = int(round(p('record_every', 0.1).value * 1e9))
-        self.progress_every = p('progress_every', max(self.duration / 10.0, 1.0)).value
-        self.plots = p('plots', True).value
+        self.duration = declare(self, 'duration', 0.0, 'simulated time to record [s]; 0: the '
+                                "scenario's", 0.0, 1e9) or s.duration
+        self.out_dir = Path(declare(self, 'out_dir', 'results', 'output directory'))
+        self.record_ns = int(round(declare(self, 'record_every', 0.1, 'metrics row interval '
+                                           '[s]', 1e-3, 0.5) * 1e9))
+        self.progress_every = declare(self, 'progress_every', max(self.duration / 10.0, 1.0),
+                                      'progress line interval [s] of simulated time', 1e-3, 1e9)
+        self.plots = declare(self, 'plots', True, 'write the PNG plots')
+        warn_unknown_parameters(self)
 
         self.followers = [a.name for a in s.followers]
         self._truth: dict[int, dict[int, tuple]] = {}   # ns -> follower index -> (R, p)

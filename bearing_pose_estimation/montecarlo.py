@@ -13,7 +13,25 @@ error [m], as in ``metrics.csv``):
   the duration (every record with ``t >= 0.9 duration``);
 - ``final_max_attitude_error_rad``, ``final_max_position_error_m``: the worst follower at the end;
 - ``t_att_1e-3_s``, ``t_pos_1e-2_s``: :func:`metrics.settling_time` of the mean errors to 1e-3 rad
-  and 1e-2 m (None, an empty CSV field, if the error never stays below).
+  and 1e-2 m (None, an empty CSV field, if the error never stays below);
+- ``t_att_settled_s``, ``t_pos_settled_s``: the noise-robust convergence time,
+  :func:`metrics.settling_time` of the mean error to ``max(fixed threshold, 3 × the run's
+  steady-state error)``: the time after which the error stays within a factor 3 of the floor
+  it settles on, or below the fixed threshold if that floor is lower.
+
+Why the noise-robust time: with measurement noise the errors settle on a noise floor (about
+3.4e-3 rad and 2.2e-2 m with 1° bearing noise on the paper scenario), above 1e-3 rad and
+1e-2 m, so the fixed-threshold times say "never" for every noisy run. A threshold relative to
+the run's own floor measures when it got there, whatever the noise level, without a
+noise-specific constant. Why 3: after converging, the mean attitude error over the followers
+still fluctuates, up to 2.1 times its floor in the 20 runs of ``config/paper_noisy.yaml``; a
+factor at or below that dates the last fluctuation rather than the convergence (with 2, one
+run of those 20 "settles" at 41 s instead of 12 s). As the error decays exponentially, the
+factor only shifts the time by the log of its ratio in time constants: 3 instead of 2 moves
+it by about 1 s (attitude) and 2.5 s (position) there.
+Without noise the floor is far below the fixed thresholds, which then apply: the time equals
+the fixed-threshold one. The time is meaningful when the run is long enough to reach its floor
+(the steady window must hold the floor, not a still-decaying error).
 
 Outputs: ``runs.csv`` (one row per run), ``summary.json`` (statistics over runs) and
 ``montecarlo.png``. No rclpy here.
@@ -40,12 +58,14 @@ Array = NDArray[np.float64]
 
 OUTPUT_FILES = ('runs.csv', 'summary.json', 'montecarlo.png')
 STEADY_FRACTION = 0.1     # the steady-state window: the last 10 % of the duration
+SETTLE_FACTOR = 3.0       # noise-robust convergence: within this factor of the run's floor
 RECORD_EVERY = 0.1        # [s]; at most duration / 100, so the window holds >= 10 records
 QUANTITIES = ('steady_attitude_error_rad', 'steady_position_error_m',
               'final_max_attitude_error_rad', 'final_max_position_error_m',
-              't_att_1e-3_s', 't_pos_1e-2_s')
+              't_att_1e-3_s', 't_pos_1e-2_s', 't_att_settled_s', 't_pos_settled_s')
 RUN_COLUMNS = ('run', 'seed') + QUANTITIES
-_TIMES = {'t_att_1e-3_s': 'attitude_1e-3_rad', 't_pos_1e-2_s': 'position_1e-2_m'}
+_TIMES = {'t_att_1e-3_s': 'attitude_1e-3_rad', 't_pos_1e-2_s': 'position_1e-2_m',
+          't_att_settled_s': 'attitude_settled', 't_pos_settled_s': 'position_settled'}
 
 
 def reseed(scenario: Scenario, seed: int) -> Scenario:
@@ -68,18 +88,27 @@ class RunResult:
     values: dict[str, float | None]
 
 
+def settled_time(t: Array, err: Array, steady: float, threshold: float) -> float | None:
+    """The noise-robust convergence time (see module doc): when ``err`` stays below
+    ``max(threshold, SETTLE_FACTOR * steady)``."""
+    return settling_time(t, err, max(threshold, SETTLE_FACTOR * steady))
+
+
 def evaluate(rec: Recording, run: int, seed: int) -> RunResult:
     """The per-run quantities of a recording."""
     att, pos = rec.att_err.mean(axis=1), rec.pos_err.mean(axis=1)
     duration = rec.t[-1] - rec.t[0]
     window = rec.t >= rec.t[-1] - STEADY_FRACTION * duration - 1e-9
+    steady_att, steady_pos = float(att[window].mean()), float(pos[window].mean())
     values = {
-        'steady_attitude_error_rad': float(att[window].mean()),
-        'steady_position_error_m': float(pos[window].mean()),
+        'steady_attitude_error_rad': steady_att,
+        'steady_position_error_m': steady_pos,
         'final_max_attitude_error_rad': float(rec.att_err[-1].max()),
         'final_max_position_error_m': float(rec.pos_err[-1].max()),
         't_att_1e-3_s': settling_time(rec.t, att, ATT_THRESHOLD_RAD),
         't_pos_1e-2_s': settling_time(rec.t, pos, POS_THRESHOLD_M),
+        't_att_settled_s': settled_time(rec.t, att, steady_att, ATT_THRESHOLD_RAD),
+        't_pos_settled_s': settled_time(rec.t, pos, steady_pos, POS_THRESHOLD_M),
     }
     return RunResult(run=run, seed=seed, t=rec.t, att_mean=att, pos_mean=pos, values=values)
 
@@ -171,7 +200,9 @@ def format_table(summary: dict[str, Any]) -> str:
               'final_max_attitude_error_rad': 'final max attitude error [rad]',
               'final_max_position_error_m': 'final max position error [m]',
               't_att_1e-3_s': 'time to attitude < 1e-3 rad [s]',
-              't_pos_1e-2_s': 'time to position < 1e-2 m [s]'}
+              't_pos_1e-2_s': 'time to position < 1e-2 m [s]',
+              't_att_settled_s': f'attitude settled ({SETTLE_FACTOR:g}x floor) [s]',
+              't_pos_settled_s': f'position settled ({SETTLE_FACTOR:g}x floor) [s]'}
     cols = ('mean', 'std', 'p5', 'p50', 'p95', 'max')
     lines = [f'{"":32s}' + ''.join(f'{c:>10s}' for c in cols) + f'{"never":>7s}']
     for q in QUANTITIES:

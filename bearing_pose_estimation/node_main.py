@@ -3,21 +3,33 @@
 Clean shutdown matters: a node that dies without destroying its DDS participant leaves Fast DDS
 files in /dev/shm. SIGINT and SIGTERM only ask the spin loop to stop; everything after happens
 on the main thread, in order (see :class:`_StopRequest`). Configuration errors
-(:class:`ScenarioError`) are logged as fatal with their fix and give exit code 1, without a
-traceback.
+(:class:`ScenarioError`, and rclpy's parameter exceptions) are logged as fatal with their fix
+and give exit code 1, without a traceback.
+
+Parameters: :func:`declare` declares one read-only parameter with its type taken from the
+default. It accepts what a ROS user writes (``frequency: 100`` for a float, ``[2, 1]`` for a
+list of floats, ``[]`` for an empty list) and turns any other type or an out-of-range value
+into a one-line :class:`ScenarioError` naming the parameter and the fix.
+:func:`warn_unknown_parameters` warns about keys of a parameter file that no node declared
+(``neighbour_timout``), which rclpy otherwise ignores silently.
 """
 from __future__ import annotations
 
+import difflib
 import faulthandler
 import os
 import signal
 import sys
 import threading
 from collections.abc import Callable
+from typing import Any
 
 import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
@@ -32,11 +44,109 @@ EXECUTORS = {'draining': DrainingExecutor, 'rclpy': SingleThreadedExecutor}
 
 def scenario_parameter(node: Node) -> Scenario:
     """Declare the required ``scenario_file`` parameter and load the scenario it names."""
-    path = node.declare_parameter('scenario_file', '').value
+    path = declare(node, 'scenario_file', '', 'scenario YAML file')
     if not path:
         raise ScenarioError('parameter scenario_file is empty. Fix: pass '
                             '-p scenario_file:=/path/to/scenario.yaml')
     return load_scenario(path)
+
+
+# --------------------------------------------------------------------------- parameters
+_T = Parameter.Type
+_KINDS = {_T.BOOL: 'true or false', _T.INTEGER: 'an integer', _T.DOUBLE: 'a number',
+          _T.STRING: 'a string', _T.INTEGER_ARRAY: 'a list of integers',
+          _T.DOUBLE_ARRAY: 'a list of numbers', _T.STRING_ARRAY: 'a list of strings',
+          _T.BOOL_ARRAY: 'a list of true/false'}
+_EXAMPLES = {_T.BOOL: 'true', _T.INTEGER: '1', _T.DOUBLE: '1.0', _T.STRING: 'text',
+             _T.INTEGER_ARRAY: '[1, 2]', _T.DOUBLE_ARRAY: '[1.0, 2.0]',
+             _T.STRING_ARRAY: '[agent_1, agent_2]', _T.BOOL_ARRAY: '[true, false]'}
+_ITEM = {_T.INTEGER_ARRAY: _T.INTEGER, _T.DOUBLE_ARRAY: _T.DOUBLE, _T.STRING_ARRAY: _T.STRING,
+         _T.BOOL_ARRAY: _T.BOOL}
+
+
+def parameter_overrides(node: Node) -> dict[str, Parameter]:
+    """The values given to ``node`` from outside: parameter files, ``-p`` and the constructor's
+    ``parameter_overrides``. rclpy has no public accessor (rclcpp has
+    ``get_parameter_overrides()``); Node keeps them in ``_parameter_overrides`` (rclpy 7.1.6,
+    pinned; test_estimator_params.py fails if that changes)."""
+    return dict(getattr(node, '_parameter_overrides', {}))
+
+
+def _item(kind: Parameter.Type, value: Any) -> Any:
+    """``value`` as a scalar of type ``kind`` (an int is a float too), or raise TypeError."""
+    if isinstance(value, bool) != (kind == _T.BOOL):
+        raise TypeError
+    if kind == _T.DOUBLE and isinstance(value, (int, float)):
+        return float(value)
+    if (kind == _T.INTEGER and isinstance(value, int)) or (kind == _T.STRING and isinstance(
+            value, str)) or kind == _T.BOOL:
+        return value
+    raise TypeError
+
+
+def _given(name: str, kind: Parameter.Type, given: Parameter) -> Any:
+    """An override converted to ``kind``, or a ScenarioError naming the parameter and the fix."""
+    value = given.value
+    if given.type_ == _T.NOT_SET and kind in _ITEM:  # `name: []` in YAML has no type
+        return []
+    try:
+        if kind in _ITEM:
+            if not isinstance(value, (list, tuple)) and type(value).__name__ != 'array':
+                raise TypeError
+            return [_item(_ITEM[kind], v) for v in value]
+        return _item(kind, value)
+    except TypeError:
+        got = _KINDS.get(given.type_, 'no value' if given.type_ == _T.NOT_SET else
+                         given.type_.name.lower())
+        raise ScenarioError(f'parameter {name} must be {_KINDS[kind]}, but {got} was given '
+                            f'({value!r}). Fix: e.g. `{name}: {_EXAMPLES[kind]}` in the '
+                            f'parameter file, or -p {name}:={_EXAMPLES[kind]}') from None
+
+
+def declare(node: Node, name: str, default: Any, description: str = '',
+            low: float | None = None, high: float | None = None) -> Any:
+    """Declare a read-only parameter whose type is the default's, and return its value.
+
+    Integers are accepted where numbers are expected, and ``[]`` for any list. Another type,
+    or a number outside ``[low, high]``, raises a :class:`ScenarioError` naming the parameter
+    and the fix (rclpy would raise with a traceback, or accept 100 only as 100.0)."""
+    kind = Parameter.Type.from_parameter_value(default)
+    descriptor = ParameterDescriptor(description=description, read_only=True)
+    if low is not None:
+        if kind == _T.INTEGER:
+            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high),
+                                                     step=0)]
+        else:
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(low),
+                                                                  to_value=float(high),
+                                                                  step=0.0)]
+    given = parameter_overrides(node).get(name)
+    value = default if given is None else _given(name, kind, given)
+    if low is not None:
+        numbers = value if isinstance(value, list) else [value]
+        if any(not low <= v <= high for v in numbers):
+            raise ScenarioError(f'parameter {name} must be in [{low:g}, {high:g}], but '
+                                f'{value!r} was given. Fix: a value in that range')
+    if value == [] and kind in _ITEM:  # declared with its type, without a value
+        node.declare_parameter(name, kind, descriptor, ignore_override=True)
+        return []
+    return node.declare_parameter(name, value, descriptor, ignore_override=True).value
+
+
+def warn_unknown_parameters(node: Node) -> list[str]:
+    """Warn (one log line) about given parameters this node never declared: rclpy ignores
+    them, so a misspelt key would silently keep its default. Returns them."""
+    unknown = sorted(k for k in parameter_overrides(node) if not node.has_parameter(k))
+    if unknown:
+        known = sorted(node.list_parameters([], 0).names)  # depth 0: all
+        hints = []
+        for key in unknown:
+            close = difflib.get_close_matches(key, known, n=1)
+            hints.append(f'{key} (did you mean {close[0]}?)' if close else key)
+        node.get_logger().warning(
+            f'unknown parameter(s) ignored: {", ".join(hints)}. Known parameters: '
+            f'{", ".join(known)}')
+    return unknown
 
 
 # How long one executor wait may block: the longest delay between a stop signal and the
@@ -116,6 +226,11 @@ def run_node(factory: Callable[[], Node | list[Node]], name: str,
             on_interrupt(node)
     except ScenarioError as exc:
         rclpy.logging.get_logger(name).fatal(str(exc))
+        code = 1
+    except ParameterException as exc:  # e.g. `use_sim_time: 1`, declared by rclpy itself
+        rclpy.logging.get_logger(name).fatal(
+            f'parameter error: {exc}. Fix: give the parameter the type and range '
+            'it is declared with (see `ros2 param describe`) in the parameter file or -p')
         code = 1
     finally:
         watchdog = threading.Timer(TEARDOWN_TIMEOUT_S, _teardown_hung, (name, code))

@@ -51,16 +51,22 @@ def write_plots(rec: Recording, out_dir: Path) -> list[Path]:
     return [att, pos]
 
 
-def write_compare_plot(recs: dict[str, Recording], path: Path) -> Path:
-    """Mean attitude and position errors of several methods, overlaid (log scale)."""
+def write_compare_plot(recs: dict[str, Recording], path: Path,
+                       dashed: frozenset[str] = frozenset()) -> Path:
+    """Mean attitude and position errors of several runs (label -> recording), overlaid (log
+    scale); labels in ``dashed`` (the distributed runs) are drawn dashed over the others."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
     fig, (att, pos) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
-    for method, rec in recs.items():
-        att.plot(rec.t, np.maximum(rec.att_err.mean(axis=1), 1e-17), lw=1.5, label=method)
-        pos.plot(rec.t, np.maximum(rec.pos_err.mean(axis=1), 1e-17), lw=1.5, label=method)
+    colours: dict[str, str] = {}  # one per method: a method's DDS run shares its colour
+    for label, rec in recs.items():
+        colour = colours.setdefault(label.split(' (')[0], f'C{len(colours)}')
+        style = {'ls': '--', 'lw': 1.2} if label in dashed else {'lw': 1.8, 'alpha': 0.8}
+        style['color'] = colour
+        att.plot(rec.t, np.maximum(rec.att_err.mean(axis=1), 1e-17), label=label, **style)
+        pos.plot(rec.t, np.maximum(rec.pos_err.mean(axis=1), 1e-17), label=label, **style)
     for ax, title, ylabel in ((att, 'Mean attitude error', 'angle of $R_i \\hat R_i^T$ [rad]'),
                               (pos, 'Mean position error', r'$\|p_i - \hat p_i\|$ [m]')):
         ax.set_yscale('log')

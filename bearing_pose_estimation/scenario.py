@@ -22,7 +22,7 @@ from .motion import AngularVelocity, Component, Sinusoid
 
 METHODS = ('boughellaba_tayebi', 'tran_anderson_ahn')
 # Gains each method reads from `gains:` (k_ij: every edge's default weight).
-_METHOD_GAINS = {'boughellaba_tayebi': {'k_R', 'k_p', 'k_ij'},
+METHOD_GAINS = {'boughellaba_tayebi': {'k_R', 'k_p', 'k_ij'},
                  'tran_anderson_ahn': {'k_omega', 'k_c', 'k_p', 'k_ij'}}
 # Agent names become ROS namespaces and frame prefixes (`agent_3/base_link`).
 _NAME_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
@@ -82,7 +82,9 @@ class Noise:
     - ``gyro_bias`` [rad/s]: constant body-frame gyro bias, the same for every agent, plus
       ``gyro_bias_std`` [rad/s]: each agent's own constant bias, drawn once per axis from
       ``N(0, gyro_bias_std²)``. Measured rate = true + bias + white noise.
-    - ``bearing_std`` [rad]: the angle of a random rotation applied to each bearing.
+    - ``bearing_std`` [rad]: each bearing is turned by a random rotation perpendicular to it,
+      whose two angular components each have this standard deviation (so the RMS angle is
+      ``√2 · bearing_std``: 1° gives 1.41°).
     - ``bearing_perturbation``: the deterministic ``rot_x(θ0 sin 2πft)`` of each bearing.
     - ``outlier_probability``: chance that a bearing is replaced by a uniformly random unit
       vector.
@@ -382,7 +384,7 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     if method not in METHODS:
         raise ctx.fail('method', f'unknown method {method!r}', f'use one of: {", ".join(METHODS)}')
 
-    gains = _mapping(ctx, top.get('gains', {}), 'gains', _METHOD_GAINS[method])
+    gains = _mapping(ctx, top.get('gains', {}), 'gains', METHOD_GAINS[method])
     k_R = _number(ctx, gains.get('k_R', 1.0), 'gains.k_R', positive=True)
     k_omega = _number(ctx, gains.get('k_omega', 2.0), 'gains.k_omega', positive=True)
     k_c = _number(ctx, gains.get('k_c', 1.0), 'gains.k_c', positive=True)
@@ -431,6 +433,8 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     seen: dict[str, int] = {}
     for idx, raw in enumerate(raw_agents):
         where = f'agents[{idx}]'
+        if isinstance(raw, dict) and isinstance(raw.get('name'), str):
+            where += f' ({raw["name"]})'  # name the agent in every error, even a missing field
         m = _mapping(ctx, raw, where, _AGENT_KEYS, {'name', 'position'})
         aname = _string(ctx, m['name'], f'{where}.name')
         if not _NAME_RE.match(aname):
@@ -451,8 +455,9 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
         if is_leader:
             for key in ('neighbours', 'initial_estimate'):
                 if key in m:
+                    what = 'neighbours' if key == 'neighbours' else 'initial estimate'
                     raise ctx.fail(f'{where}.{key}', 'a leader knows its pose and has no '
-                                   f'{key.replace("_", " ")}s (Assumption 2b)',
+                                   f'{what} (Assumption 2b)',
                                    f'remove `{key}` from {aname}, or remove {aname} from '
                                    '`leaders`')
         else:
@@ -504,6 +509,11 @@ def load_scenario(path: str | Path) -> Scenario:
     Raises:
         ScenarioError: the file is missing, is not valid YAML, or is not a valid scenario.
     """
+    return parse_scenario(read_scenario_data(path), source=str(path))
+
+
+def read_scenario_data(path: str | Path) -> Any:
+    """A scenario file's YAML content, not yet validated (ScenarioError if unreadable)."""
     path = Path(path)
     try:
         text = path.read_text(encoding='utf-8')
@@ -519,7 +529,11 @@ def load_scenario(path: str | Path) -> Scenario:
         raise ScenarioError(f'{path}: YAML syntax error at {at}: {problem}. '
                             'Fix: correct the YAML at that position (indentation, colons, '
                             'brackets)') from exc
-    return parse_scenario(data, source=str(path))
+    if data is None:
+        raise ScenarioError(f'{path}: the file is empty (or only comments). Fix: write a '
+                            'scenario; see config/paper_8_agents.yaml and the README\'s '
+                            '"Scenario format"')
+    return data
 
 
 def initial_estimates(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

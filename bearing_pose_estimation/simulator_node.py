@@ -15,11 +15,14 @@ how loaded the machine is, and runs go as fast as the estimators can. ``real_tim
 also caps the clock at that multiple of wall time.
 
 Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``lockstep``, ``max_lag``
-[s], ``real_time_factor``, ``wait_for_monitor``, ``wait_for_estimators``, ``start_timeout`` [s].
+[s], ``real_time_factor``, ``wait_for_monitor``, ``wait_for_estimators``, ``start_timeout`` [s],
+``publish_clock`` (default true; false when another node owns ``/clock``, e.g. a bag replay:
+the stamps are simulated time either way).
 """
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 from rclpy.clock import Clock, ClockType
@@ -28,7 +31,7 @@ from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from . import msg_defs as wire
-from .node_main import run_node, scenario_parameter
+from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
 from .world import World
 
 # Sim time advanced per wall-timer callback at most: keeps the node responsive to Ctrl-C and to
@@ -37,19 +40,28 @@ _MAX_SIM_PER_TICK = 0.02
 
 
 class SimulatorNode(Node):
-    def __init__(self) -> None:
-        super().__init__('simulator')
-        p = self.declare_parameter
+    def __init__(self, **node_kwargs) -> None:
+        """``node_kwargs`` go to rclpy's Node (``context``, ``parameter_overrides``, ...)."""
+        super().__init__('simulator', **node_kwargs)
+        p = partial(declare, self)
         self.scenario = s = scenario_parameter(self)
-        self.duration = p('duration', 0.0).value or s.duration
-        self.lockstep = p('lockstep', True).value
-        self.max_lag = p('max_lag', 3.0 / s.publish_rate).value
-        self.rtf = p('real_time_factor', 0.0).value
-        self.wait_for_monitor = p('wait_for_monitor', True).value
+        self.duration = p('duration', 0.0, 'simulated time [s]; 0: the scenario\'s',
+                          0.0, 1e9) or s.duration
+        self.lockstep = p('lockstep', True, 'keep the clock at most max_lag ahead of the '
+                          'slowest estimator')
+        self.max_lag = p('max_lag', 3.0 / s.publish_rate, 'lockstep lead [s]', 0.0, 1e6)
+        self.rtf = p('real_time_factor', 0.0, 'cap on sim seconds per wall second; 0: none',
+                     0.0, 1e6)
+        self.wait_for_monitor = p('wait_for_monitor', True, 'start only once the monitor is '
+                                  'matched')
         # False: start without each estimator's t0 announcement (fault studies: late joiners,
         # a restarted simulator). Use it with lockstep off, or a silent agent stops the clock.
-        self.wait_for_estimators = p('wait_for_estimators', True).value
-        self.start_timeout = p('start_timeout', 120.0).value
+        self.wait_for_estimators = p('wait_for_estimators', True, 'start only once every '
+                                     'estimator announced its t0 state')
+        self.start_timeout = p('start_timeout', 120.0, 'give up starting after this [s]',
+                               0.0, 1e6)
+        # False: another node owns /clock (a bag replay, Gazebo); the stamps stay sim time.
+        self.publish_clock = p('publish_clock', True, 'publish /clock (the simulated time)')
 
         self.world = World(s)
         self.names = [a.name for a in s.agents]
@@ -62,7 +74,8 @@ class SimulatorNode(Node):
                 self.create_publisher(wire.PointCloud2, topic(wire.BEARINGS), qos))
             self.pub_truth.append(
                 self.create_publisher(wire.PoseStamped, topic(wire.GROUND_TRUTH), qos))
-        self.pub_clock = self.create_publisher(ClockMsg, wire.CLOCK, wire.CLOCK_QOS)
+        self.pub_clock = (self.create_publisher(ClockMsg, wire.CLOCK, wire.CLOCK_QOS)
+                          if self.publish_clock else None)
         # Estimators' progress: the stamp of each agent's latest estimate (lockstep pacing).
         self.progress = np.full(len(self.names), -np.inf)
         for k, name in enumerate(self.names):
@@ -82,8 +95,10 @@ class SimulatorNode(Node):
         self.timer = self.create_timer(min(0.005, s.step / 4.0), self.on_tick,
                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
         waiting = 'estimators and monitor' if self.wait_for_monitor else 'estimators'
-        self.get_logger().info(f'{s.name}: {len(self.names)} agents, {self.duration:g} s; '
+        self.get_logger().info(f'{s.name}: {len(self.names)} agents, {self.duration:g} s'
+                               f'{"" if self.publish_clock else ", no /clock"}; '
                                f'waiting for {waiting}')
+        warn_unknown_parameters(self)
 
     def _on_estimate(self, k: int, msg: wire.PoseStamped) -> None:
         self.progress[k] = max(self.progress[k], wire.from_stamp(msg.header.stamp))
@@ -175,7 +190,7 @@ class SimulatorNode(Node):
         if w.due(w.truth_every):
             for i, pub in enumerate(self.pub_truth):
                 pub.publish(wire.encode_pose(t, wire.WORLD_FRAME, w.R[i], w.p[i]))
-        if clock:
+        if clock and self.pub_clock is not None:
             self.pub_clock.publish(ClockMsg(clock=wire.to_stamp(t)))
 
 

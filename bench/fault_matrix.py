@@ -1,67 +1,97 @@
-"""Fault matrix: what each network fault costs on the paper's 8-agent scenario.
+"""Fault matrix: what each fault and bad input costs on the paper's 8-agent scenario.
 
 Runs the distributed estimators without DDS (bearing_pose_estimation.netsim: the same
-AgentEstimator as the node, fed like the simulator node feeds it) with one fault per row, and
-compares with the fault-free run at the same instants. Deterministic; prints a Markdown table.
+AgentEstimator as the node, fed like the simulator node feeds it) with one fault per row of
+``netsim.fault_cases()`` (the list test/test_robustness.py tests), and compares with the
+fault-free run at the same instants. Deterministic; prints a Markdown table.
 
-    .venv/bin/python bench/fault_matrix.py [--duration 60]
+    .venv/bin/python bench/fault_matrix.py [--duration 60] [--jobs N]
 
-recovery: time after the fault ends until both mean errors are back below their values just
-before it began (outages only). cost: how many seconds of convergence the fault lost by the
-end, i.e. the end time minus the time at which the fault-free run had the same mean attitude
-error.
+Columns (measures in netsim):
+- re-convergence: time after the fault ends until both mean errors are back at or below the
+  fault-free run's at that instant (``netsim.reconvergence_time``; faults with an end only);
+- cost: seconds of convergence lost by the end, for the error that lost more
+  (``netsim.convergence_cost``);
+- events: the estimators' time rules that fired (``time_jump``, ``gyro_gap``);
+- garbage rejected: corrupted inputs rejected / injected (bearings count per point);
+- crashes: the estimator calls are not guarded, so any exception ends that row's run; it is
+  counted here and the row reports it instead of errors;
+- non-finite estimates: estimates with a NaN/inf, checked after every step of every agent.
 """
 from __future__ import annotations
 
 import argparse
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-import numpy as np
-
-from bearing_pose_estimation.netsim import LinkFaults, Outage, run_network
+from bearing_pose_estimation.netsim import (FaultCase, NetRun, convergence_cost, fault_cases,
+                                            mean_errors, reconvergence_time, run_case)
 from bearing_pose_estimation.scenario import load_scenario
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
+RECORD_EVERY = 0.5  # [s]: the resolution of the re-convergence and cost columns
+HEADER = ('| fault | mean att. error at end [rad] | mean pos. error at end [m] | '
+          're-convergence after the fault [s] | cost at the end [s] | time-rule events | '
+          'garbage rejected | crashes | non-finite estimates |\n'
+          '|---|---|---|---|---|---|---|---|---|')
 
-# (label, run_network arguments, outage (start, end) or None)
-ROWS = [
-    ('none (reference)', {}, None),
-    ('30 % of neighbour messages lost', dict(links=LinkFaults(drop_rate=0.3, seed=1)), None),
-    ('neighbour messages 200 ms late', dict(links=LinkFaults(delay=0.2)), None),
-    ('30 % lost and 200 ms late', dict(links=LinkFaults(drop_rate=0.3, delay=0.2, seed=1)), None),
-    ('agent_4 cut off 20-25 s (partition)',
-     dict(outages=(Outage('agent_4', 20.0, 25.0, restart=False),)), (20.0, 25.0)),
-    ('agent_4 killed at 20 s, restarted at 25 s',
-     dict(outages=(Outage('agent_4', 20.0, 25.0, restart=True),)), (20.0, 25.0)),
-    ('agent_7 joins late, at 10 s', dict(outages=(Outage('agent_7', 0.0, 10.0),)), (0.0, 10.0)),
-]
+
+def run_row(case: FaultCase, duration: float) -> NetRun | str:
+    """One row, in a worker: its run, or the exception that escaped the estimator logic."""
+    try:
+        return run_case(load_scenario(PAPER), case, duration, RECORD_EVERY)
+    except Exception as exc:  # noqa: BLE001 - a crash is a measured outcome here
+        return f'{type(exc).__name__}: {exc}'
+
+
+def format_row(case: FaultCase, run: NetRun | str, ref: NetRun) -> str:
+    """The table row of one case."""
+    if isinstance(run, str):
+        return f'| {case.label} | crashed: {run} | | | | | | 1 | |'
+    rec = run.recording
+    att, pos = mean_errors(rec)
+    reconv = 'n/a'
+    if case.window is not None:
+        t = reconvergence_time(rec, ref.recording, case.window[1])
+        reconv = 'not by the end' if t is None else f'{t:.1f}'
+    events = ', '.join(f'{k} ×{n}' for k, n in sorted(run.inputs.events.items())) or 'none'
+    tally = run.inputs
+    garbage = (f'{sum(tally.garbage_rejected.values())} of {tally.garbage_injected}'
+               if tally.garbage_injected else 'n/a')
+    non_finite = str(run.non_finite_estimates)
+    if run.non_finite_steps:
+        non_finite += f' ({run.non_finite_steps} steps discarded)'
+    return (f'| {case.label} | {att[-1]:.2e} | {pos[-1]:.2e} | {reconv} | '
+            f'{convergence_cost(rec, ref.recording):.1f} | {events} | {garbage} | 0 | '
+            f'{non_finite} |')
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--duration', type=float, default=60.0)
+    ap.add_argument('--jobs', type=int, default=os.cpu_count() or 1)
     args = ap.parse_args()
-    scenario = load_scenario(PAPER)
-    ref = None
-    print('| fault | mean att. error at end [rad] | mean pos. error at end [m] | '
-          'recovery after the fault [s] | cost at the end [s] | non-finite estimates |')
-    print('|---|---|---|---|---|---|')
-    for label, kwargs, outage in ROWS:
-        rec = run_network(scenario, args.duration, record_every=0.5, **kwargs)
-        att, pos = rec.att_err.mean(axis=1), rec.pos_err.mean(axis=1)
-        if ref is None:
-            ref = att
-        bad = ~np.isfinite(rec.att_err).all(axis=1) | ~np.isfinite(rec.pos_err).all(axis=1)
-        recovery = 'n/a'
-        if outage is not None:
-            k0 = np.searchsorted(rec.t, outage[0])
-            back = np.flatnonzero((rec.t >= outage[1]) & (att <= att[k0]) & (pos <= pos[k0]))
-            recovery = f'{rec.t[back[0]] - outage[1]:.1f}' if back.size else 'not by the end'
-        # First time the reference was as good as this run's end (to the 0.5 s record step).
-        k = np.flatnonzero(ref <= att[-1])
-        cost = rec.t[-1] - rec.t[k[0]] if k.size else 0.0  # no worse than the reference
-        print(f'| {label} | {att[-1]:.2e} | {pos[-1]:.2e} | {recovery} | {cost:.1f} | '
-              f'{int(bad.sum())} |', flush=True)
+    cases = fault_cases()
+    wall = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        runs = list(pool.map(run_row, cases, [args.duration] * len(cases)))
+    wall = time.perf_counter() - wall
+    ref = runs[0]
+    if isinstance(ref, str):
+        raise SystemExit(f'the fault-free reference run crashed: {ref}')
+    print(HEADER)
+    for case, run in zip(cases, runs):
+        print(format_row(case, run, ref))
+    for case, run in zip(cases, runs):
+        if isinstance(run, NetRun) and run.inputs.garbage_rejected:
+            causes = ', '.join(f'{k} {n}' for k, n in run.inputs.garbage_rejected.most_common())
+            print(f'\n{case.label}: rejected as {causes}; accepted '
+                  f'{run.inputs.garbage_accepted}; good inputs rejected: '
+                  f'{sum((run.inputs.rejected - run.inputs.garbage_rejected).values())}')
+    print(f'\n{len(cases)} rows of {args.duration:g} s, {args.jobs} process(es), '
+          f'wall time {wall:.0f} s')
 
 
 if __name__ == '__main__':

@@ -1,15 +1,25 @@
-"""Observe real node processes from the test process with an rclpy executor (no launch)."""
+"""Observe real node processes from the test process: their messages (an rclpy executor, no
+launch), the errors of their estimates, and the processes themselves (:class:`ProcessWatch`)."""
 from __future__ import annotations
 
+import contextlib
+import glob
+import os
+import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
+import numpy as np
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+
+from bearing_pose_estimation import launch, so3
+from bearing_pose_estimation import msg_defs as wire
 
 
 class Observer:
@@ -46,3 +56,83 @@ def observer(name: str = 'test_observer') -> Iterator[Observer]:
         executor.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=context)
+
+
+def paired_errors(obs: Observer, agent: str, since: float = -1.0
+                  ) -> list[tuple[float, float, float]]:
+    """(t, attitude error [rad], position error [m]) of ``agent`` at the stamps where its
+    recorded estimate and ground truth pair up; every estimate must be finite."""
+    truth = {wire.stamp_ns(m.header.stamp): wire.decode_pose(m)
+             for m in obs.messages[f'/{agent}/ground_truth']}
+    out = []
+    for m in obs.messages[f'/{agent}/estimate']:
+        ns = wire.stamp_ns(m.header.stamp)
+        t, R_hat, p_hat = wire.decode_pose(m)
+        assert np.all(np.isfinite(R_hat)) and np.all(np.isfinite(p_hat))
+        if ns in truth and t > since:
+            _, R, p = truth[ns]
+            out.append((t, float(so3.angle(R @ R_hat.T)), float(np.linalg.norm(p - p_hat))))
+    return out
+
+
+def error_at(errors: list[tuple[float, float, float]], t: float) -> tuple[float, float]:
+    """The (attitude, position) error at stamp ``t`` (to 1 µs) from :func:`paired_errors`."""
+    found = [(a, p) for s, a, p in errors if abs(s - t) < 1e-6]
+    assert found, f'no estimate paired with the truth at t = {t} s'
+    return found[0]
+
+
+def _cmdline(pid: str) -> str:
+    with contextlib.suppress(OSError):
+        return Path(f'/proc/{pid}/cmdline').read_bytes().replace(b'\0', b' ').decode(
+            errors='replace')
+    return ''
+
+
+class ProcessWatch:
+    """Every process whose command line contains ``marker`` (e.g. a test's tmp_path, which
+    each node's parameter file path holds), recorded by a thread polling /proc while the
+    test runs, so that afterwards :meth:`left` can say whether any of them, or anything in
+    their process groups, is still alive. Use as a context manager."""
+
+    def __init__(self, marker: str, period: float = 0.1) -> None:
+        self.marker = marker
+        self.period = period
+        self.seen: dict[int, str] = {}   # pid -> command line
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._poll, daemon=True)
+
+    def __enter__(self) -> ProcessWatch:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _poll(self) -> None:
+        while not self._stop.is_set():
+            self.scan()
+            self._stop.wait(self.period)
+
+    def scan(self) -> list[int]:
+        """Record and return the live matching processes now."""
+        live = []
+        for path in glob.glob('/proc/[0-9]*/cmdline'):
+            pid = path.split('/')[2]
+            cmd = _cmdline(pid)
+            if self.marker in cmd and int(pid) != os.getpid():
+                self.seen[int(pid)] = cmd
+                live.append(int(pid))
+        return live
+
+    def left(self) -> list[str]:
+        """Recorded processes still alive (not zombies), and live members of their process
+        groups (what a child's own children would be): command lines, or 'pid N'."""
+        groups = launch.live_process_groups()
+        live = {pid for members in groups.values() for pid in members}
+        out = [self.seen[pid] for pid in self.seen
+               if pid in live and self.marker in _cmdline(str(pid))]
+        out += [f'pid {m} in the group of {pid}' for pid in self.seen
+                for m in groups.get(pid, []) if m not in self.seen]
+        return out

@@ -94,8 +94,8 @@ def test_run_refuses_an_output_dir_with_outputs(tmp_path, capsys):
 
 def test_compare_runs_each_method_on_the_same_scenario(tmp_path, capsys):
     """`compare`: one table row and two CSV columns per method; each method's numbers are what
-    the batch simulator gives for the scenario with that method; outputs are not overwritten
-    without --force."""
+    the batch simulator gives for the scenario with that method and its gains (the file's, the
+    defaults, or --gains); outputs are not overwritten without --force."""
     import csv
     import dataclasses
 
@@ -103,16 +103,22 @@ def test_compare_runs_each_method_on_the_same_scenario(tmp_path, capsys):
     from bearing_pose_estimation.simulator import BatchSimulator
 
     out = tmp_path / 'cmp'
-    assert main(['compare', PAPER, '--duration', '5', '--out', str(out)]) == 0
-    printed = capsys.readouterr().out
-    assert '| boughellaba_tayebi | k_R=1, k_p=1 |' in printed
-    assert '| tran_anderson_ahn | k_omega=2, k_p=1, k_c=1 |' in printed
+    assert main(['compare', PAPER, '--duration', '5', '--out', str(out),
+                 '--gains', 'tran_anderson_ahn:k_omega=3,k_c=0.5']) == 0
+    captured = capsys.readouterr()
+    assert '| boughellaba_tayebi | batch | k_R=1, k_p=1 | 5 |' in captured.out
+    assert '| tran_anderson_ahn | batch | k_omega=3, k_p=1, k_c=0.5 | 5 |' in captured.out
+    # Tran's own condition on agent_8 (two orthogonal bearings: K_i = I with k_c = 1 would be
+    # {1, 1, 1}; with k_c = 0.5 it is {0.5, 1, 1}).
+    assert '(tran_anderson_ahn): warning: agent_8.neighbours: K_i' in captured.err
     assert (out / 'compare_errors.png').stat().st_size > 10_000
     assert (out / 'compare.md').read_text().count('\n| ') == 3  # separator + two methods
     with (out / 'compare.csv').open() as fh:
         last = list(csv.DictReader(fh))[-1]
-    for method in ('boughellaba_tayebi', 'tran_anderson_ahn'):
-        rec = BatchSimulator(dataclasses.replace(load_scenario(PAPER), method=method)).run(5.0)
+    paper = load_scenario(PAPER)
+    for method, gains in (('boughellaba_tayebi', {}),
+                          ('tran_anderson_ahn', {'k_omega': 3.0, 'k_c': 0.5})):
+        rec = BatchSimulator(dataclasses.replace(paper, method=method, **gains)).run(5.0)
         assert float(last[f'{method}_attitude_error_mean_rad']) == pytest.approx(
             rec.att_err[-1].mean(), rel=1e-8)
         assert float(last[f'{method}_position_error_mean_m']) == pytest.approx(
@@ -121,12 +127,28 @@ def test_compare_runs_each_method_on_the_same_scenario(tmp_path, capsys):
     assert '--force' in capsys.readouterr().err
 
 
+@pytest.mark.parametrize('gains, message', [
+    ('tran_anderson_ahn:k_R=2', "'k_R' is not a gain of tran_anderson_ahn; use one of k_c, "
+                                'k_omega, k_p'),
+    ('boughellaba_tayebi:k_ij=2', 'k_ij is per edge'),
+    ('tran_anderson_ahn:k_omega=-1', 'k_omega must be a positive number'),
+    ('tran_anderson_ahn:k_omega=nan', 'k_omega must be a positive number'),
+    ('kalman:k_R=1', 'expected METHOD:GAIN=VALUE'),
+])
+def test_compare_rejects_bad_gain_overrides(gains, message, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(['compare', PAPER, '--gains', gains])
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
 def test_simulate_refuses_invalid_scenario(tmp_path, capsys):
     bad = tmp_path / 'cyc.yaml'
     bad.write_text(Path(PAPER).read_text().replace('neighbours: [agent_1, agent_2]',
                                                    'neighbours: [agent_1, agent_2, agent_5]'))
     assert main(['simulate', str(bad), '--out', str(tmp_path / 'o')]) == 1
-    assert 'cycle' in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f'error: {bad}: agent_3.neighbours: the sensing graph has a cycle' in err
     assert not (tmp_path / 'o' / 'metrics.csv').exists()
 
 
@@ -146,6 +168,7 @@ def test_generate_never_overwrites_without_force(tmp_path, capsys):
 @pytest.mark.parametrize('argv', [['generate', '--agents', '2', '--out', 'x.yaml'],
                                   ['simulate', PAPER, '--duration', '-1'],
                                   ['simulate', PAPER, '--duration', 'nan'],
+                                  ['simulate', PAPER, '--record-every', '0.6'],
                                   ['frobnicate']])
 def test_bad_command_lines_exit_2(argv):
     with pytest.raises(SystemExit) as exc:

@@ -1,13 +1,21 @@
-"""The estimator node's configuration without a scenario file (what a real robot may use),
-and its parameter errors: built in-process, no other node needed."""
+"""The nodes' parameters: the estimator without a scenario file (what a real robot may use),
+the types a ROS parameter file gives, and the errors and warnings a user sees. Built in-process
+(no other node needed), except where the real executable's output is what matters."""
+import os
+import subprocess
+
 import numpy as np
 import pytest
-from rclpy.exceptions import InvalidParameterValueException
 from rclpy.parameter import Parameter
 
-from bearing_pose_estimation import so3
+from bearing_pose_estimation import launch, so3
+from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.estimator_node import EstimatorNode
+from bearing_pose_estimation.node_main import parameter_overrides
+from bearing_pose_estimation.observer import CascadeGains
 from bearing_pose_estimation.scenario import ScenarioError
+from bearing_pose_estimation.simulator_node import SimulatorNode
+from bearing_pose_estimation.tran import TranGains
 
 
 def _node(context, **params):
@@ -52,12 +60,184 @@ def test_explicit_parameter_errors_name_the_parameter(context, change, message):
 
 
 def test_out_of_range_values_are_refused(context):
-    """The descriptors' ranges reject a negative gain before the node is built."""
-    with pytest.raises(InvalidParameterValueException, match='k_R'):
+    """A negative gain or a drop rate above 1 stops the node with the range in the message."""
+    with pytest.raises(ScenarioError, match=r'parameter k_R must be in \[0, '):
         _node(context, **{**EXPLICIT, 'k_R': -1.0})
+    with pytest.raises(ScenarioError, match=r'parameter inject_drop_rate must be in \[0, 1\]'):
+        _node(context, **{**EXPLICIT, 'inject_drop_rate': 2})
+
+
+def test_integers_are_accepted_where_numbers_are_expected(context):
+    """What a ROS user writes in a parameter file: `frequency: 100`, `neighbour_gains: [2, 1]`,
+    `initial_position: [1, 2, 3]`. They are used (and stored) as floats."""
+    ints = {**EXPLICIT, 'frequency': 200, 'k_R': 2, 'neighbour_gains': [2, 1],
+            'initial_position': [1, 2, 3], 'neighbour_timeout': 1}
+    node = _node(context, **ints)
+    try:
+        assert node.est.h == pytest.approx(0.005) and node.est.gains == CascadeGains(2.0, 1.0)
+        assert [n.k for n in node.est.neighbours] == [2.0, 1.0]
+        assert node.est.limits.neighbour_timeout == 1.0
+        np.testing.assert_array_equal(node.est.p_hat[0], [1.0, 2.0, 3.0])
+        for name in ('frequency', 'neighbour_gains', 'initial_position'):
+            param = node.get_parameter(name)
+            assert param.type_ in (Parameter.Type.DOUBLE, Parameter.Type.DOUBLE_ARRAY), name
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('change, message', [
+    (dict(frequency='fast'), "parameter frequency must be a number, but a string was given "
+                             "('fast'). Fix: e.g. `frequency: 1.0`"),
+    (dict(neighbour_ids=[1.0, 4.0]), 'parameter neighbour_ids must be a list of integers'),
+    (dict(leader=1), 'parameter leader must be true or false, but an integer was given'),
+    (dict(agent_id=5.0), 'parameter agent_id must be an integer, but a number was given'),
+    (dict(neighbours='agent_1'), 'parameter neighbours must be a list of strings'),
+])
+def test_a_wrong_type_is_a_one_line_error_with_the_fix(context, change, message):
+    with pytest.raises(ScenarioError) as info:
+        _node(context, **{**EXPLICIT, **change})
+    assert str(info.value).startswith(message) and 'Fix: ' in str(info.value)
+    assert '\n' not in str(info.value)
+
+
+def test_tran_anderson_ahn_in_explicit_mode(context):
+    """`method: tran_anderson_ahn` with its gains k_omega, k_c, k_p (defaults for the others);
+    a gain of the other method, or an unknown method, is an error naming the fix."""
+    base = {k: v for k, v in EXPLICIT.items() if k != 'k_R'}
+    node = _node(context, **base, method='tran_anderson_ahn', k_omega=3, k_c=0.5)
+    try:
+        assert node.est.gains == TranGains(k_omega=3.0, k_p=1.0, k_c=0.5)
+        assert [n.k for n in node.est.neighbours] == [2.0, 1.0]
+    finally:
+        node.destroy_node()
+    with pytest.raises(ScenarioError, match='parameter k_R is a boughellaba_tayebi gain, but the '
+                       'method parameter is tran_anderson_ahn. Fix: remove k_R'):
+        _node(context, **EXPLICIT, method='tran_anderson_ahn')
+    with pytest.raises(ScenarioError, match='parameter k_omega is a tran_anderson_ahn gain.*'
+                       'or set method: tran_anderson_ahn'):
+        _node(context, **EXPLICIT, k_omega=2.0)
+    with pytest.raises(ScenarioError, match="unknown method 'kalman'. Fix: one of"):
+        _node(context, **EXPLICIT, method='kalman')
+
+
+def test_a_method_other_than_the_scenarios_is_an_error(context, repo_root):
+    with pytest.raises(ScenarioError, match='uses method boughellaba_tayebi. Fix: remove'):
+        _node(context, scenario_file=str(repo_root / 'config' / 'paper_8_agents.yaml'),
+              method='tran_anderson_ahn')
 
 
 def test_unknown_agent_in_a_scenario_is_an_error(context, repo_root):
     with pytest.raises(ScenarioError, match="agent 'agent_5x' is not in the scenario"):
         _node(context, scenario_file=str(repo_root / 'config' / 'paper_8_agents.yaml'),
               agent='agent_5x')
+
+
+def test_a_leader_with_an_empty_neighbour_list(context):
+    """`neighbours: []` in a parameter file arrives without a type (NOT_SET): an empty list."""
+    node = EstimatorNode(namespace='/agent_1', context=context, parameter_overrides=[
+        Parameter('agent_id', value=1), Parameter('leader', value=True),
+        Parameter('neighbours', Parameter.Type.NOT_SET)])
+    try:
+        assert node.est.leader and node.est.neighbours == []
+        assert '/agent_1/known_pose' in {s.topic_name for s in node.subscriptions}
+    finally:
+        node.destroy_node()
+
+
+def test_the_known_pose_subscription_matches_best_effort_and_reliable(context):
+    """A leader's known_pose reader is best effort: it matches a mocap driver's best-effort
+    publisher and the simulator's reliable one (a reliable reader would miss the first)."""
+    node = EstimatorNode(namespace='/agent_1', context=context, parameter_overrides=[
+        Parameter('agent_id', value=1), Parameter('leader', value=True)])
+    try:
+        sub = next(s for s in node.subscriptions if s.topic_name == '/agent_1/known_pose')
+        assert sub.qos_profile.reliability == wire.SENSOR_QOS.reliability  # BEST_EFFORT
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('publish_clock', [True, False])
+def test_the_simulator_clock_can_be_turned_off(context, repo_root, publish_clock):
+    """`publish_clock: false` (another node owns /clock, e.g. a bag replay): no /clock
+    publisher at all; the sensor topics are still there."""
+    node = SimulatorNode(context=context, parameter_overrides=[
+        Parameter('scenario_file', value=str(repo_root / 'config' / 'paper_8_agents.yaml')),
+        Parameter('publish_clock', value=publish_clock)])
+    try:
+        topics = {p.topic_name for p in node.publishers}
+        assert ('/clock' in topics) == publish_clock
+        assert node.count_publishers('/clock') == int(publish_clock)
+        assert '/agent_3/imu' in topics
+    finally:
+        node.destroy_node()
+
+
+def test_rclpy_still_exposes_the_parameter_overrides(context):
+    """node_main.parameter_overrides reads rclpy's private `_parameter_overrides` (no public
+    accessor): the unknown-key warning depends on it."""
+    node = _node(context, **EXPLICIT)
+    try:
+        assert parameter_overrides(node)['agent_id'].value == 5
+    finally:
+        node.destroy_node()
+
+
+def _run_estimator(tmp_path, params: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
+    """Start the real `estimator` executable with a parameter file (as the README tells users)
+    and return its result; it is stopped with SIGINT if it is still running after
+    ``timeout`` s."""
+    path = tmp_path / 'params.yaml'
+    path.write_text(params)
+    argv = [str(launch.find_executable('estimator')), '--ros-args', '-r', '__ns:=/agent_5',
+            '--params-file', str(path)]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=launch.dds_env(int(os.environ['ROS_DOMAIN_ID']), tmp_path / 'ros'))
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(2)
+        out, _ = proc.communicate(timeout=20)
+    return subprocess.CompletedProcess(argv, proc.returncode, out)
+
+
+@pytest.mark.parametrize('line, message', [
+    ('frequency: fast', 'parameter frequency must be a number, but a string was given '
+                        "('fast'). Fix: e.g. `frequency: 1.0`"),
+    # Declared by rclpy itself, so rclpy raises: still one line, with a fix.
+    ('use_sim_time: 1', "parameter error: Trying to set parameter 'use_sim_time' to '1'"),
+])
+def test_the_executable_reports_a_wrong_type_in_one_line(tmp_path, line, message):
+    """A wrong type in a parameter file: exit code 1, one fatal line naming the parameter and
+    the fix, no traceback (integer gains, `[2, 1]`, are not an error)."""
+    shm = launch.shm_files()
+    result = _run_estimator(tmp_path, f"""/agent_5/estimator:
+  ros__parameters:
+    agent_id: 5
+    neighbours: [agent_1, agent_4]
+    neighbour_ids: [1, 4]
+    neighbour_gains: [2, 1]
+    {line}
+""")
+    assert result.returncode == 1, result.stdout
+    assert 'Traceback' not in result.stdout
+    fatal = [x for x in result.stdout.splitlines() if 'FATAL' in x]
+    assert len(fatal) == 1 and message in fatal[0] and 'Fix: ' in fatal[0], result.stdout
+    assert launch.leaked_shm(shm) == []
+
+
+def test_the_readme_explicit_parameter_file_is_valid(context, repo_root, tmp_path):
+    """The README's explicit-mode example ("On real robots") builds the estimator it says."""
+    readme = (repo_root / 'README.md').read_text()
+    block = next(b.split('\n', 1)[1] for b in readme.split('```yaml')[1:]
+                 if '/agent_4/estimator:' in b).split('```')[0]
+    path = tmp_path / 'agent_4.yaml'
+    path.write_text(block)
+    node = EstimatorNode(namespace='/agent_4', context=context,
+                         cli_args=['--ros-args', '--params-file', str(path)])
+    try:
+        assert node.est is None and node.start_time < 0  # starts at the first gyro sample
+        assert node.template.agent_id == 4 and node.gains == TranGains(2.0, 1.0, 0.5)
+        assert [(n.name, n.agent_id, n.k) for n in node.template.neighbours] == [
+            ('agent_1', 1, 1.0), ('agent_2', 2, 2.0)]
+    finally:
+        node.destroy_node()

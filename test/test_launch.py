@@ -8,6 +8,7 @@ No rclpy, no DDS: these tests check process management only.
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import signal
@@ -47,7 +48,7 @@ record = dict(pid=os.getpid(), argv=sys.argv, params=params, behaviour=behaviour
 def stop(signum, frame):
     if behaviour == 'monitor':
         write_outputs(partial=True)
-    sys.exit(0)
+    sys.exit(1 if behaviour == 'unclean' else 0)  # unclean: a teardown that fails
 
 
 def write_outputs(partial):
@@ -55,7 +56,7 @@ def write_outputs(partial):
     (out / 'metrics.csv').write_text('t,attitude_error_mean_rad,position_error_mean_m\\n')
     final = dict(attitude_error_mean_rad=1e-3, attitude_error_max_rad=2e-3,
                  position_error_mean_m=1e-2, position_error_max_m=2e-2)
-    summary = {{'final': final, 'partial': partial,
+    summary = {{'final': final, 'complete': not partial,
                'time_to_attitude_error_mean_below_1e-3_rad_s': 1.5,
                'time_to_position_error_mean_below_1e-2_m_s': None}}
     (out / 'summary.json').write_text(json.dumps(summary))
@@ -221,7 +222,6 @@ def test_run_succeeds_and_leaves_nothing_behind(standins, tmp_path, monkeypatch,
     shm.mkdir()
     monkeypatch.setattr(launch, 'SHM_GLOB', str(shm / 'fastrtps_*'))
     monkeypatch.setenv('STANDIN_SHM', str(shm))
-    monkeypatch.setenv('STANDIN_SIMULATOR', 'shm')
     monkeypatch.setenv('ROS_DOMAIN_ID', '0')
     out = tmp_path / 'out'
     assert main(['run', str(PAPER), '--out', str(out), '--duration', '5']) == 0
@@ -243,8 +243,36 @@ def test_run_succeeds_and_leaves_nothing_behind(standins, tmp_path, monkeypatch,
     assert '  t = 2 s progress line' in (out / 'logs' / 'monitor.log').read_text()
     assert str(out / 'summary.json') in captured.out
     assert {p.name for p in (out / 'logs').glob('*.log')} == {f'{n}.log' for n in recs}
-    assert 'new Fast DDS shared-memory file(s)' in captured.err
-    assert 'shm clean' in captured.err
+    assert 'shared-memory' not in captured.err and 'error' not in captured.err
+
+
+@pytest.mark.parametrize('culprit, behaviour, message', [
+    ('SIMULATOR', 'shm', 'error: the run left 1 file(s) in /dev/shm'),
+    ('AGENT_5', 'unclean', 'error: estimator agent_5 exited with code 1 when stopped at the '
+                           'end of the run'),
+    ('AGENT_6', 'stubborn', 'error: estimator agent_6 was killed by SIGKILL when stopped'),
+])
+def test_run_that_does_not_stop_cleanly_fails(standins, tmp_path, monkeypatch, capsys,
+                                              culprit, behaviour, message):
+    """The monitor finished and wrote its outputs, but a process left Fast DDS files in
+    /dev/shm, exited non-zero, or needed SIGKILL when stopped: the run is reported as failed
+    (exit 1), with the cure for /dev/shm."""
+    shm = tmp_path / 'shm'
+    shm.mkdir()
+    monkeypatch.setattr(launch, 'SHM_GLOB', str(shm / 'fastrtps_*'))
+    monkeypatch.setenv('STANDIN_SHM', str(shm))
+    monkeypatch.setenv(f'STANDIN_{culprit}', behaviour)
+    monkeypatch.setattr(launch.ProcessGroup, 'shutdown',
+                        functools.partialmethod(launch.ProcessGroup.shutdown, grace=0.5,
+                                                term_grace=0.5))
+    out = tmp_path / 'out'
+    assert main(['run', str(PAPER), '--out', str(out), '--duration', '5']) == 1
+    err = capsys.readouterr().err
+    assert message in err
+    if behaviour == 'shm':
+        assert 'shm clean' in err
+    assert (out / 'summary.json').exists()
+    assert_all_gone(records(standins))
 
 
 def test_early_crash_is_reported_and_everything_stopped(standins, tmp_path, monkeypatch,
@@ -263,7 +291,7 @@ def test_early_crash_is_reported_and_everything_stopped(standins, tmp_path, monk
     assert {r['env']['ROS_DOMAIN_ID'] for r in recs.values()} == {'77'}
     assert_all_gone(recs)
     # The monitor was stopped with SIGINT and wrote its partial outputs.
-    assert json.loads((out / 'summary.json').read_text())['partial'] is True
+    assert json.loads((out / 'summary.json').read_text())['complete'] is False
 
 
 def test_timeout_stops_the_run(standins, small, tmp_path, monkeypatch, capsys):
@@ -318,7 +346,7 @@ def test_interrupting_run_stops_every_child(standins, small, tmp_path, monkeypat
     assert 'interrupted: all processes stopped' in stderr
     assert '  t = 0 s progress line' in stdout
     assert_all_gone(recs)
-    assert json.loads((out / 'summary.json').read_text())['partial'] is True
+    assert json.loads((out / 'summary.json').read_text())['complete'] is False
 
 
 def test_leaked_shm_ignores_files_live_processes_use(tmp_path, monkeypatch):

@@ -1,4 +1,5 @@
 """Packaging: package.xml, the colcon (ament_python) build, and the msg_defs subpackage mapping."""
+import ast
 import os
 from pathlib import Path
 import shutil
@@ -30,8 +31,8 @@ def colcon_install(request, repo_root, tmp_path_factory):
     `colcon build --symlink-install` (what most ROS developers type); return the install prefix."""
     venv_bin = Path(sys.executable).parent
     colcon = venv_bin / 'colcon'
-    if not colcon.exists():
-        pytest.skip(f'colcon is not installed beside {sys.executable} (run scripts/dev.sh setup)')
+    assert colcon.exists(), (f'colcon is not installed beside {sys.executable}: '
+                             'run scripts/dev.sh setup')
     ws = tmp_path_factory.mktemp('colcon_ws')
     _copy_source(repo_root, ws / 'src' / PKG)
     env = dict(os.environ, PATH=f"{venv_bin}{os.pathsep}{os.environ.get('PATH', '')}",
@@ -57,9 +58,11 @@ def _run_installed(prefix: Path, args, cwd: Path):
 
 
 def test_colcon_build_installs_what_ros2_run_needs(colcon_install, repo_root, tmp_path):
+    for name in ('bearing-pose', 'estimator', 'estimators', 'simulator', 'monitor'):
+        exe = colcon_install / 'lib' / PKG / name  # where `ros2 run` looks
+        assert exe.is_file(), f'{exe} missing: setup.cfg [install] install_scripts'
+        assert os.access(exe, os.X_OK)
     exe = colcon_install / 'lib' / PKG / 'bearing-pose'
-    assert exe.is_file(), f'{exe} missing: setup.cfg [install] install_scripts'
-    assert os.access(exe, os.X_OK)
     share = colcon_install / 'share' / PKG
     assert (share / 'package.xml').is_file()
     assert (colcon_install / 'share' / 'ament_index' / 'resource_index' / 'packages' / PKG).is_file()
@@ -80,7 +83,34 @@ def test_package_xml(repo_root):
     assert root.findtext('name') == PKG
     assert root.findtext('export/build_type') == 'ament_python'
     exec_depends = {e.text for e in root.iter('exec_depend')}
-    assert {'rclpy', 'geometry_msgs', 'sensor_msgs'} <= exec_depends
+    # Every third-party module the package imports is declared, and little else: rosdep keys
+    # for Python libraries are python3-<name> (python3-yaml for PyYAML).
+    imported = set()
+    for path in [*(repo_root / PKG).glob('*.py'), *(repo_root / 'msg_defs').glob('*.py')]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                imported |= {a.name.split('.')[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                imported.add(node.module.split('.')[0])
+    third_party = imported - set(sys.stdlib_module_names) - {PKG}
+    ros = ('rclpy', '_msgs', '_interfaces')
+    needed = {m if m.endswith(ros) else f'python3-{m}' for m in third_party}
+    assert needed <= exec_depends
+    assert exec_depends - needed == {'std_msgs'}  # the Header inside every stamped message
+
+
+def test_the_math_core_imports_no_rclpy():
+    """The core (SO(3), observers, scenarios, graph checks, batch simulator, studies) is usable
+    without ROS: importing it must not import rclpy."""
+    core = ['so3', 'motion', 'observer', 'tran', 'scenario', 'graph', 'simulator', 'agent',
+            'gyro', 'noise', 'metrics', 'montecarlo', 'compare', 'generate', 'netsim', 'world',
+            'plots', 'launch', 'cli']
+    code = ('import sys; ' + '; '.join(f'import {PKG}.{m}' for m in core)
+            + "; print(sorted(m for m in sys.modules if m.split('.')[0] == 'rclpy'))")
+    proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == '[]'
 
 
 def test_msg_defs_imports_from_repo(repo_root):

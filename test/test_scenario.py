@@ -68,12 +68,12 @@ def _error(data) -> str:
 
 def test_missing_field_is_named(paper_data):
     del paper_data['agents'][3]['position']
-    assert 'agents[3].position: missing required field' in _error(paper_data)
+    assert 'agents[3] (agent_4).position: missing required field' in _error(paper_data)
 
 
 def test_unknown_key_is_named(paper_data):
     paper_data['agents'][4]['neighbors'] = ['agent_1', 'agent_2']  # US spelling
-    assert 'agents[4].neighbors: unknown key' in _error(paper_data)
+    assert 'agents[4] (agent_5).neighbors: unknown key' in _error(paper_data)
     del paper_data['agents'][4]['neighbors']
     paper_data['gains']['kR'] = 2.0
     assert 'gains.kR: unknown key' in _error(paper_data)
@@ -214,3 +214,10 @@ def test_random_initial_estimates_are_seeded(paper_data):
     assert np.all(angles[2:] <= math.radians(30) + 1e-12) and np.all(angles[2:] > 0)
     paper_data['initial_estimates']['random']['seed'] = 5
     assert not np.array_equal(initial_estimates(parse_scenario(paper_data))[1], p1)
+
+
+def test_empty_file_says_so(tmp_path):
+    f = tmp_path / 'empty.yaml'
+    f.write_text('# nothing yet\n')
+    with pytest.raises(ScenarioError, match='the file is empty'):
+        load_scenario(f)

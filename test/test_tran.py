@@ -1,6 +1,7 @@
 """Tran, Anderson & Ahn's observer (tran.py): fixed point, convergence, the position equilibrium
 formula, the two-neighbour extra direction, and the node's logic (AgentEstimator) matching the
 batch simulator."""
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,8 @@ import yaml
 from bearing_pose_estimation import so3
 from bearing_pose_estimation.netsim import run_network
 from bearing_pose_estimation.observer import Edges
-from bearing_pose_estimation.scenario import ScenarioError, parse_scenario
+from bearing_pose_estimation.graph import check_scenario
+from bearing_pose_estimation.scenario import ScenarioError, load_scenario, parse_scenario
 from bearing_pose_estimation.simulator import BatchSimulator
 from bearing_pose_estimation.tran import TranGains, TwoNeighbourPairs, tran_step
 
@@ -119,3 +121,48 @@ def test_the_node_refuses_k_R_for_this_method(tmp_path, context):
         Parameter('scenario_file', value=str(path)), Parameter('k_p', value=1.5)])
     assert node.gains == TranGains(k_omega=2.0, k_p=1.5, k_c=1.0)
     node.destroy_node()
+
+
+CUBE = PAPER.parent / 'tran_cube.yaml'
+
+
+def test_its_checker_uses_K_i_with_the_extra_direction():
+    """For this method the spectra are Tran et al.'s K_i: with two neighbours k_c c cᵀ fills
+    the third direction, so the paper's agent_8 (bearings to agent_1 and agent_7 orthogonal)
+    has K_i = I, a repeated spectrum; a coplanar three-neighbour follower is singular."""
+    report = check_scenario(parse_scenario(_paper_tran()))
+    np.testing.assert_allclose(report.spectra['agent_8'], [1, 1, 1], atol=1e-12)
+    assert [w.agent for w in report.warnings] == ['agent_8']
+    assert "Tran et al.'s Lemma 2" in report.warnings[0].problem
+    report = check_scenario(parse_scenario(_paper_tran(k_c=0.5)))
+    np.testing.assert_allclose(report.spectra['agent_8'], [0.5, 1, 1], atol=1e-12)
+    data = _paper_tran()
+    # agent_6 moved into the z = 0 plane of its three neighbours: coplanar bearings.
+    data['agents'][5]['position'] = [1, 2, 0]
+    data['agents'][5]['neighbours'] = ['agent_1', 'agent_3', 'agent_4']
+    report = check_scenario(parse_scenario(data))
+    assert report.ok
+    singular = [w for w in report.warnings if w.agent == 'agent_6']
+    assert singular and 'coplanar' in singular[0].problem
+    assert report.spectra['agent_6'][0] < 1e-12
+
+
+def test_the_cube_scenario_is_valid_and_converges():
+    """config/tran_cube.yaml (the Tran paper's Section 5, our graph): no check warnings; both
+    methods converge from random initial estimates; agents 3, 4, 5 really rotate."""
+    cube = load_scenario(CUBE)
+    report = check_scenario(cube)
+    assert report.ok and not report.warnings, report.format()
+    assert sorted(len(a.neighbours) for a in cube.followers) == [2, 2, 2, 3, 3, 3]
+    sides = {round(float(np.linalg.norm(a.position - b.position)), 9)
+             for a in cube.agents for b in cube.agents if a is not b}
+    assert sides == {5.0, round(5 * np.sqrt(2), 9), round(5 * np.sqrt(3), 9)}
+    for method in ('tran_anderson_ahn', 'boughellaba_tayebi'):
+        sim = BatchSimulator(dataclasses.replace(cube, method=method))
+        R0 = sim.R.copy()
+        rec = sim.run(60.0, record_every=10.0)
+        assert rec.att_err[0].mean() > 0.5 and rec.pos_err[0].mean() > 2.0
+        assert rec.att_err[-1].max() < 1e-6 and rec.pos_err[-1].max() < 1e-5, method
+    turned = np.degrees([so3.angle(R0[i].T @ sim.R[i]) for i in range(8)])
+    np.testing.assert_allclose(turned[2:5], np.degrees(0.15 * 60.0) % 360, atol=1e-6)
+    np.testing.assert_allclose(turned[[0, 1, 5, 6, 7]], 0.0, atol=1e-9)
