@@ -297,6 +297,10 @@ class _Network:
         self.in_flight: deque[tuple[float, str, tuple]] = deque()  # (deliver at, to, message)
         self.tally = InputTally()
         self.non_finite = 0
+        # The truth at the last second of estimator-step instants (step index -> (R, p)): an
+        # estimator waiting for a lost gyro sample is a step behind the world, and its error
+        # is measured against the truth at its own state time, as the monitor pairs stamps.
+        self.truth: dict[int, tuple[Array, Array]] = {}
 
     # ------------------------------------------------------------------ who is cut off
     def offline(self, name: str, now: float) -> bool:
@@ -390,16 +394,25 @@ class _Network:
         self.sense(now)
         self.deliver(now)
         if world.tick % self.per_step == 0:
+            k = world.tick // self.per_step
+            self.truth[k] = (world.R.copy(), world.p.copy())
+            self.truth.pop(k - int(round(1.0 / self.scenario.step)), None)
             self.step(now)
         if world.tick % self.per_publish == 0:
             self.publish(now)
             self.deliver(now)
 
     def errors(self, followers: list[int]) -> tuple[Array, Array, Array, Array]:
-        """The followers' pose errors now (:func:`simulator.pose_errors`)."""
+        """The followers' pose errors (:func:`simulator.pose_errors`), each against the truth
+        at its estimator's state time (now, unless it waits for gyro data)."""
+        R, p = self.world.R[followers].copy(), self.world.p[followers].copy()
+        for n, i in enumerate(followers):
+            k = int(round(self.agents[self.names[i]].t / self.scenario.step))
+            if k in self.truth:
+                R[n], p[n] = self.truth[k][0][i], self.truth[k][1][i]
         R_hat = np.stack([self.agents[self.names[i]].R_hat[0] for i in followers])
         p_hat = np.stack([self.agents[self.names[i]].p_hat[0] for i in followers])
-        return pose_errors(self.world.R[followers], self.world.p[followers], R_hat, p_hat)
+        return pose_errors(R, p, R_hat, p_hat)
 
 
 def simulate_network(scenario: Scenario, duration: float, record_every: float = 0.1,
@@ -426,6 +439,7 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
             net.restart(name)
         if tick == jump_tick:  # the simulator restarts: clock, truth and noise back to t = 0
             net.world.reset()  # (instead of a step: world and run ticks stay in phase)
+            net.truth.clear()
         else:
             net.tick(tick * dt)
         if tick % per_record == 0:

@@ -102,3 +102,32 @@ def test_stale_bearing_is_rotated_to_the_step_time():
         aligned = ag.body_bearing(int(target), ag.t)
         assert np.linalg.norm(aligned - b_now[k]) < 1e-9
         assert np.linalg.norm(b0[k] - b_now[k]) > 0.02  # the raw sample really is stale
+
+
+def test_gyro_buffer_bridges_lost_samples_with_the_neighbouring_rates():
+    """Every 10th interval-average sample of ω(t) = (sin 9t, cos 5t, 1) at 200 Hz is lost.
+    Bridging each gap with the mean of the rates on either side keeps the increment over 1 s
+    20 times closer to the truth than holding the next sample's rate over the gap."""
+    dt = 0.005
+
+    def average_rate(t0, t1):  # exact interval average of ω over (t0, t1]
+        return np.array([(np.cos(9 * t0) - np.cos(9 * t1)) / 9,
+                         (np.sin(5 * t1) - np.sin(5 * t0)) / 5, t1 - t0]) / (t1 - t0)
+
+    full, lossy = GyroBuffer(start=0.0), GyroBuffer(start=0.0)
+    held_R = np.eye(3)  # what holding the next rate over the gap would give
+    last = 0.0
+    for k in range(1, 201):
+        t = k * dt
+        w = average_rate(t - dt, t)
+        full.add(t, w)
+        if k % 10 == 5:
+            continue  # lost
+        lossy.add(t, w)
+        held_R = held_R @ so3.exp(w * (t - last))
+        last = t
+    truth = full.increment(0.0, 1.0)  # exact: these rates are the true interval averages
+    bridged, held = (so3.angle(truth.T @ R) for R in (lossy.increment(0.0, 1.0), held_R))
+    assert bridged < 5e-5 and held > 3e-4  # measured: 2.3e-5 and 4.5e-4
+    # A regular sampling period is not mistaken for a gap, even after one.
+    assert np.allclose(np.diff(lossy._t[-5:]), dt)
