@@ -324,6 +324,16 @@ def cmd_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_method_options(p: argparse.ArgumentParser) -> None:
+    """The scenario and the methods to run with their gains (``compare``, ``noise-study``)."""
+    p.add_argument('scenario', help='scenario YAML file')
+    p.add_argument('--methods', nargs='+', default=list(METHODS), choices=METHODS,
+                   metavar='METHOD', help=f'methods to run (default: all: {", ".join(METHODS)})')
+    p.add_argument('--gains', action='append', default=[], metavar='METHOD:GAIN=V[,GAIN=V]',
+                   help='override gains of one method, e.g. tran_anderson_ahn:k_omega=3,k_c=2 '
+                   '(repeatable; k_ij stays per edge, from the scenario)')
+
+
 def _add_dds_options(p: argparse.ArgumentParser) -> None:
     """The options of a distributed run (``run``, ``compare --distributed``)."""
     p.add_argument('--domain-id', type=int, metavar='N',
@@ -382,17 +392,12 @@ def build_parser() -> argparse.ArgumentParser:
                        'scenario.yaml). Writes DIR/compare.csv (mean errors per run over '
                        'time), DIR/compare.md (the table it prints) and DIR/compare_errors.png '
                        '(overlaid errors); refuses to overwrite any of them without --force.')
-    p.add_argument('scenario', help='scenario YAML file')
-    p.add_argument('--methods', nargs='+', default=list(METHODS), choices=METHODS,
-                   metavar='METHOD', help=f'methods to run (default: all: {", ".join(METHODS)})')
+    _add_method_options(p)
     p.add_argument('--duration', type=float, help='simulated time [s] (default: the scenario\'s)')
     p.add_argument('--out', metavar='DIR',
                    help='output directory (default: results/<scenario name>_compare)')
     p.add_argument('--record-every', type=float, default=0.1,
                    help='row interval of compare.csv [s], at most 0.5 (default: 0.1)')
-    p.add_argument('--gains', action='append', default=[], metavar='METHOD:GAIN=V[,GAIN=V]',
-                   help='override gains of one method, e.g. tran_anderson_ahn:k_omega=3,k_c=2 '
-                   '(repeatable; k_ij stays per edge, from the scenario)')
     p.add_argument('--distributed', action='store_true',
                    help='also run each method over DDS, one process per agent')
     p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
@@ -408,17 +413,13 @@ def build_parser() -> argparse.ArgumentParser:
                        'the neighbourhood the estimates stay in) and the mean errors. Writes '
                        'DIR/noise_study.csv, DIR/noise_study.md (the table it prints) and '
                        'DIR/noise_study.png; refuses to overwrite any of them without --force.')
-    p.add_argument('scenario', help='scenario YAML file')
-    p.add_argument('--methods', nargs='+', default=list(METHODS), choices=METHODS,
-                   metavar='METHOD', help=f'methods to run (default: all: {", ".join(METHODS)})')
+    _add_method_options(p)
     p.add_argument('--amplitudes-deg', nargs='+', type=float, default=[2.0, 5.0, 10.0],
                    metavar='θ0', help='perturbation amplitudes [deg] (default: 2 5 10)')
     p.add_argument('--frequencies-hz', nargs='+', type=float, default=[1.0, 5.0, 10.0, 25.0],
                    metavar='F', help='perturbation frequencies [Hz] (default: 1 5 10 25)')
     p.add_argument('--duration', type=float, help='simulated time per run [s] (default: the '
                    'scenario\'s)')
-    p.add_argument('--gains', action='append', default=[], metavar='METHOD:GAIN=V[,GAIN=V]',
-                   help='override gains of one method, as in compare')
     p.add_argument('--jobs', type=int, metavar='J',
                    help='worker processes (default: the number of cores)')
     p.add_argument('--out', metavar='DIR',

@@ -147,6 +147,8 @@ def write_plot(results: list[CaseResult], path: Path) -> Path:
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
+    from .plots import log_axes
+
     fig, (att, pos) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
     methods = list(dict.fromkeys(r.case.method for r in results))
     amplitudes = list(dict.fromkeys(r.case.amplitude_deg for r in results))
@@ -160,15 +162,11 @@ def write_plot(results: list[CaseResult], path: Path) -> Path:
                      styles[k % len(styles)], **style)
             pos.plot(f, [r.values['bound_position_error_m'] for r in rs],
                      styles[k % len(styles)], **style)
+    window = f' (last {STEADY_FRACTION:.0%} of the run)'
     for ax, title, ylabel in ((att, 'Attitude error bound', 'worst follower [deg]'),
                               (pos, 'Position error bound', 'worst follower [m]')):
-        ax.set_xscale('log')
-        ax.set_yscale('log')
-        ax.set_title(title + f' (last {STEADY_FRACTION:.0%} of the run)')
-        ax.set_xlabel('perturbation frequency f [Hz]')
-        ax.set_ylabel(ylabel)
-        ax.grid(True, which='both', alpha=0.3)
-        ax.legend(fontsize=7)
+        log_axes(ax, title + window, 'perturbation frequency f [Hz]', ylabel, log_x=True,
+                 legend_size=7)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -7,6 +7,7 @@ view and a log view showing the convergence rate, with per-follower curves.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -67,14 +68,21 @@ def write_compare_plot(recs: dict[str, Recording], path: Path,
         style['color'] = colour
         att.plot(rec.t, np.maximum(rec.att_err.mean(axis=1), 1e-17), label=label, **style)
         pos.plot(rec.t, np.maximum(rec.pos_err.mean(axis=1), 1e-17), label=label, **style)
-    for ax, title, ylabel in ((att, 'Mean attitude error', 'angle of $R_i \\hat R_i^T$ [rad]'),
-                              (pos, 'Mean position error', r'$\|p_i - \hat p_i\|$ [m]')):
-        ax.set_yscale('log')
-        ax.set_title(title)
-        ax.set_xlabel('time [s]')
-        ax.set_ylabel(ylabel)
-        ax.grid(True, which='both', alpha=0.3)
-        ax.legend(fontsize=8)
+    log_axes(att, 'Mean attitude error', 'time [s]', 'angle of $R_i \\hat R_i^T$ [rad]')
+    log_axes(pos, 'Mean position error', 'time [s]', r'$\|p_i - \hat p_i\|$ [m]')
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def log_axes(ax: Any, title: str, xlabel: str, ylabel: str, log_x: bool = False,
+             legend_size: int = 8) -> None:
+    """Log-scale axes with titles, a grid and a legend: the look of every comparison plot."""
+    if log_x:
+        ax.set_xscale('log')
+    ax.set_yscale('log')
+    ax.set_title(title)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(fontsize=legend_size)
