@@ -180,11 +180,13 @@ def cmd_noise_study(args: argparse.Namespace) -> int:
     outputs = [f for f in ns.OUTPUT_FILES if not (args.no_plots and f.endswith('.png'))]
     out = _out_dir(args.out or f'results/{scenario.name}_noise_study', outputs, args.force)
     duration = args.duration if args.duration is not None else scenario.duration
+    axis = tuple(float(x) for x in np.asarray(args.axis) / np.linalg.norm(args.axis))
     n = len(args.methods) * len(args.amplitudes_deg) * len(args.frequencies_hz)
     jobs = min(args.jobs or os.cpu_count() or 1, n)
-    print(f'noise study on {scenario.name}: bearings rot_x(θ0 sin 2πft) b, θ0 in '
-          f'{args.amplitudes_deg} deg, f in {args.frequencies_hz} Hz; {", ".join(args.methods)};'
-          f' {n} runs of {duration:g} s on {jobs} process(es)', file=sys.stderr)
+    print(f'noise study on {scenario.name}: bearings rot_X(θ0 sin 2πft) b, X = {list(axis)}, '
+          f'θ0 in {args.amplitudes_deg} deg, f in {args.frequencies_hz} Hz; '
+          f'{", ".join(args.methods)}; {n} runs of {duration:g} s on {jobs} process(es)',
+          file=sys.stderr)
 
     def progress(done: int, total: int, r: ns.CaseResult) -> None:
         c, v = r.case, r.values
@@ -195,12 +197,13 @@ def cmd_noise_study(args: argparse.Namespace) -> int:
 
     wall = time.perf_counter()
     results = ns.run_study({m: s for m, (_, s) in derived.items()}, args.amplitudes_deg,
-                           args.frequencies_hz, duration, jobs, progress)
+                           args.frequencies_hz, duration, jobs, progress, axis)
     wall = time.perf_counter() - wall
     text = ns.table(results)
     ns.write_csv(results, out / 'noise_study.csv')
     (out / 'noise_study.md').write_text(
-        f'# {scenario.name}: bearings rot_x(θ0 sin 2πft) b, {duration:g} s runs; bounds and '
+        f'# {scenario.name}: bearings rot_X(θ0 sin 2πft) b, X = {list(axis)}, {duration:g} s '
+        'runs; bounds and '
         f'means over the last {ns.STEADY_FRACTION:.0%}\n\n' + text)
     files = [out / 'noise_study.csv', out / 'noise_study.md']
     if not args.no_plots:
@@ -407,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser('noise-study', help="Tran et al.'s bearing perturbation, per method; "
                        'error bounds', description='Run each method with every measured bearing '
-                       'perturbed as rot_x(θ0 sin 2πft) b (Tran, Anderson & Ahn 2020, Section '
+                       'perturbed as rot_X(θ0 sin 2πft) b (Tran, Anderson & Ahn 2020, Section '
                        '5.1), for every θ0 and f, on all cores. Reports, over the last quarter '
                        'of each run, the bound of the worst follower\'s errors (the radius of '
                        'the neighbourhood the estimates stay in) and the mean errors. Writes '
@@ -418,6 +421,8 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar='θ0', help='perturbation amplitudes [deg] (default: 2 5 10)')
     p.add_argument('--frequencies-hz', nargs='+', type=float, default=[1.0, 5.0, 10.0, 25.0],
                    metavar='F', help='perturbation frequencies [Hz] (default: 1 5 10 25)')
+    p.add_argument('--axis', nargs=3, type=float, default=[1.0, 0.0, 0.0], metavar=('X', 'Y', 'Z'),
+                   help='body axis X of the perturbation rotation (default: 1 0 0)')
     p.add_argument('--duration', type=float, help='simulated time per run [s] (default: the '
                    'scenario\'s)')
     p.add_argument('--jobs', type=int, metavar='J',
@@ -492,6 +497,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error('--amplitudes-deg must be in (0, 90] degrees')
         if any(not (np.isfinite(f) and f > 0) for f in args.frequencies_hz):
             parser.error('--frequencies-hz must be positive')
+        if not (np.all(np.isfinite(args.axis)) and np.linalg.norm(args.axis) > 1e-12):
+            parser.error('--axis must be a finite, non-zero vector')
         if args.jobs is not None and args.jobs < 1:
             parser.error('--jobs must be at least 1')
     if args.command in ('compare', 'noise-study'):

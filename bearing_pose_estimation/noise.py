@@ -5,9 +5,10 @@ scenario's ``noise:`` block (:class:`scenario.Noise`) switches them on.
 - Gyro: measured rate = true rate + constant body-frame bias + white noise. The bias of agent i
   is ``gyro_bias + N(0, gyro_bias_std² I)``, drawn once. In the batch simulator a step's gyro
   increment is ``ΔR exp(h (bias + noise))``.
-- Bearings, in this order: the deterministic perturbation ``rot_x(θ0 sin(2π f t)) b`` (Tran,
-  Anderson & Ahn 2020; ``rot_x`` about the body x axis, t the measurement time), a random
-  rotation of angular std ``bearing_std`` (:func:`perturb_bearings`), and, with probability
+- Bearings, in this order: the deterministic perturbation ``rot_X(θ0 sin(2π f t)) b`` (Tran,
+  Anderson & Ahn 2020; ``rot_X`` about the body axis ``X``, default x; t the measurement time),
+  a random rotation perpendicular to the bearing whose two components each have standard
+  deviation ``bearing_std`` (:func:`perturb_bearings`), and, with probability
   ``outlier_probability``, replacement by a uniformly random unit vector.
 
 Reproducible: every draw comes from generators seeded by ``noise.seed``, with separate streams
@@ -38,12 +39,6 @@ def perturb_bearings(b: Array, std: float, rng: np.random.Generator) -> Array:
     phi = std * rng.normal(size=b.shape)
     phi -= b * np.sum(phi * b, axis=-1, keepdims=True)
     return np.einsum('eab,eb->ea', so3.exp(phi), b)
-
-
-def rot_x(angle: float) -> Array:
-    """Rotation by ``angle`` [rad] about the x axis, ``(3, 3)``."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 def perturbation_angle(t: float, amplitude_deg: float, frequency_hz: float) -> float:
@@ -110,6 +105,7 @@ class NoiseModel:
         nz = self.noise
         bp = nz.bearing_perturbation
         if bp is not None:
-            b = b @ rot_x(perturbation_angle(t, bp.amplitude_deg, bp.frequency_hz)).T
+            angle = perturbation_angle(t, bp.amplitude_deg, bp.frequency_hz)
+            b = b @ so3.axis_angle(bp.axis, angle).T
         b = perturb_bearings(b, nz.bearing_std, self.bearing_rng)
         return replace_outliers(b, nz.outlier_probability, self.bearing_rng)

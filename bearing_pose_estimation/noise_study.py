@@ -1,10 +1,11 @@
 """The Tran, Anderson & Ahn (2020) noise experiment, for several methods
 (``bearing-pose noise-study``); no rclpy.
 
-Every measured bearing is ``rot_x(θ0 sin 2πft) · b`` (Section 5.1 of the paper: θ0 up to 10°,
-f from 1 to 25 Hz; ``rot_x`` about the body x axis). For each method (derived from the scenario
-as ``compare`` does) and each (θ0, f), one batch run from the scenario's initial estimates; the
-perturbation replaces any ``bearing_perturbation`` of the file, the rest of its noise stays.
+Every measured bearing is ``rot_X(θ0 sin 2πft) · b`` (Section 5.1 of the paper: θ0 up to 10°,
+f from 1 to 25 Hz; ``rot_X`` about a body axis ``X``, x by default). For each method (derived
+from the scenario as ``compare`` does) and each (θ0, f), one batch run from the scenario's
+initial estimates; the perturbation replaces any ``bearing_perturbation`` of the file, the rest
+of its noise stays.
 
 The estimates do not converge but stay in a neighbourhood of the truth. Per run, over the
 steady-state window (the last :data:`STEADY_FRACTION` of the duration):
@@ -44,6 +45,7 @@ class Case:
     method: str
     amplitude_deg: float
     frequency_hz: float
+    axis: tuple[float, float, float] = (1.0, 0.0, 0.0)   # X, unit (body frame)
 
 
 @dataclass(frozen=True)
@@ -52,9 +54,11 @@ class CaseResult:
     values: dict[str, float]
 
 
-def perturbed(scenario: Scenario, amplitude_deg: float, frequency_hz: float) -> Scenario:
-    """``scenario`` with every bearing perturbed by ``rot_x(θ0 sin 2πft)``."""
-    bp = BearingPerturbation(amplitude_deg=amplitude_deg, frequency_hz=frequency_hz)
+def perturbed(scenario: Scenario, amplitude_deg: float, frequency_hz: float,
+              axis: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> Scenario:
+    """``scenario`` with every bearing perturbed by ``rot_X(θ0 sin 2πft)``, X = ``axis``."""
+    bp = BearingPerturbation(amplitude_deg=amplitude_deg, frequency_hz=frequency_hz,
+                             axis=axis)
     return dataclasses.replace(scenario, noise=dataclasses.replace(scenario.noise,
                                                                    bearing_perturbation=bp))
 
@@ -72,7 +76,8 @@ def check_frequencies(frequencies_hz: Sequence[float], scenario: Scenario) -> No
 
 def run_case(scenario: Scenario, case: Case, duration: float) -> CaseResult:
     """One run (in a worker process): simulate, then the steady-state quantities."""
-    rec = BatchSimulator(perturbed(scenario, case.amplitude_deg, case.frequency_hz)).run(
+    rec = BatchSimulator(perturbed(scenario, case.amplitude_deg, case.frequency_hz,
+                                   case.axis)).run(
         duration, record_every=max(RECORD_EVERY, scenario.step))
     window = rec.t >= rec.t[-1] - STEADY_FRACTION * duration - 1e-9
     return CaseResult(case, {
@@ -85,10 +90,12 @@ def run_case(scenario: Scenario, case: Case, duration: float) -> CaseResult:
 
 def run_study(scenarios: dict[str, Scenario], amplitudes_deg: Sequence[float],
               frequencies_hz: Sequence[float], duration: float, jobs: int | None = None,
-              progress: Callable[[int, int, CaseResult], None] | None = None
-              ) -> list[CaseResult]:
-    """Every (method, θ0, f) on ``jobs`` processes (default: every core), in that order."""
-    cases = [Case(m, a, f) for m in scenarios for a in amplitudes_deg for f in frequencies_hz]
+              progress: Callable[[int, int, CaseResult], None] | None = None,
+              axis: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> list[CaseResult]:
+    """Every (method, θ0, f) about ``axis`` on ``jobs`` processes (default: every core), in
+    that order."""
+    cases = [Case(m, a, f, axis) for m in scenarios for a in amplitudes_deg
+             for f in frequencies_hz]
     jobs = min(jobs or os.cpu_count() or 1, len(cases))
     results: list[CaseResult] = []
     if jobs == 1:

@@ -67,10 +67,12 @@ class RandomInit:
 @dataclass(frozen=True)
 class BearingPerturbation:
     """Deterministic bearing perturbation (Tran, Anderson & Ahn 2020): every measured bearing
-    is ``rot_x(θ0 sin(2π f t)) b`` with ``rot_x`` the rotation about the body x axis."""
+    is ``rot_X(θ0 sin(2π f t)) b``, the rotation about the body axis ``X`` (the paper: "an
+    arbitrary direction, e.g. the principal axes"; default x)."""
 
     amplitude_deg: float   # θ0, in [0, 90]
     frequency_hz: float    # f > 0
+    axis: tuple[float, float, float] = (1.0, 0.0, 0.0)   # X, a unit vector (body frame)
 
 
 @dataclass(frozen=True)
@@ -85,7 +87,7 @@ class Noise:
     - ``bearing_std`` [rad]: each bearing is turned by a random rotation perpendicular to it,
       whose two angular components each have this standard deviation (so the RMS angle is
       ``√2 · bearing_std``: 1° gives 1.41°).
-    - ``bearing_perturbation``: the deterministic ``rot_x(θ0 sin 2πft)`` of each bearing.
+    - ``bearing_perturbation``: the deterministic ``rot_X(θ0 sin 2πft)`` of each bearing.
     - ``outlier_probability``: chance that a bearing is replaced by a uniformly random unit
       vector.
     - ``seed``: seeds every random draw, so a scenario and seed give the same run.
@@ -339,7 +341,7 @@ def _noise(ctx: _Ctx, value: Any) -> Noise:
     perturbation = None
     if 'bearing_perturbation' in m:
         bp = _mapping(ctx, m['bearing_perturbation'], 'noise.bearing_perturbation',
-                      {'amplitude_deg', 'frequency_hz'}, {'amplitude_deg', 'frequency_hz'})
+                      {'amplitude_deg', 'frequency_hz', 'axis'}, {'amplitude_deg', 'frequency_hz'})
         where = 'noise.bearing_perturbation.amplitude_deg'
         amplitude = _number(ctx, bp['amplitude_deg'], where)
         if not 0.0 <= amplitude <= 90.0:
@@ -347,7 +349,13 @@ def _noise(ctx: _Ctx, value: Any) -> Noise:
                            'use an amplitude θ0 between 0 and 90 degrees')
         frequency = _number(ctx, bp['frequency_hz'], 'noise.bearing_perturbation.frequency_hz',
                             positive=True)
-        perturbation = BearingPerturbation(amplitude_deg=amplitude, frequency_hz=frequency)
+        axis = _vector(ctx, bp.get('axis', [1.0, 0.0, 0.0]), 'noise.bearing_perturbation.axis')
+        if np.linalg.norm(axis) < 1e-12:
+            raise ctx.fail('noise.bearing_perturbation.axis', 'axis is zero',
+                           'give a non-zero body axis, e.g. [1, 0, 0]')
+        perturbation = BearingPerturbation(amplitude_deg=amplitude, frequency_hz=frequency,
+                                           axis=tuple(float(x) for x in
+                                                      axis / np.linalg.norm(axis)))
     p_out = _number(ctx, m.get('outlier_probability', 0.0), 'noise.outlier_probability')
     if not 0.0 <= p_out < 1.0:
         raise ctx.fail('noise.outlier_probability', f'must be in [0, 1), got {p_out:g}',

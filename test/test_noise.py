@@ -10,7 +10,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from bearing_pose_estimation import so3
-from bearing_pose_estimation.noise import NoiseModel, rot_x
+from bearing_pose_estimation.noise import NoiseModel
 from bearing_pose_estimation.scenario import (BearingPerturbation, Noise, ScenarioError,
                                               parse_scenario)
 from bearing_pose_estimation.simulator import BatchSimulator
@@ -45,6 +45,9 @@ def test_noise_is_off_by_default_and_parses(paper_data):
     nz = parse_scenario(_with_noise(paper_data, **ALL_ON)).noise
     assert nz.gyro_bias == (0.002, -0.001, 0.003) and nz.gyro_bias_std == 0.002
     assert nz.bearing_perturbation == BearingPerturbation(amplitude_deg=2.0, frequency_hz=0.5)
+    tilted = _with_noise(paper_data, bearing_perturbation={'amplitude_deg': 2, 'frequency_hz': 1,
+                                                           'axis': [0, 0, 2]})
+    assert parse_scenario(tilted).noise.bearing_perturbation.axis == (0.0, 0.0, 1.0)
     assert nz.outlier_probability == 0.01 and nz.seed == 7
 
 
@@ -63,6 +66,8 @@ def test_noise_is_off_by_default_and_parses(paper_data):
     ({'bearing_perturbation': {'amplitude': 5, 'frequency_hz': 1}},
      'noise.bearing_perturbation.amplitude: unknown key'),
     ({'bearing_perturbation': 5}, 'noise.bearing_perturbation: expected a mapping'),
+    ({'bearing_perturbation': {'amplitude_deg': 5, 'frequency_hz': 1, 'axis': [0, 0, 0]}},
+     'noise.bearing_perturbation.axis: axis is zero'),
     ({'gyro_bias': [0.1, 0.2]}, 'noise.gyro_bias: expected a list of 3 numbers'),
     ({'gyro_bias': [0.1, 'x', 0.2]}, 'noise.gyro_bias[1]: expected a number'),
     ({'gyro_bias_std': -0.01}, 'noise.gyro_bias_std: must be >= 0'),
@@ -76,15 +81,16 @@ def test_noise_errors_name_the_field(paper_data, noise, message):
 
 
 # ----------------------------------------------------------------------------- the models
-def test_deterministic_perturbation_is_exactly_rot_x():
+@pytest.mark.parametrize('axis', [(1.0, 0.0, 0.0), (0.0, 0.6, 0.8)])
+def test_deterministic_perturbation_is_exactly_rot_X(axis):
     theta0, f, t = 20.0, 0.7, 0.37
-    model = NoiseModel(Noise(bearing_perturbation=BearingPerturbation(theta0, f)), 3)
+    bp = BearingPerturbation(theta0, f, axis)
+    model = NoiseModel(Noise(bearing_perturbation=bp), 3)
     b = _unit(50)
     angle = math.radians(theta0) * math.sin(2 * math.pi * f * t)
-    expected = Rotation.from_rotvec([angle, 0.0, 0.0]).apply(b)  # independent of rot_x
+    expected = Rotation.from_rotvec(angle * np.array(axis)).apply(b)  # scipy, independently
     np.testing.assert_allclose(model.bearings(b, t), expected, atol=1e-15)
     assert abs(angle) > 0.1  # a real rotation at this t
-    np.testing.assert_allclose(rot_x(angle), so3.axis_angle([1, 0, 0], angle), atol=1e-15)
     # Deterministic: no randomness, same output every call; zero at t = 0.
     np.testing.assert_array_equal(model.bearings(b, t), model.bearings(b, t))
     np.testing.assert_allclose(model.bearings(b, 0.0), b, atol=1e-16)
