@@ -546,7 +546,8 @@ def sigterm_as_interrupt() -> Iterator[None]:
 @dataclass
 class RunResult:
     """ok: the monitor finished and wrote summary.json, every process then stopped with exit
-    code 0 (none needed SIGKILL), and the run left nothing in /dev/shm."""
+    code 0 (none needed SIGKILL), and nothing the run left in /dev/shm remains (what it
+    leaves is removed)."""
 
     ok: bool
     wall_s: float
@@ -591,10 +592,10 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
             result.exit_codes = {s.name: group.returncode(s.name) for s in specs}
     finally:
         result.wall_s = time.perf_counter() - wall
-        leaked = _warn_shm(shm_before)
+        left_in_shm = _clean_shm(shm_before)
     result.files = _fresh_files(cfg.out_dir, started)
     if result.failure is None:  # earlier failures were reported when they happened
-        result.failure = _failure_after_stop(cfg, specs, result, leaked)
+        result.failure = _failure_after_stop(cfg, specs, result, left_in_shm)
         if result.failure is not None:
             print(f'error: {result.failure.format()}', file=sys.stderr)
     result.ok = result.failure is None
@@ -602,9 +603,9 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
 
 
 def _failure_after_stop(cfg: RunConfig, specs: list[ProcessSpec], result: RunResult,
-                        leaked: list[str]) -> Failure | None:
+                        left_in_shm: list[str]) -> Failure | None:
     """A run whose monitor finished is clean only if the monitor wrote its summary, every
-    process stopped with exit code 0 and nothing was left in /dev/shm."""
+    process stopped with exit code 0 and nothing it left in /dev/shm remains."""
     if cfg.out_dir / 'summary.json' not in result.files:
         return Failure('monitor', f'exited with code 0 but wrote no '
                        f'{cfg.out_dir / "summary.json"}')
@@ -614,21 +615,36 @@ def _failure_after_stop(cfg: RunConfig, specs: list[ProcessSpec], result: RunRes
         more = f' (and {len(unclean) - 1} more process(es))' if len(unclean) > 1 else ''
         return Failure(s.label, f'{describe_exit(result.exit_codes[s.name])} when stopped at '
                        f'the end of the run{more}', s.log, log_tail(s.log))
-    if leaked:
-        return Failure('the run', f'left {len(leaked)} file(s) in /dev/shm')
+    if left_in_shm:
+        return Failure('the run', f'left {len(left_in_shm)} file(s) in /dev/shm that could '
+                       'not be removed')
     return None
 
 
-def _warn_shm(before: set[str]) -> list[str]:
-    """Warn about (and return) Fast DDS files the run left in /dev/shm."""
+def _remove(path: str) -> None:
+    with contextlib.suppress(OSError):
+        os.remove(path)
+
+
+def _clean_shm(before: set[str]) -> list[str]:
+    """Remove the Fast DDS files this run left in /dev/shm (created since ``before``, used by
+    no live process: what a participant that was never released leaves, e.g. after the
+    teardown watchdog ended a Fast DDS deadlock), saying so; return those that remain."""
     leaked = leaked_shm(before)
-    if leaked:
+    for f in leaked:
+        _remove(f)
+    remaining = [f for f in leaked if os.path.exists(f)]
+    if len(remaining) < len(leaked):
+        print(f'warning: removed {len(leaked) - len(remaining)} Fast DDS shared-memory file(s) '
+              f'that a process of this run left in /dev/shm ({", ".join(leaked[:3])}): it did '
+              'not release its DDS participant; its log says why', file=sys.stderr)
+    if remaining:
         fastdds = Path(sys.executable).parent / 'fastdds'
         tool = str(fastdds) if fastdds.exists() else 'fastdds'
-        print(f'warning: {len(leaked)} new Fast DDS shared-memory file(s) in /dev/shm that no '
-              f'process uses after the run ({", ".join(leaked[:3])}). Fix: `{tool} shm clean` '
-              '(removes only segments no process uses)', file=sys.stderr)
-    return leaked
+        print(f'warning: could not remove {len(remaining)} of them ({", ".join(remaining[:3])}).'
+              f' Fix: `{tool} shm clean` (removes only segments no process uses)',
+              file=sys.stderr)
+    return remaining
 
 
 def _fresh_files(out_dir: Path, since: float) -> list[Path]:

@@ -246,8 +246,23 @@ def test_run_succeeds_and_leaves_nothing_behind(standins, tmp_path, monkeypatch,
     assert 'shared-memory' not in captured.err and 'error' not in captured.err
 
 
+def test_run_removes_the_shm_files_it_left(standins, tmp_path, monkeypatch, capsys):
+    """A process that never released its DDS participant (e.g. ended by the teardown watchdog)
+    leaves Fast DDS files in /dev/shm: the run removes those it created that no process uses,
+    says so, and still succeeds."""
+    shm = tmp_path / 'shm'
+    shm.mkdir()
+    (shm / 'fastrtps_someone_else').write_text('')   # there before the run: not touched
+    monkeypatch.setattr(launch, 'SHM_GLOB', str(shm / 'fastrtps_*'))
+    monkeypatch.setenv('STANDIN_SHM', str(shm))
+    monkeypatch.setenv('STANDIN_SIMULATOR', 'shm')
+    assert main(['run', str(PAPER), '--out', str(tmp_path / 'out'), '--duration', '5']) == 0
+    assert 'removed 1 Fast DDS shared-memory file(s)' in capsys.readouterr().err
+    assert sorted(p.name for p in shm.iterdir()) == ['fastrtps_someone_else']
+
+
 @pytest.mark.parametrize('culprit, behaviour, message', [
-    ('SIMULATOR', 'shm', 'error: the run left 1 file(s) in /dev/shm'),
+    ('SIMULATOR', 'shm', 'error: the run left 1 file(s) in /dev/shm that could not be removed'),
     ('AGENT_5', 'unclean', 'error: estimator agent_5 exited with code 1 when stopped at the '
                            'end of the run'),
     ('AGENT_6', 'stubborn', 'error: estimator agent_6 was killed by SIGKILL when stopped'),
@@ -255,13 +270,15 @@ def test_run_succeeds_and_leaves_nothing_behind(standins, tmp_path, monkeypatch,
 def test_run_that_does_not_stop_cleanly_fails(standins, tmp_path, monkeypatch, capsys,
                                               culprit, behaviour, message):
     """The monitor finished and wrote its outputs, but a process left Fast DDS files in
-    /dev/shm, exited non-zero, or needed SIGKILL when stopped: the run is reported as failed
-    (exit 1), with the cure for /dev/shm."""
+    /dev/shm that cannot be removed, exited non-zero, or needed SIGKILL when stopped: the run
+    is reported as failed (exit 1), with the cure for /dev/shm."""
     shm = tmp_path / 'shm'
     shm.mkdir()
     monkeypatch.setattr(launch, 'SHM_GLOB', str(shm / 'fastrtps_*'))
     monkeypatch.setenv('STANDIN_SHM', str(shm))
     monkeypatch.setenv(f'STANDIN_{culprit}', behaviour)
+    if behaviour == 'shm':  # a file the run may not remove
+        monkeypatch.setattr(launch, '_remove', lambda path: None)
     monkeypatch.setattr(launch.ProcessGroup, 'shutdown',
                         functools.partialmethod(launch.ProcessGroup.shutdown, grace=0.5,
                                                 term_grace=0.5))
