@@ -40,9 +40,7 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -51,6 +49,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .metrics import ATT_THRESHOLD_RAD, POS_THRESHOLD_M, settling_time
+from .parallel import run_all
 from .scenario import Scenario, load_scenario
 from .simulator import BatchSimulator, Recording
 
@@ -127,26 +126,8 @@ def run_montecarlo(scenario_file: str | Path, runs: int, seed: int, duration: fl
     """Run ``runs`` simulations with seeds ``seed .. seed + runs - 1`` on ``jobs`` processes
     (default: every core); return them in run order. ``progress(done, runs, result)`` is
     called as each run finishes."""
-    jobs = min(jobs or os.cpu_count() or 1, runs)
-    args = [(str(scenario_file), i, seed + i, duration) for i in range(runs)]
-    results: list[RunResult] = []
-    if jobs == 1:
-        for a in args:
-            results.append(run_one(*a))
-            if progress is not None:
-                progress(len(results), runs, results[-1])
-    else:
-        pool = ProcessPoolExecutor(max_workers=jobs)
-        try:
-            futures = [pool.submit(run_one, *a) for a in args]
-            for fut in as_completed(futures):
-                results.append(fut.result())
-                if progress is not None:
-                    progress(len(results), runs, results[-1])
-        finally:
-            # On an error or Ctrl-C: drop the queued runs, wait only for the running ones.
-            pool.shutdown(wait=True, cancel_futures=True)
-    return sorted(results, key=lambda r: r.run)
+    calls = [(str(scenario_file), i, seed + i, duration) for i in range(runs)]
+    return run_all(run_one, calls, jobs, progress)
 
 
 # ----------------------------------------------------------------------------- statistics

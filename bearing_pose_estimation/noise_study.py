@@ -21,14 +21,13 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import os
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from .parallel import run_all
 from .scenario import BearingPerturbation, Scenario
 from .simulator import BatchSimulator
 
@@ -96,25 +95,8 @@ def run_study(scenarios: dict[str, Scenario], amplitudes_deg: Sequence[float],
     that order."""
     cases = [Case(m, a, f, axis) for m in scenarios for a in amplitudes_deg
              for f in frequencies_hz]
-    jobs = min(jobs or os.cpu_count() or 1, len(cases))
-    results: list[CaseResult] = []
-    if jobs == 1:
-        for c in cases:
-            results.append(run_case(scenarios[c.method], c, duration))
-            if progress is not None:
-                progress(len(results), len(cases), results[-1])
-    else:
-        pool = ProcessPoolExecutor(max_workers=jobs)
-        try:
-            futures = [pool.submit(run_case, scenarios[c.method], c, duration) for c in cases]
-            for fut in as_completed(futures):
-                results.append(fut.result())
-                if progress is not None:
-                    progress(len(results), len(cases), results[-1])
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)  # Ctrl-C: drop the queued runs
-    order = {c: k for k, c in enumerate(cases)}
-    return sorted(results, key=lambda r: order[r.case])
+    return run_all(run_case, [(scenarios[c.method], c, duration) for c in cases], jobs,
+                   progress)
 
 
 def write_csv(results: list[CaseResult], path: Path) -> None:

@@ -104,7 +104,7 @@ def test_the_math_core_imports_no_rclpy():
     without ROS: importing it must not import rclpy."""
     core = ['so3', 'motion', 'observer', 'tran', 'scenario', 'graph', 'simulator', 'agent',
             'gyro', 'noise', 'metrics', 'montecarlo', 'compare', 'generate', 'netsim', 'world',
-            'plots', 'launch', 'cli']
+            'plots', 'launch', 'cli', 'noise_study', 'parallel']
     code = ('import sys; ' + '; '.join(f'import {PKG}.{m}' for m in core)
             + "; print(sorted(m for m in sys.modules if m.split('.')[0] == 'rclpy'))")
     proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
