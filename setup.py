@@ -8,11 +8,11 @@ package_name = 'bearing_pose_estimation'
 # Every executable, in one place. `ros2 run bearing_pose_estimation <name>` finds these after a
 # colcon build (setup.cfg puts them in lib/<package>); pip puts them in the venv's bin/.
 console_scripts = [
-    'bearing-pose = bearing_pose_estimation.cli:main',
-    'estimator = bearing_pose_estimation.estimator_node:main',
-    'estimators = bearing_pose_estimation.estimator_group:main',
-    'simulator = bearing_pose_estimation.simulator_node:main',
-    'monitor = bearing_pose_estimation.monitor_node:main',
+    'bearing-pose = bearing_pose_estimation.cli.main:main',
+    'estimator = bearing_pose_estimation.ros.estimator_node:main',
+    'estimators = bearing_pose_estimation.ros.estimator_group:main',
+    'simulator = bearing_pose_estimation.ros.simulator_node:main',
+    'monitor = bearing_pose_estimation.ros.monitor_node:main',
 ]
 
 setup(

@@ -18,9 +18,9 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 import numpy as np  # noqa: E402
 
-from bearing_pose_estimation.generate import generate_scenario  # noqa: E402
+from bearing_pose_estimation.scenario.generate import generate_scenario  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario, parse_scenario  # noqa: E402
-from bearing_pose_estimation.simulator import BatchSimulator  # noqa: E402
+from bearing_pose_estimation.sim.batch import BatchSimulator  # noqa: E402
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
 

@@ -19,8 +19,8 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from bearing_pose_estimation import so3  # noqa: E402
-from bearing_pose_estimation.observer import CascadeGains, Edges, cascade_step  # noqa: E402
+from bearing_pose_estimation.core import so3  # noqa: E402
+from bearing_pose_estimation.estimators.boughellaba_tayebi import CascadeGains, Edges, cascade_step  # noqa: E402
 
 
 def straightforward(R_hat, p_hat, delta_R, h, b_body, d_world, p_nbr, k, k_R, k_p):

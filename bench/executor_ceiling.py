@@ -1,18 +1,15 @@
-"""rclpy's per-message ceiling: CPU per received message, executor against a draining loop.
+"""Per-message ceiling: CPU per received message, rclpy's executor against ours.
 
 A publisher process sends one message type (``--type``: Imu, PointCloud2 with three bearings,
 PoseStamped; as the nodes encode them) at ``--rate`` for ``--seconds``. The receiver process
 holds one active subscription plus ``--idle`` subscriptions on silent topics and a 100 Hz timer,
-like an estimator process (8 subscriptions and a timer per agent), and is driven either by
-rclpy's SingleThreadedExecutor (what the nodes use) or by a minimal loop that waits on the same
-entities and then takes every queued message of each ready subscription in one go. Prints CPU
-time of the receiver process (all its threads, DDS included) per received message.
+like an estimator process (8 subscriptions and a timer per agent), and is spun either by
+rclpy's SingleThreadedExecutor or by the package's ``ros.executor.DrainingExecutor`` (what the
+nodes use: one wait, then every queued message of each ready subscription). Prints CPU time of
+the receiver process (all its threads, DDS included) per received message.
 
     .venv/bin/python bench/executor_ceiling.py [--type Imu] [--rate 4000] [--seconds 5]
         [--idle 0 7 39]
-
-The draining loop lives only here, as the measurement of what a leaner executor would gain;
-the nodes still use rclpy's executor.
 """
 from __future__ import annotations
 
@@ -28,12 +25,12 @@ os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 101))
 import numpy as np  # noqa: E402
 import rclpy  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from sensor_msgs.msg import Imu  # noqa: E402
 
 from bearing_pose_estimation import msg_defs as wire  # noqa: E402
+from bearing_pose_estimation.ros.executor import DrainingExecutor  # noqa: E402
 
 QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 # What the nodes exchange: gyro samples, bearing sets (3 bearings), estimates.
@@ -64,30 +61,6 @@ def publish(kind: str, rate: float, seconds: float) -> None:
     rclpy.shutdown()
 
 
-def drain_spin(node, until: float, done) -> None:
-    """Wait on every entity of ``node``; then take all queued messages of each ready one."""
-    subs, timers = list(node.subscriptions), list(node.timers)
-    ctx = node.context
-    while time.monotonic() < until and not done():
-        ws = _rclpy.WaitSet(len(subs), 0, len(timers), 0, 0, 0, ctx.handle)
-        ws.clear_entities()
-        for s in subs:
-            ws.add_subscription(s.handle)
-        for t in timers:
-            ws.add_timer(t.handle)
-        ws.wait(100_000_000)
-        ready = ws.get_ready_entities('subscription')
-        for s in subs:
-            if s.handle.pointer in ready:
-                while (taken := s.handle.take_message(s.msg_type, s.raw)) is not None:
-                    s.callback(taken[0])
-        ready = ws.get_ready_entities('timer')
-        for t in timers:
-            if t.handle.pointer in ready and t.handle.is_timer_ready():
-                t.handle.call_timer()
-                t.callback()
-
-
 def receive(kind: str, mode: str, idle: int, expected: int, seconds: float) -> None:
     rclpy.init()
     node = rclpy.create_node('ceiling_sub')
@@ -99,17 +72,14 @@ def receive(kind: str, mode: str, idle: int, expected: int, seconds: float) -> N
     node.create_timer(0.01, lambda: None)
     deadline = time.monotonic() + seconds + 30.0
     done = lambda: count[0] >= expected  # noqa: E731
-    # Wait for the first message before timing: discovery is not the subject here.
-    executor = SingleThreadedExecutor()
+    executor = SingleThreadedExecutor() if mode == 'executor' else DrainingExecutor()
     executor.add_node(node)
+    # Wait for the first message before timing: discovery is not the subject here.
     while count[0] == 0 and time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.1)
     first, cpu0, wall0 = count[0], time.process_time(), time.monotonic()
-    if mode == 'executor':
-        while not done() and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.1)
-    else:
-        drain_spin(node, deadline, done)
+    while not done() and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.1)
     cpu, wall = time.process_time() - cpu0, time.monotonic() - wall0
     got = count[0] - first
     print(f'{mode} {idle} {got} {cpu:.4f} {wall:.4f}', flush=True)
@@ -135,7 +105,7 @@ def main() -> None:
     print(f'{args.type} at {args.rate:g}/s for {args.seconds:g} s; receiver CPU (all threads) per '
           'message\n')
     print('| subscriptions in the process | rclpy SingleThreadedExecutor [µs/msg] | '
-          'draining loop [µs/msg] | ratio | received (executor, drain) |')
+          'DrainingExecutor [µs/msg] | ratio | received (executor, drain) |')
     print('|---|---|---|---|---|')
     me = [sys.executable, __file__, '--rate', str(args.rate), '--seconds', str(args.seconds),
           '--type', args.type]

@@ -1,6 +1,6 @@
 """Fault matrix: what each fault and bad input costs on the paper's 8-agent scenario.
 
-Runs the distributed estimators without DDS (bearing_pose_estimation.netsim: the same
+Runs the distributed estimators without DDS (bearing_pose_estimation.sim.netsim: the same
 AgentEstimator as the node, fed like the simulator node feeds it) with one fault per row of
 ``netsim.fault_cases()`` (the list test/test_robustness.py tests), and compares with the
 fault-free run at the same instants. Deterministic; prints a Markdown table.
@@ -26,7 +26,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from bearing_pose_estimation.netsim import (FaultCase, NetRun, convergence_cost, fault_cases,
+from bearing_pose_estimation.sim.netsim import (FaultCase, NetRun, convergence_cost, fault_cases,
                                             mean_errors, reconvergence_time, run_case)
 from bearing_pose_estimation.scenario import load_scenario
 

@@ -31,9 +31,9 @@ import yaml
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
-from bearing_pose_estimation import launch  # noqa: E402
-from bearing_pose_estimation.generate import generate_scenario  # noqa: E402
-from bearing_pose_estimation.node_main import EXECUTOR_ENV, EXECUTORS  # noqa: E402
+from bearing_pose_estimation.cli import launch  # noqa: E402
+from bearing_pose_estimation.scenario.generate import generate_scenario  # noqa: E402
+from bearing_pose_estimation.ros.node_main import EXECUTOR_ENV, EXECUTORS  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 
 _DONE = re.compile(r'reached t = \S+ s in (?P<wall>\S+) s wall \(x(?P<speed>\S+) real time\).*'
@@ -70,9 +70,9 @@ def run_one(n: int, k: int, args: argparse.Namespace, tmp: Path) -> dict[str, fl
     row['rss_agent_mb'] = sum(rss) / n
     summary = cfg.out_dir / 'summary.json'
     if summary.exists():
-        final = json.loads(summary.read_text())['final']
-        row.update(att_err=final['attitude_error_mean_rad'],
-                   pos_err=final['position_error_mean_m'])
+        final = json.loads(summary.read_text())
+        row.update(att_err=final['final_attitude_error_mean_rad'],
+                   pos_err=final['final_position_error_mean_m'])
     return row
 
 

@@ -21,7 +21,7 @@ import yaml
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 101))
 
-from bearing_pose_estimation import launch  # noqa: E402
+from bearing_pose_estimation.cli import launch  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 
 FOUR = {

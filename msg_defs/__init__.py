@@ -8,6 +8,9 @@ one topic. Topic names are relative: each agent's node runs in the namespace ``/
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -16,7 +19,7 @@ from numpy.typing import NDArray
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 from sensor_msgs.msg import Imu, PointCloud2, PointField
 
-from bearing_pose_estimation import so3
+from bearing_pose_estimation.core import so3
 
 Array = NDArray[np.float64]
 
@@ -26,6 +29,7 @@ BEARINGS = 'bearings'              # sensor_msgs/PointCloud2, in: own unit beari
 KNOWN_POSE = 'known_pose'          # geometry_msgs/PoseStamped, in: leaders' known pose
 ESTIMATE = 'estimate'              # geometry_msgs/PoseStamped, out: (R̂_i, p̂_i) in world
 WORLD_BEARINGS = 'world_bearings'  # sensor_msgs/PointCloud2, out: R̂_i b^i_il for listeners l
+DIAGNOSTICS = '/diagnostics'       # diagnostic_msgs/DiagnosticArray, out: each node's health
 GROUND_TRUTH = 'ground_truth'      # geometry_msgs/PoseStamped, simulator: true pose
 CLOCK = '/clock'                   # rosgraph_msgs/Clock, simulator (use_sim_time)
 
@@ -192,3 +196,56 @@ def decode_pose(msg: PoseStamped) -> tuple[float, Array, Array]:
     if not math.isclose(norm, 1.0, abs_tol=1e-3):
         raise WireError(f'quaternion norm {norm:.6g} is not 1')
     return from_stamp(msg.header.stamp), so3.from_quat(q), p
+
+
+# ----------------------------------------------------------------------------- channels
+@dataclass(frozen=True)
+class ChannelWire:
+    """How one estimator channel (``estimators.base.Channel``, by name) travels: the topic of
+    the sender's namespace, its type and frame, and the decoder to ``(stamp, value)``; a
+    per-edge value is ``{listener id: vector}``. ``encode(t, value)`` builds the message; None:
+    the channel rides on the ``estimate`` every estimator publishes anyway."""
+
+    topic: str
+    type: type
+    frame: str
+    decode: Callable[[Any], tuple[float, Any]]
+    encode: Callable[[float, Any], Any] | None
+
+
+def _decode_position(msg: PoseStamped) -> tuple[float, Array]:
+    t, _, p = decode_pose(msg)
+    return t, p
+
+
+def _decode_id_vectors(msg: PointCloud2) -> tuple[float, dict[int, Array]]:
+    t, ids, vectors = decode_vectors(msg)
+    return t, dict(zip(ids.tolist(), vectors))
+
+
+def _encode_id_vectors(t: float, value: dict[int, Array]) -> PointCloud2:
+    ids = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
+    return encode_vectors(t, WORLD_FRAME, ids, np.array(list(value.values())).reshape(-1, 3))
+
+
+# Channel name -> wire. p_hat: the position of the sender's `estimate`; world_bearing: its
+# `world_bearings`, one point per listener.
+CHANNELS = {
+    'p_hat': ChannelWire(ESTIMATE, PoseStamped, WORLD_FRAME, _decode_position, None),
+    'world_bearing': ChannelWire(WORLD_BEARINGS, PointCloud2, WORLD_FRAME, _decode_id_vectors,
+                                 _encode_id_vectors),
+}
+
+
+def channel(name: str) -> ChannelWire:
+    """The wire of channel ``name``.
+
+    Raises:
+        WireError: no wire format is defined for it (a new method's channel needs an entry in
+            :data:`CHANNELS`).
+    """
+    try:
+        return CHANNELS[name]
+    except KeyError:
+        raise WireError(f'channel {name!r} has no wire format; add it to msg_defs.CHANNELS '
+                        f'(known: {", ".join(CHANNELS)})') from None

@@ -18,7 +18,8 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from bearing_pose_estimation import launch, so3
+from bearing_pose_estimation.cli import launch
+from bearing_pose_estimation.core import so3
 from bearing_pose_estimation import msg_defs as wire
 
 

@@ -5,13 +5,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bearing_pose_estimation import so3
-from bearing_pose_estimation.agent import estimator_for
-from bearing_pose_estimation.gyro import GyroBuffer
-from bearing_pose_estimation.netsim import run_network
+from bearing_pose_estimation.core import so3
+from bearing_pose_estimation.estimators.agent import estimator_for
+from bearing_pose_estimation.core.gyro import GyroBuffer
+from bearing_pose_estimation.sim.netsim import run_network
 from bearing_pose_estimation.scenario import load_scenario
-from bearing_pose_estimation.simulator import BatchSimulator
-from bearing_pose_estimation.world import World
+from bearing_pose_estimation.sim.batch import BatchSimulator
+from bearing_pose_estimation.sim.world import World
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
 

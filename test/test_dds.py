@@ -16,11 +16,12 @@ import numpy as np
 import pytest
 import yaml
 
-from bearing_pose_estimation import launch, so3
+from bearing_pose_estimation.cli import launch
+from bearing_pose_estimation.core import so3
 from bearing_pose_estimation import msg_defs as wire
-from bearing_pose_estimation.cli import main
+from bearing_pose_estimation.cli.main import main
 from bearing_pose_estimation.scenario import initial_estimates, load_scenario
-from bearing_pose_estimation.simulator import BatchSimulator
+from bearing_pose_estimation.sim.batch import BatchSimulator
 from rosgraph_msgs.msg import Clock
 
 from ros_helpers import ProcessWatch, error_at, observer, paired_errors
@@ -310,8 +311,8 @@ def test_explicit_parameter_files_without_a_scenario_file(tmp_path, no_leftovers
     assert 'unknown parameter(s) ignored: neighbour_timout (did you mean neighbour_timeout?)' \
         in log3
     batches = {'agent_3': BatchSimulator(scenario).run(10.0, record_every=0.1),
-               'agent_4': BatchSimulator(dataclasses.replace(
-                   scenario, method='tran_anderson_ahn', **TRAN_GAINS)).run(10.0, 0.1)}
+               'agent_4': BatchSimulator(scenario.with_method(
+                   'tran_anderson_ahn', **TRAN_GAINS)).run(10.0, 0.1)}
     for k, agent in enumerate(followers):
         errors = paired_errors(obs, agent)
         for t in (5.0, 10.0):

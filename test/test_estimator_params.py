@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 
-from bearing_pose_estimation import launch, so3
+from bearing_pose_estimation.cli import launch
+from bearing_pose_estimation.core import so3
 from bearing_pose_estimation import msg_defs as wire
-from bearing_pose_estimation.estimator_node import EstimatorNode
-from bearing_pose_estimation.node_main import parameter_overrides
-from bearing_pose_estimation.observer import CascadeGains
+from bearing_pose_estimation.ros.estimator_node import EstimatorNode
+from bearing_pose_estimation.ros.node_main import parameter_overrides
+from bearing_pose_estimation.estimators.boughellaba_tayebi import CascadeGains
 from bearing_pose_estimation.scenario import ScenarioError
-from bearing_pose_estimation.simulator_node import SimulatorNode
-from bearing_pose_estimation.tran import TranGains
+from bearing_pose_estimation.ros.simulator_node import SimulatorNode
+from bearing_pose_estimation.estimators.tran_anderson_ahn import TranGains
 
 
 def _node(context, **params):

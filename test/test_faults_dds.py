@@ -12,10 +12,10 @@ import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
-from bearing_pose_estimation import launch
+from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.scenario import load_scenario, parse_scenario
-from bearing_pose_estimation.simulator import BatchSimulator
+from bearing_pose_estimation.sim.batch import BatchSimulator
 
 from ros_helpers import error_at, observer, paired_errors
 

@@ -8,15 +8,19 @@ import numpy as np
 import pytest
 import yaml
 
-from bearing_pose_estimation import montecarlo as mc
-from bearing_pose_estimation.cli import main
+from bearing_pose_estimation.studies import montecarlo as mc
+from bearing_pose_estimation.cli.main import main
 from bearing_pose_estimation.scenario import initial_estimates, load_scenario, parse_scenario
-from bearing_pose_estimation.simulator import Recording
+from bearing_pose_estimation.studies.results import Recording
+from bearing_pose_estimation.studies.summary import SETTLE_FACTOR
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
-COLUMNS = ['run', 'seed', 'steady_attitude_error_rad', 'steady_position_error_m',
-           'final_max_attitude_error_rad', 'final_max_position_error_m', 't_att_1e-3_s',
-           't_pos_1e-2_s', 't_att_settled_s', 't_pos_settled_s']
+COLUMNS = ['run', 'seed', 'final_attitude_error_mean_rad', 'final_position_error_mean_m',
+           'final_attitude_error_max_rad', 'final_position_error_max_m',
+           'steady_attitude_error_mean_rad', 'steady_position_error_mean_m',
+           'steady_attitude_error_max_rad', 'steady_position_error_max_m',
+           'attitude_below_1e-3_rad_from_s', 'position_below_1e-2_m_from_s',
+           'attitude_settled_from_s', 'position_settled_from_s']
 
 
 @pytest.fixture(scope='module')
@@ -60,7 +64,7 @@ def test_writes_the_documented_files(two_studies, capsys):
 def test_same_seed_same_runs_and_noisy_runs_differ(two_studies):
     a, b = (_rows(out / 'runs.csv') for out in two_studies)
     assert a == b                                   # every value, to the last digit
-    steady = [float(r['steady_attitude_error_rad']) for r in a]
+    steady = [float(r['steady_attitude_error_mean_rad']) for r in a]
     assert len(set(steady)) == 4                    # the noise differs run to run
     assert all(1e-4 < x < 0.1 for x in steady)      # and is of the size of the noise
 
@@ -98,12 +102,12 @@ def test_summary_statistics_match_the_rows(two_studies):
 def test_noisy_runs_settle_on_their_floor_not_on_the_fixed_thresholds(two_studies):
     """1° bearing noise: no run stays below 1e-3 rad, yet every run has a settled time."""
     rows = _rows(two_studies[0] / 'runs.csv')
-    assert all(r['t_att_1e-3_s'] == '' for r in rows)
+    assert all(r['attitude_below_1e-3_rad_from_s'] == '' for r in rows)
     assert all(0.0 < float(r[q]) <= 10.0 for r in rows
-               for q in ('t_att_settled_s', 't_pos_settled_s'))
+               for q in ('attitude_settled_from_s', 'position_settled_from_s'))
     summary = json.loads((two_studies[0] / 'summary.json').read_text())
-    assert summary['runs_never_converged']['attitude_1e-3_rad'] == 4
-    assert summary['runs_never_converged']['attitude_settled'] == 0
+    assert summary['runs_never_converged']['attitude_below_1e-3_rad_from_s'] == 4
+    assert summary['runs_never_converged']['attitude_settled_from_s'] == 0
 
 
 def _recording(t, att, pos):
@@ -116,20 +120,20 @@ def test_settled_time_is_within_a_factor_of_the_floor_or_the_fixed_threshold():
     floor = 3e-3 * (1.0 + 0.5 * np.sin(7.0 * t))          # a noise floor, fluctuating ±50 %
     att, pos = 0.5 * np.exp(-t / 2) + floor, 2 * np.exp(-t / 5) + 10 * floor
     noisy = mc.evaluate(_recording(t, att, pos), run=0, seed=0).values
-    k = mc.SETTLE_FACTOR
-    assert noisy['steady_attitude_error_rad'] == pytest.approx(3e-3, rel=1e-3)
-    assert noisy['t_att_1e-3_s'] is None and noisy['t_pos_1e-2_s'] is None
+    k = SETTLE_FACTOR
+    assert noisy['steady_attitude_error_mean_rad'] == pytest.approx(3e-3, rel=1e-3)
+    assert noisy['attitude_below_1e-3_rad_from_s'] is None and noisy['position_below_1e-2_m_from_s'] is None
     # The last time the decay plus the floor's peak (1.5 floor) reaches k floor, give or take
     # one period of the fluctuation (0.9 s) and one record (0.1 s).
     last_att = 2 * math.log(0.5 / ((k - 1.5) * 3e-3))
     last_pos = 5 * math.log(2 / ((k - 1.5) * 3e-2))
-    assert last_att - 1.0 < noisy['t_att_settled_s'] <= last_att + 0.1
-    assert last_pos - 1.0 < noisy['t_pos_settled_s'] <= last_pos + 0.1
-    assert np.all(att[t >= noisy['t_att_settled_s']] < k * noisy['steady_attitude_error_rad'])
+    assert last_att - 1.0 < noisy['attitude_settled_from_s'] <= last_att + 0.1
+    assert last_pos - 1.0 < noisy['position_settled_from_s'] <= last_pos + 0.1
+    assert np.all(att[t >= noisy['attitude_settled_from_s']] < k * noisy['steady_attitude_error_mean_rad'])
     # Without noise the floor is far below the fixed thresholds: those apply.
     clean = mc.evaluate(_recording(t, np.exp(-t / 2), np.exp(-t / 5)), run=0, seed=0).values
-    assert clean['t_att_settled_s'] == clean['t_att_1e-3_s'] == pytest.approx(13.9)
-    assert clean['t_pos_settled_s'] == clean['t_pos_1e-2_s'] == pytest.approx(23.1)
+    assert clean['attitude_settled_from_s'] == clean['attitude_below_1e-3_rad_from_s'] == pytest.approx(13.9)
+    assert clean['position_settled_from_s'] == clean['position_below_1e-2_m_from_s'] == pytest.approx(23.1)
 
 
 def test_any_run_can_be_replayed_from_its_seed(two_studies, noisy):

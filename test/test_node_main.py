@@ -8,12 +8,12 @@ import time
 
 import pytest
 
-from bearing_pose_estimation import launch
+from bearing_pose_estimation.cli import launch
 
 CHILD = r'''
 import sys, time
 from rclpy.node import Node
-from bearing_pose_estimation import node_main
+from bearing_pose_estimation.ros import node_main
 
 node_main.TEARDOWN_TIMEOUT_S = 1.0
 hang = sys.argv[1] == 'hang'

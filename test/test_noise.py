@@ -9,12 +9,12 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from bearing_pose_estimation import so3
-from bearing_pose_estimation.noise import NoiseModel
+from bearing_pose_estimation.core import so3
+from bearing_pose_estimation.sim.noise import NoiseModel
 from bearing_pose_estimation.scenario import (BearingPerturbation, Noise, ScenarioError,
                                               parse_scenario)
-from bearing_pose_estimation.simulator import BatchSimulator
-from bearing_pose_estimation.world import World
+from bearing_pose_estimation.sim.batch import BatchSimulator
+from bearing_pose_estimation.sim.world import World
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
 ALL_ON = {'gyro_std': 0.01, 'gyro_bias': [0.002, -0.001, 0.003], 'gyro_bias_std': 0.002,

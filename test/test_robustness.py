@@ -10,16 +10,21 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
-from bearing_pose_estimation import so3
-from bearing_pose_estimation.agent import Limits, estimator_for
-from bearing_pose_estimation.netsim import (Outage, convergence_cost, fault_cases,
-                                            mean_errors, reconvergence_time, run_case)
+from bearing_pose_estimation.core import so3
+from bearing_pose_estimation.estimators.agent import Limits, estimator_for
+from bearing_pose_estimation.sim.netsim import (Outage, convergence_cost, fault_cases,
+                                            reconvergence_time, run_case)
 from bearing_pose_estimation.scenario import load_scenario
-from bearing_pose_estimation.simulator import Recording
-from bearing_pose_estimation.world import World
+from bearing_pose_estimation.studies.results import Recording
+from bearing_pose_estimation.sim.world import World
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
 SCENARIO = load_scenario(PAPER)
+
+
+def _msg(p_hat, world_bearings) -> dict:
+    """A neighbour's message of both leader-follower methods: p̂_j and R̂_j b^j_jl by id."""
+    return {'p_hat': p_hat, 'world_bearing': world_bearings}
 
 
 def _fed(name='agent_6', seconds=1.0):
@@ -38,8 +43,8 @@ def _fed(name='agent_6', seconds=1.0):
             for jid in nbr_ids:  # neighbours' messages: exact world bearings, true p̂
                 jj = jid - 1
                 d = world.p[i] - world.p[jj]
-                assert est.add_neighbour(jid, world.t, world.p[jj],
-                                         {est.agent_id: d / np.linalg.norm(d)}) is None
+                assert est.add_neighbour(jid, world.t, _msg(world.p[jj],
+                                         {est.agent_id: d / np.linalg.norm(d)})) is None
         est.advance()
     return world, est
 
@@ -75,13 +80,13 @@ def test_bad_neighbour_messages_are_rejected():
     t = est.gyro.end
     me = est.agent_id
     ok = {me: np.array([0.0, 0.0, 1.0])}
-    assert est.add_neighbour(7, t, np.zeros(3), ok) == 'unknown_id'  # not a neighbour of 6
-    assert est.add_neighbour(2, t, np.zeros(3), {9: np.ones(3)}) == 'not_seen'
-    assert est.add_neighbour(2, t, np.array([np.nan, 0, 0]), ok) == 'non_finite'
-    assert est.add_neighbour(2, t, np.zeros(3), {me: np.zeros(3)}) == 'zero_vector'
-    assert est.add_neighbour(2, t, np.zeros(3), {me: np.array([0, 0, 3.0])}) == 'not_unit'
-    assert est.add_neighbour(2, t + 10.0, np.zeros(3), ok) == 'future_stamp'
-    assert est.add_neighbour(2, t - 0.1, np.zeros(3), ok) == 'out_of_order'
+    assert est.add_neighbour(7, t, _msg(np.zeros(3), ok)) == 'unknown_id'  # not a neighbour of 6
+    assert est.add_neighbour(2, t, _msg(np.zeros(3), {9: np.ones(3)})) == 'not_seen'
+    assert est.add_neighbour(2, t, _msg(np.array([np.nan, 0, 0]), ok)) == 'non_finite'
+    assert est.add_neighbour(2, t, _msg(np.zeros(3), {me: np.zeros(3)})) == 'zero_vector'
+    assert est.add_neighbour(2, t, _msg(np.zeros(3), {me: np.array([0, 0, 3.0])})) == 'not_unit'
+    assert est.add_neighbour(2, t + 10.0, _msg(np.zeros(3), ok)) == 'future_stamp'
+    assert est.add_neighbour(2, t - 0.1, _msg(np.zeros(3), ok)) == 'out_of_order'
     assert est.set_known_pose(t, np.full((3, 3), np.nan), np.zeros(3)) == 'non_finite'
 
 
@@ -100,7 +105,7 @@ def test_garbage_never_reaches_the_estimate():
         est.add_gyro(world.t + rng.uniform(-2, 2), bad)
         est.add_bearings(world.t + rng.uniform(-2, 2), rng.integers(0, 12, 3), rng.choice(junk, (3, 3)))
         est.add_neighbour(int(rng.integers(1, 9)), world.t + rng.uniform(-2, 2),
-                          rng.choice(junk, 3), {6: rng.choice(junk, 3)})
+                          _msg(rng.choice(junk, 3), {6: rng.choice(junk, 3)}))
         est.advance()
         assert np.all(np.isfinite(est.R_hat)) and np.all(np.isfinite(est.p_hat))
     assert so3.orthonormality_error(est.R_hat[0]) < 1e-12
@@ -114,7 +119,7 @@ def test_clock_jump_back_restarts_from_the_initial_estimate():
     np.testing.assert_array_equal(est.R_hat[0], est.R0)
     np.testing.assert_array_equal(est.p_hat[0], est.p0)
     assert est.t == pytest.approx(0.01)  # next grid instant: the step grid stays aligned
-    assert all(nb.stamp is None for nb in est.neighbours)
+    assert all(not nb.stamps for nb in est.neighbours)
 
 
 def test_gyro_gap_restarts_time_and_keeps_the_estimate():
@@ -143,11 +148,11 @@ def test_silent_neighbour_goes_stale_and_comes_back():
             est.add_bearings(world.t, j + 1, b)
             for jid in (4, 5):
                 d = world.p[i] - world.p[jid - 1]
-                est.add_neighbour(jid, world.t, world.p[jid - 1], {6: d / np.linalg.norm(d)})
+                est.add_neighbour(jid, world.t, _msg(world.p[jid - 1], {6: d / np.linalg.norm(d)}))
         est.advance()
     assert est.last.stale == ('agent_2',) and est.last.edges_used == 2
     d = world.p[i] - world.p[1]
-    est.add_neighbour(2, world.t, world.p[1], {6: d / np.linalg.norm(d)})
+    est.add_neighbour(2, world.t, _msg(world.p[1], {6: d / np.linalg.norm(d)}))
     world.step()
     est.add_gyro(world.t, world.imu()[i]) if world.due(world.imu_every) else None
     while est.steps_ready() == 0:
@@ -234,7 +239,7 @@ def test_fault_matrix_row(key, matrix_runs):
         t = reconvergence_time(rec, ref.recording, case.window[1])
         assert t is not None and t <= exp.reconverge
     assert convergence_cost(rec, ref.recording) <= exp.cost
-    att, pos = mean_errors(rec)
+    att, pos = rec.mean_errors()
     assert att[-1] < 0.2 * att[0] and pos[-1] < 0.5 * pos[0]  # converging at the end
 
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import yaml
 
-from bearing_pose_estimation import so3
-from bearing_pose_estimation.graph import check_scenario
+from bearing_pose_estimation.core import so3
+from bearing_pose_estimation.scenario import check_scenario
 from bearing_pose_estimation.scenario import (ScenarioError, initial_estimates, load_scenario,
                                               parse_scenario)
 
@@ -30,7 +30,7 @@ def test_paper_scenario_is_section_v():
     assert nbrs == {'agent_3': ['agent_1', 'agent_2'], 'agent_4': ['agent_2', 'agent_3'],
                     'agent_5': ['agent_1', 'agent_4'], 'agent_6': ['agent_2', 'agent_4', 'agent_5'],
                     'agent_7': ['agent_3', 'agent_4', 'agent_6'], 'agent_8': ['agent_1', 'agent_7']}
-    assert (s.k_R, s.k_p) == (1.0, 1.0)
+    assert (s.gains.k_R, s.gains.k_p) == (1.0, 1.0)
     assert all(n.k == 1.0 for a in s.followers for n in a.neighbours)
     R0, p0 = initial_estimates(s)
     np.testing.assert_array_equal(p0[2:], [[-2, 0, -1], [-1, 2, 2], [-2, 2, 4], [0, 0, 0],
@@ -115,7 +115,7 @@ def test_graph_reference_errors(paper_data):
     assert 'agents[0] (agent_1).neighbours: a leader knows its pose' in _error(bad)
     bad = copy.deepcopy(paper_data)
     bad['leaders'] = ['agent_1']
-    assert 'leaders: expected the names of exactly two distinct agents' in _error(bad)
+    assert 'leaders: expected the names of exactly 2 distinct agents' in _error(bad)
     bad = copy.deepcopy(paper_data)
     bad['agents'][3]['name'] = 'agent_3'
     assert "duplicate agent name 'agent_3'" in _error(bad)

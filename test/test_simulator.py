@@ -4,14 +4,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bearing_pose_estimation import so3
-from bearing_pose_estimation.generate import generate_scenario
-from bearing_pose_estimation.graph import check_scenario
-from bearing_pose_estimation.metrics import settling_time
-from bearing_pose_estimation.motion import OmegaProfile, magnus_increment
-from bearing_pose_estimation.noise import perturb_bearings
+from bearing_pose_estimation.core import so3
+from bearing_pose_estimation.scenario.generate import generate_scenario
+from bearing_pose_estimation.scenario import check_scenario
+from bearing_pose_estimation.studies.summary import settling_time
+from bearing_pose_estimation.core.motion import OmegaProfile, magnus_increment
+from bearing_pose_estimation.sim.noise import perturb_bearings
 from bearing_pose_estimation.scenario import load_scenario, parse_scenario
-from bearing_pose_estimation.simulator import BatchSimulator
+from bearing_pose_estimation.sim.batch import BatchSimulator
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
 
@@ -44,7 +44,7 @@ def test_estimates_stay_on_so3(paper_run):
 def test_magnus_increment_matches_fine_integration():
     """ΔR from the 4th-order Magnus step agrees with 1000 tiny exponential sub-steps."""
     sim = BatchSimulator(load_scenario(PAPER))
-    omega: OmegaProfile = sim.omega
+    omega: OmegaProfile = sim.truth.omega
     t0, h = 0.73, 0.01
     dR = magnus_increment(omega, t0, h)
     fine = np.tile(np.eye(3), (sim.n, 1, 1))

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bearing_pose_estimation import so3
+from bearing_pose_estimation.core import so3
 
 RNG = np.random.default_rng(7)
 VECS = RNG.normal(size=(50, 3))

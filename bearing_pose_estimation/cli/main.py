@@ -1,0 +1,543 @@
+"""``bearing-pose``: check, simulate and generate scenarios, compare estimators, run Monte Carlo
+and noise studies, and run scenarios over DDS.
+
+No file is ever overwritten without ``--force``.
+
+Exit codes: 0 success; 1 invalid scenario, failed check, or a file it refuses to overwrite;
+2 bad command line.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import yaml
+
+from .. import estimators
+from ..scenario import (Scenario, ScenarioError, check_scenario, load_scenario,
+                        parse_scenario)
+
+if TYPE_CHECKING:
+    from .launch import RunResult
+
+
+def _load_checked(path: str) -> Scenario:
+    """Load and check; print warnings; raise ScenarioError listing every error."""
+    scenario = load_scenario(path)
+    report = check_scenario(scenario)
+    for w in report.warnings:
+        print(f'{path}: {w}', file=sys.stderr)
+    if not report.ok:
+        # main() prints the `error:` prefix once.
+        raise ScenarioError('\n'.join(f'{path}: {str(e).removeprefix("error: ")}'
+                                      for e in report.errors))
+    return scenario
+
+
+def _out_dir(arg: str | Path, outputs: list[str], force: bool) -> Path:
+    """Create the output directory. Unless ``force``, refuse (ScenarioError) if it already
+    holds any of ``outputs`` (paths relative to it): no file is overwritten without --force."""
+    out = Path(arg)
+    if out.exists() and not out.is_dir():
+        raise ScenarioError(f'{out}: --out must be a directory, and this is a file. '
+                            'Fix: choose another --out (outputs never overwrite other files)')
+    existing = [out / name for name in outputs if (out / name).exists()] if not force else []
+    if existing:
+        more = f' (and {len(existing) - 1} more of its outputs)' if len(existing) > 1 else ''
+        raise ScenarioError(f'{existing[0]}: exists{more}; refusing to overwrite it. '
+                            'Fix: pass --force to overwrite, or choose another --out')
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+PLOT_FILES = ['fig2_attitude_error.png', 'fig3_position_error.png']
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario)
+    report = check_scenario(scenario)
+    n_f = len(scenario.followers)
+    print(f'{args.scenario}: {scenario.name}: {len(scenario.agents)} agents '
+          f'({n_f} followers), {sum(len(a.neighbours) for a in scenario.agents)} sensing edges')
+    text = report.format()
+    if text:
+        print(text)
+    print(f'{len(report.errors)} error(s), {len(report.warnings)} warning(s)')
+    return 0 if report.ok else 1
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from ..sim.batch import BatchSimulator
+    from ..studies.plots import write_plots
+    from ..studies.summary import (format_summary, summarize, write_metrics_csv,
+                                   write_summary_json)
+
+    scenario = _load_checked(args.scenario)
+    out = _out_dir(args.out or f'results/{scenario.name}', ['metrics.csv', 'summary.json']
+                   + ([] if args.no_plots else PLOT_FILES), args.force)
+    duration = args.duration if args.duration is not None else scenario.duration
+    sim = BatchSimulator(scenario, step=args.step)
+
+    def progress(t: float, att: np.ndarray, pos: np.ndarray) -> None:
+        if not args.quiet:
+            print(f'  t = {t:7.1f} / {duration:g} s   mean attitude error {att.mean():.2e} rad   '
+                  f'mean position error {pos.mean():.2e} m', file=sys.stderr, flush=True)
+
+    print(f'simulating {scenario.name}: {len(scenario.agents)} agents, {duration:g} s at '
+          f'h = {sim.h:g} s', file=sys.stderr)
+    wall = time.perf_counter()
+    rec = sim.run(duration, record_every=args.record_every, progress=progress,
+                  progress_every=max(duration / 10.0, sim.h))
+    wall = time.perf_counter() - wall
+    summary = summarize(rec, scenario=scenario.name, source=scenario.source, mode='batch',
+                        step_s=sim.h, wall_time_s=round(wall, 3))
+    write_metrics_csv(rec, out / 'metrics.csv')
+    write_summary_json(summary, out / 'summary.json')
+    files = [out / 'metrics.csv', out / 'summary.json']
+    if not args.no_plots:
+        files += write_plots(rec, out)
+    print(format_summary(summary))
+    print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
+    return 0
+
+
+def _method_scenarios(args: argparse.Namespace
+                      ) -> tuple[Scenario, dict[str, tuple[dict, Scenario]]]:
+    """``compare``/``noise-study``: the checked scenario, and per method of ``--methods`` the
+    derived file content and scenario (``--gains`` applied); prints each method's own check
+    warnings (e.g. Tran et al.'s K_i) that the file's method did not already give."""
+    from ..scenario import read_scenario_data
+    from ..studies.compare import method_scenarios
+
+    scenario = _load_checked(args.scenario)
+    derived = method_scenarios(read_scenario_data(args.scenario), scenario, args.methods,
+                               args.gain_overrides)
+    shown = {str(w) for w in check_scenario(scenario).warnings}
+    for method, (_, method_scenario) in derived.items():
+        for w in check_scenario(method_scenario).warnings:
+            if str(w) not in shown:
+                shown.add(str(w))
+                print(f'{args.scenario} ({method}): {w}', file=sys.stderr)
+    return scenario, derived
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from ..studies import compare
+    from ..studies.plots import write_compare_plot
+    from ..studies.summary import read_metrics_csv
+
+    scenario, derived = _method_scenarios(args)
+    outputs = [f for f in compare.OUTPUT_FILES if not (args.no_plots and f.endswith('.png'))]
+    if args.distributed:
+        outputs += [f'{m}/{f}' for m in args.methods
+                    for f in ('scenario.yaml', 'metrics.csv', 'summary.json')]
+    out = _out_dir(args.out or f'results/{scenario.name}_compare', outputs, args.force)
+    duration = args.duration if args.duration is not None else scenario.duration
+    modes = 'batch simulator, then over DDS' if args.distributed else 'batch simulator'
+    print(f'comparing {", ".join(args.methods)} on {scenario.name}: {len(scenario.agents)} '
+          f'agents, {duration:g} s, {modes}', file=sys.stderr)
+    wall = time.perf_counter()
+    runs = compare.run_batch({m: s for m, (_, s) in derived.items()}, duration,
+                             args.record_every)
+    for method, (data, method_scenario) in derived.items() if args.distributed else ():
+        method_dir = out / method
+        method_dir.mkdir(exist_ok=True)
+        scenario_file = method_dir / 'scenario.yaml'
+        scenario_file.write_text(f'# {method} on {args.scenario}, derived by bearing-pose '
+                                 'compare (method and gains changed)\n'
+                                 + yaml.safe_dump(data, sort_keys=False, width=100))
+        result = _run_over_dds(method_scenario, scenario_file, method_dir, duration, args)
+        if not result.ok:
+            print(f'{method} over DDS failed after {result.wall_s:.1f} s; logs in '
+                  f'{method_dir / "logs"}', file=sys.stderr)
+            return 1
+        runs.append(compare.Run(method, 'dds', method_scenario,
+                                read_metrics_csv(method_dir / 'metrics.csv')))
+    wall = time.perf_counter() - wall
+    text = compare.table(compare.rows(runs))
+    compare.write_csv(runs, out / 'compare.csv')
+    (out / 'compare.md').write_text(f'# {scenario.name}: {", ".join(args.methods)}\n\n' + text)
+    files = [out / 'compare.csv', out / 'compare.md']
+    if not args.no_plots:
+        files.append(write_compare_plot({r.label: r.rec for r in runs},
+                                        out / 'compare_errors.png',
+                                        frozenset(r.label for r in runs if r.mode == 'dds')))
+    print(text)
+    print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
+    return 0
+
+
+def cmd_noise_study(args: argparse.Namespace) -> int:
+    from ..studies import noise_study as ns
+
+    scenario, derived = _method_scenarios(args)
+    try:
+        ns.check_frequencies(args.frequencies_hz, scenario)
+    except ValueError as exc:
+        raise ScenarioError(f'{args.scenario}: {exc}') from exc
+    outputs = [f for f in ns.OUTPUT_FILES if not (args.no_plots and f.endswith('.png'))]
+    out = _out_dir(args.out or f'results/{scenario.name}_noise_study', outputs, args.force)
+    duration = args.duration if args.duration is not None else scenario.duration
+    x, y, z = (float(c) for c in np.asarray(args.axis) / np.linalg.norm(args.axis))
+    axis = (x, y, z)
+    n = len(args.methods) * len(args.amplitudes_deg) * len(args.frequencies_hz)
+    jobs = min(args.jobs or os.cpu_count() or 1, n)
+    print(f'noise study on {scenario.name}: bearings rot_X(θ0 sin 2πft) b, X = {list(axis)}, '
+          f'θ0 in {args.amplitudes_deg} deg, f in {args.frequencies_hz} Hz; '
+          f'{", ".join(args.methods)}; {n} runs of {duration:g} s on {jobs} process(es)',
+          file=sys.stderr)
+
+    def progress(done: int, total: int, r: ns.CaseResult) -> None:
+        c, v = r.case, r.values
+        print(f'  {done}/{total}: {c.method}, θ0 = {c.amplitude_deg:g} deg, f = '
+              f'{c.frequency_hz:g} Hz: worst follower within '
+              f'{np.degrees(v["steady_attitude_error_max_rad"]):.3g} deg and '
+              f'{v["steady_position_error_max_m"]:.3g} m', file=sys.stderr, flush=True)
+
+    wall = time.perf_counter()
+    results = ns.run_study({m: s for m, (_, s) in derived.items()}, args.amplitudes_deg,
+                           args.frequencies_hz, duration, jobs, progress, axis)
+    wall = time.perf_counter() - wall
+    text = ns.table(results)
+    ns.write_csv(results, out / 'noise_study.csv')
+    (out / 'noise_study.md').write_text(
+        f'# {scenario.name}: bearings rot_X(θ0 sin 2πft) b, X = {list(axis)}, {duration:g} s '
+        'runs; bounds and '
+        f'means over the last {ns.STEADY_FRACTION:.0%}\n\n' + text)
+    files = [out / 'noise_study.csv', out / 'noise_study.md']
+    if not args.no_plots:
+        files.append(ns.write_plot(results, out / 'noise_study.png'))
+    print(text)
+    print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
+    return 0
+
+
+def cmd_montecarlo(args: argparse.Namespace) -> int:
+    from ..studies import montecarlo as mc
+    from ..studies.summary import STEADY_FRACTION, write_summary_json
+
+    scenario = _load_checked(args.scenario)
+    out = _out_dir(args.out or f'results/{scenario.name}_montecarlo', list(mc.OUTPUT_FILES),
+                   args.force)
+    duration = args.duration if args.duration is not None else scenario.duration
+    seed = args.seed if args.seed is not None else scenario.noise.seed
+    jobs = min(args.jobs or os.cpu_count() or 1, args.runs)
+    seeded = ('noise and random initial estimates' if scenario.random_init is not None
+              else 'noise; initial estimates as given')
+    print(f'monte carlo {scenario.name}: {args.runs} runs of {duration:g} s, seeds {seed}..'
+          f'{seed + args.runs - 1} ({seeded}), {jobs} process(es)', file=sys.stderr)
+
+    def progress(done: int, total: int, r: mc.RunResult) -> None:
+        v = r.values
+        print(f'  {done}/{total} runs done (run {r.run}, seed {r.seed}): steady mean attitude '
+              f'error {v["steady_attitude_error_mean_rad"]:.2e} rad, position '
+              f'{v["steady_position_error_mean_m"]:.2e} m', file=sys.stderr, flush=True)
+
+    wall = time.perf_counter()
+    results = mc.run_montecarlo(args.scenario, args.runs, seed, duration, jobs, progress)
+    wall = time.perf_counter() - wall
+    summary = mc.summarize(results, scenario=scenario.name, source=scenario.source,
+                           first_seed=seed, duration_s=duration, step_s=scenario.step,
+                           steady_window_s=STEADY_FRACTION * duration, jobs=jobs,
+                           wall_time_s=round(wall, 3))
+    files = [out / name for name in mc.OUTPUT_FILES]
+    mc.write_runs_csv(results, files[0])
+    write_summary_json(summary, files[1])
+    mc.write_plot(results, files[2])
+    print(mc.format_table(summary))
+    print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
+    return 0
+
+
+def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: float,
+                  args: argparse.Namespace) -> RunResult:
+    """One distributed run (``run``, ``compare --distributed``): a process per agent, the
+    simulator and the monitor, on a private (or --domain-id) domain, loopback only."""
+    from . import launch
+
+    domain_id = args.domain_id if args.domain_id is not None else launch.private_domain_id()
+    how = 'from --domain-id' if args.domain_id is not None else 'private to this run'
+    if args.domain_id is None and os.environ.get('ROS_DOMAIN_ID'):
+        how += f"; the caller's ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} is not used"
+    cfg = launch.RunConfig(
+        scenario_file=scenario_file.resolve(), out_dir=out.resolve(), duration=duration,
+        domain_id=domain_id, real_time_factor=args.real_time_factor, plots=not args.no_plots,
+        timeout=args.timeout, agents_per_process=args.agents_per_process)
+    pace = (f'at most {cfg.real_time_factor:g}x real time' if cfg.real_time_factor > 0
+            else 'as fast as the estimators keep up')
+    print(f'running {scenario.name} ({scenario.method}) over DDS: {len(scenario.agents)} '
+          f'estimators, monitor, simulator; {cfg.duration:g} s simulated, {pace}; '
+          f'ROS_DOMAIN_ID={domain_id} ({how}), localhost only', file=sys.stderr)
+    try:
+        with launch.sigterm_as_interrupt():
+            return launch.launch_run(scenario, cfg)
+    except KeyboardInterrupt:
+        print(f'interrupted: all processes stopped; partial outputs (if any) and logs in {out}',
+              file=sys.stderr)
+        raise
+    except launch.LaunchError as exc:
+        raise ScenarioError(str(exc)) from exc
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    scenario = _load_checked(args.scenario)
+    processes = [a.name for a in scenario.agents] + ['simulator', 'monitor']
+    outputs = (['metrics.csv', 'summary.json'] + ([] if args.no_plots else PLOT_FILES)
+               + [f'params/{p}.yaml' for p in processes] + [f'logs/{p}.log' for p in processes])
+    out = _out_dir(args.out or f'results/{scenario.name}_dds', outputs, args.force)
+    duration = args.duration if args.duration is not None else scenario.duration
+    result = _run_over_dds(scenario, Path(args.scenario), out, duration, args)
+    logs = out.resolve() / 'logs'
+    if not result.ok:
+        print(f'run failed after {result.wall_s:.1f} s; logs in {logs}', file=sys.stderr)
+        return 1
+    # The monitor's forwarded output has already shown the summary.
+    est_cpu = sum(v for k, v in result.cpu_s.items() if k not in ('simulator', 'monitor'))
+    if est_cpu:
+        per_agent = est_cpu / len(scenario.agents)
+        print(f'CPU: {per_agent:.1f} s per agent on average '
+              f'({100 * per_agent / result.wall_s:.0f} % of a core), '
+              f'simulator {result.cpu_s.get("simulator", float("nan")):.1f} s, over '
+              f'{result.wall_s:.1f} s wall for {duration:g} s simulated')
+    print(f'wall time {result.wall_s:.1f} s; wrote ' + ', '.join(str(f) for f in result.files)
+          + f'; parameter files in {out.resolve() / "params"}; logs in {logs}')
+    return 0
+
+
+def cmd_generate(args: argparse.Namespace) -> int:
+    from ..scenario.generate import generate_scenario
+
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise ScenarioError(f'{out}: exists; refusing to overwrite it. '
+                            'Fix: choose another --out, or pass --force')
+    data = generate_scenario(args.agents, seed=args.seed, max_angle_deg=args.max_angle_deg)
+    scenario = parse_scenario(data, source=str(out))
+    report = check_scenario(scenario)
+    assert report.ok, report.format()  # the generator only makes valid scenarios
+    out.parent.mkdir(parents=True, exist_ok=True)
+    header = (f'# Generated by: bearing-pose generate --agents {args.agents} --seed {args.seed}'
+              f' --max-angle-deg {args.max_angle_deg:g}\n')
+    out.write_text(header + yaml.safe_dump(data, sort_keys=False, default_flow_style=None,
+                                           width=100))
+    print(f'wrote {out}: {args.agents} agents, '
+          f'{sum(len(a.neighbours) for a in scenario.agents)} sensing edges, '
+          f'{len(report.warnings)} warning(s)')
+    return 0
+
+
+def _add_method_options(p: argparse.ArgumentParser) -> None:
+    """The scenario and the methods to run with their gains (``compare``, ``noise-study``)."""
+    p.add_argument('scenario', help='scenario YAML file')
+    p.add_argument('--methods', nargs='+', default=list(estimators.methods()),
+                   choices=estimators.methods(),
+                   metavar='METHOD', help=f'methods to run (default: all: {", ".join(estimators.methods())})')
+    p.add_argument('--gains', action='append', default=[], metavar='METHOD:GAIN=V[,GAIN=V]',
+                   help='override gains of one method, e.g. tran_anderson_ahn:k_omega=3,k_c=2 '
+                   '(repeatable; k_ij stays per edge, from the scenario)')
+
+
+def _add_dds_options(p: argparse.ArgumentParser) -> None:
+    """The options of a distributed run (``run``, ``compare --distributed``)."""
+    p.add_argument('--domain-id', type=int, metavar='N',
+                   help='ROS_DOMAIN_ID, 0..232 (default: 1 + pid %% 101, private to this run)')
+    p.add_argument('--real-time-factor', type=float, default=0.0, metavar='F',
+                   help='cap on simulated seconds per wall second; 0: no cap, as fast as the '
+                   'estimators keep up (default: 0)')
+    p.add_argument('--agents-per-process', type=int, default=1, metavar='K',
+                   help='run K agents per process (one executor, one node each) with the '
+                   '`estimators` executable; 1: one `estimator` process per agent (default)')
+    p.add_argument('--timeout', type=float, metavar='S',
+                   help='wall-time safety net [s] (default: 10 x duration / F + 120 for F < 1, '
+                   'else 10 x duration + 120)')
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='bearing-pose',
+        description='Distributed bearing-based pose estimation (Boughellaba & Tayebi; Tran, '
+                    'Anderson & Ahn): check, simulate and generate scenarios, compare the '
+                    'estimators, run Monte Carlo and noise studies, and run scenarios over '
+                    'DDS. No file is overwritten without --force.')
+    sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
+
+    p = sub.add_parser('check', help="check a scenario against the paper's Assumption 2",
+                       description='Check a scenario file: format, Assumption 2 (acyclic graph, '
+                       'reachability, >= 2 non-collinear neighbours, no collocated agents) and '
+                       'the M_i spectra of Lemma 1. Exit 0 when valid, 1 otherwise.')
+    p.add_argument('scenario', help='scenario YAML file')
+    p.set_defaults(func=cmd_check)
+
+    p = sub.add_parser('simulate', help='run the batch simulator; write metrics, summary, plots',
+                       description='Run all agents in one process (no ROS). Writes '
+                       'DIR/metrics.csv, DIR/summary.json, DIR/fig2_attitude_error.png and '
+                       'DIR/fig3_position_error.png; refuses to overwrite any of them without '
+                       '--force.')
+    p.add_argument('scenario', help='scenario YAML file')
+    p.add_argument('--duration', type=float, help='simulated time [s] (default: the scenario\'s)')
+    p.add_argument('--out', metavar='DIR',
+                   help='output directory (default: results/<scenario name>)')
+    p.add_argument('--step', type=float, help='step [s] (default: 1 / scenario frequency)')
+    p.add_argument('--record-every', type=float, default=0.1,
+                   help='metrics row interval [s], at most 0.5 (default: 0.1)')
+    p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
+    p.add_argument('--quiet', action='store_true', help='no progress lines')
+    p.add_argument('--force', action='store_true',
+                   help='overwrite outputs already in DIR')
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser('compare', help='run several estimators on one scenario; table and plot',
+                       description='Run each method on the same scenario (same truth, initial '
+                       'estimates and noise; only `method` and the gains change: the file\'s '
+                       'gains where its method uses them, else the defaults, then --gains), in '
+                       'the batch simulator and, with --distributed, also over DDS (one '
+                       '`bearing-pose run` per method, in DIR/<method>/ with the derived '
+                       'scenario.yaml). Writes DIR/compare.csv (mean errors per run over '
+                       'time), DIR/compare.md (the table it prints) and DIR/compare_errors.png '
+                       '(overlaid errors); refuses to overwrite any of them without --force.')
+    _add_method_options(p)
+    p.add_argument('--duration', type=float, help='simulated time [s] (default: the scenario\'s)')
+    p.add_argument('--out', metavar='DIR',
+                   help='output directory (default: results/<scenario name>_compare)')
+    p.add_argument('--record-every', type=float, default=0.1,
+                   help='row interval of compare.csv [s], at most 0.5 (default: 0.1)')
+    p.add_argument('--distributed', action='store_true',
+                   help='also run each method over DDS, one process per agent')
+    p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
+    _add_dds_options(p)
+    p.add_argument('--force', action='store_true', help='overwrite outputs already in DIR')
+    p.set_defaults(func=cmd_compare)
+
+    p = sub.add_parser('noise-study', help="Tran et al.'s bearing perturbation, per method; "
+                       'error bounds', description='Run each method with every measured bearing '
+                       'perturbed as rot_X(θ0 sin 2πft) b (Tran, Anderson & Ahn 2020, Section '
+                       '5.1), for every θ0 and f, on all cores. Reports, over the last quarter '
+                       'of each run, the bound of the worst follower\'s errors (the radius of '
+                       'the neighbourhood the estimates stay in) and the mean errors. Writes '
+                       'DIR/noise_study.csv, DIR/noise_study.md (the table it prints) and '
+                       'DIR/noise_study.png; refuses to overwrite any of them without --force.')
+    _add_method_options(p)
+    p.add_argument('--amplitudes-deg', nargs='+', type=float, default=[2.0, 5.0, 10.0],
+                   metavar='θ0', help='perturbation amplitudes [deg] (default: 2 5 10)')
+    p.add_argument('--frequencies-hz', nargs='+', type=float, default=[1.0, 5.0, 10.0, 25.0],
+                   metavar='F', help='perturbation frequencies [Hz] (default: 1 5 10 25)')
+    p.add_argument('--axis', nargs=3, type=float, default=[1.0, 0.0, 0.0], metavar=('X', 'Y', 'Z'),
+                   help='body axis X of the perturbation rotation (default: 1 0 0)')
+    p.add_argument('--duration', type=float, help='simulated time per run [s] (default: the '
+                   'scenario\'s)')
+    p.add_argument('--jobs', type=int, metavar='J',
+                   help='worker processes (default: the number of cores)')
+    p.add_argument('--out', metavar='DIR',
+                   help='output directory (default: results/<scenario name>_noise_study)')
+    p.add_argument('--no-plots', action='store_true', help='skip the PNG plot')
+    p.add_argument('--force', action='store_true', help='overwrite outputs already in DIR')
+    p.set_defaults(func=cmd_noise_study)
+
+    p = sub.add_parser('montecarlo', help='many batch runs with different seeds; statistics',
+                       description='Run the batch simulator N times on all cores. Run i uses '
+                       'seed S + i for the noise and for random initial estimates (explicit '
+                       'ones stay), so any run can be replayed. Writes DIR/runs.csv (one row '
+                       'per run), DIR/summary.json (statistics) and DIR/montecarlo.png; '
+                       'refuses to overwrite any of them without --force.')
+    p.add_argument('scenario', help='scenario YAML file')
+    p.add_argument('--runs', type=int, required=True, metavar='N', help='number of runs (>= 1)')
+    p.add_argument('--seed', type=int, metavar='S',
+                   help="first seed (default: the scenario's noise.seed)")
+    p.add_argument('--duration', type=float, metavar='D',
+                   help='simulated time per run [s] (default: the scenario\'s)')
+    p.add_argument('--out', metavar='DIR',
+                   help='output directory (default: results/<scenario name>_montecarlo)')
+    p.add_argument('--jobs', type=int, metavar='J',
+                   help='worker processes (default: the number of cores)')
+    p.add_argument('--force', action='store_true', help='overwrite outputs already in DIR')
+    p.set_defaults(func=cmd_montecarlo)
+
+    p = sub.add_parser('run', help='run every agent as its own ROS 2 process over DDS',
+                       description='Start one estimator process per agent, the monitor and the '
+                       'simulator (DDS on localhost only, on a private ROS_DOMAIN_ID), wait '
+                       'until the monitor has written DIR/metrics.csv, DIR/summary.json and the '
+                       'plots, then stop everything. DIR/params/ holds one ROS 2 parameter '
+                       'file per process; DIR/logs/ one log per process.')
+    p.add_argument('scenario', help='scenario YAML file')
+    p.add_argument('--duration', type=float, metavar='S',
+                   help='simulated time [s] (default: the scenario\'s)')
+    p.add_argument('--out', metavar='DIR',
+                   help='output directory (default: results/<scenario name>_dds)')
+    p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
+    _add_dds_options(p)
+    p.add_argument('--force', action='store_true',
+                   help='overwrite outputs already in DIR (results, params/, logs/)')
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser('generate', help='write a random valid scenario',
+                       description='Generate a random scenario that satisfies Assumption 2 '
+                       '(reproducible from --seed).')
+    p.add_argument('--agents', type=int, required=True, help='number of agents (>= 3)')
+    p.add_argument('--seed', type=int, default=0, help='random seed (default: 0)')
+    p.add_argument('--out', required=True, help='output YAML file')
+    p.add_argument('--max-angle-deg', type=float, default=90.0,
+                   help='largest initial attitude error [deg] (default: 90)')
+    p.add_argument('--force', action='store_true', help='overwrite --out if it exists')
+    p.set_defaults(func=cmd_generate)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == 'generate' and args.agents < 3:
+        parser.error('--agents must be at least 3 (two leaders and one follower)')
+    if args.command == 'montecarlo':
+        if args.runs < 1:
+            parser.error('--runs must be at least 1')
+        if args.jobs is not None and args.jobs < 1:
+            parser.error('--jobs must be at least 1')
+    if args.command == 'noise-study':
+        if any(not (np.isfinite(a) and 0 < a <= 90) for a in args.amplitudes_deg):
+            parser.error('--amplitudes-deg must be in (0, 90] degrees')
+        if any(not (np.isfinite(f) and f > 0) for f in args.frequencies_hz):
+            parser.error('--frequencies-hz must be positive')
+        if not (np.all(np.isfinite(args.axis)) and np.linalg.norm(args.axis) > 1e-12):
+            parser.error('--axis must be a finite, non-zero vector')
+        if args.jobs is not None and args.jobs < 1:
+            parser.error('--jobs must be at least 1')
+    if args.command in ('compare', 'noise-study'):
+        from ..studies.compare import parse_gain_overrides
+        try:
+            args.gain_overrides = parse_gain_overrides(args.gains)
+        except ValueError as exc:
+            parser.error(str(exc))
+        stray = sorted(set(args.gain_overrides) - set(args.methods))
+        if stray:
+            parser.error(f'--gains sets gains of {stray[0]}, which is not in --methods')
+    if getattr(args, 'agents_per_process', 1) < 1:
+        parser.error('--agents-per-process must be at least 1')
+    if getattr(args, 'domain_id', None) is not None and not 0 <= args.domain_id <= 232:
+        parser.error('--domain-id must be in 0..232 (ROS 2 domain ids)')
+    rtf = getattr(args, 'real_time_factor', None)
+    if rtf is not None and not (np.isfinite(rtf) and rtf >= 0):
+        parser.error('--real-time-factor must be a number >= 0 (0: no cap)')
+    if getattr(args, 'record_every', None) is not None and args.record_every > 0.5:
+        parser.error('--record-every must be at most 0.5 s (metrics rows every 0.5 s of '
+                     'simulated time at least)')
+    for name in ('duration', 'step', 'record_every', 'timeout'):
+        value = getattr(args, name, None)
+        if value is not None and not (np.isfinite(value) and value > 0):
+            parser.error(f'--{name.replace("_", "-")} must be a positive number')
+    try:
+        return args.func(args)
+    except ScenarioError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print('interrupted', file=sys.stderr)
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

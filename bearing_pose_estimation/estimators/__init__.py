@@ -1,0 +1,64 @@
+"""The estimators and their registry, keyed by the scenario's ``method:``.
+
+Adding a method is adding one module here, a subclass of :class:`base.Estimator`, and one line
+in :data:`_BUILT_IN`; nothing outside this folder names a method. Tests register their own
+with :func:`register` (and remove them with :func:`unregister`).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from ..core.errors import ScenarioError
+from .base import Estimator
+from .boughellaba_tayebi import BoughellabaTayebi
+from .tran_anderson_ahn import TranAndersonAhn
+
+_BUILT_IN: tuple[type[Estimator], ...] = (BoughellabaTayebi, TranAndersonAhn)
+_REGISTRY: dict[str, type[Estimator]] = {}
+# The method of a scenario that names none, and of an estimator node without a scenario file.
+DEFAULT_METHOD = BoughellabaTayebi.method
+
+
+def register(cls: type[Estimator]) -> type[Estimator]:
+    """Make ``cls`` selectable as ``method: <cls.method>`` (usable as a class decorator)."""
+    if cls.method in _REGISTRY and _REGISTRY[cls.method] is not cls:
+        raise ValueError(f'method {cls.method!r} is already registered')
+    _REGISTRY[cls.method] = cls
+    return cls
+
+
+def unregister(method: str) -> None:
+    """Remove a registered method (built-in ones stay)."""
+    if method in {c.method for c in _BUILT_IN}:
+        raise ValueError(f'{method!r} is built in')
+    _REGISTRY.pop(method, None)
+
+
+def methods() -> tuple[str, ...]:
+    """Every registered method, built-in ones first."""
+    return tuple(_REGISTRY)
+
+
+def get(method: str) -> type[Estimator]:
+    """The class registered as ``method``.
+
+    Raises:
+        ScenarioError: unknown method, naming the known ones.
+    """
+    try:
+        return _REGISTRY[method]
+    except KeyError:
+        raise ScenarioError(f'unknown method {method!r}. Fix: use one of: '
+                            f'{", ".join(_REGISTRY)}') from None
+
+
+def build(method: str, gains: Any) -> Estimator:
+    """An instance of ``method`` with ``gains`` (its own ``Gains`` dataclass)."""
+    cls = get(method)
+    if not isinstance(gains, cls.Gains):
+        raise TypeError(f'{method} takes {cls.Gains.__qualname__}, got {type(gains).__name__}')
+    return cls(gains)
+
+
+for _cls in _BUILT_IN:
+    register(_cls)

@@ -1,0 +1,362 @@
+"""The estimator interface: what every method declares, and its one vectorised step.
+
+A method is a subclass of :class:`Estimator`, registered under the scenario's ``method:`` key
+(:mod:`bearing_pose_estimation.estimators`). It declares, as class attributes,
+
+- ``Gains``: a frozen dataclass whose fields are the YAML keys of ``gains:`` and the estimator
+  node's parameter names, each with a default, a help text and a range (:func:`gain`);
+- ``roles``: the special agents it needs (:class:`Roles`: two leaders today; later one anchor,
+  or none);
+- ``sensors``: what it consumes (:class:`Sensor`);
+- ``sends``: what each agent sends the agents that listen to it (:class:`Channel`: per agent
+  or per sensing edge, with its frame);
+- ``frame``: how its estimates are expressed (:class:`EstimateFrame`), so that errors are
+  measured after the right alignment (:mod:`bearing_pose_estimation.studies.results`);
+and implements its per-agent state (a :class:`State` dataclass of ``(N, ...)`` arrays, the
+class's second type parameter) and its initial value, its graph-assumption check (:meth:`Estimator.check`, findings
+that name the agent, the field and the fix) and one vectorised :meth:`Estimator.step`. The batch
+simulator calls that step for the whole fleet, the agent's node logic
+(:class:`bearing_pose_estimation.estimators.agent.AgentEstimator`) for one agent: each method's
+math exists once.
+
+Sensing edges: edge ``e`` is ``i → j``, agent i (row ``edges.agent[e]`` of the state) senses
+and listens to its neighbour j. A step consumes, per edge, i's own measurement and what j sent
+i (:class:`StepInputs`); what j sends is formed by j itself (:meth:`Estimator.outbox`), from
+its own state and measurements at one instant.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, Literal, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import sparse
+
+from ..core import so3
+from ..core.errors import ScenarioError
+
+if TYPE_CHECKING:
+    from ..scenario.model import Scenario
+
+Array = NDArray[np.float64]
+Index = NDArray[np.intp]
+
+
+# ----------------------------------------------------------------------------- declarations
+class Sensor(Enum):
+    """What an agent measures about itself and the agents it sees."""
+
+    GYRO = 'gyro'                              # body angular rate (interval averages)
+    BEARINGS = 'bearings'                      # unit bearings to the agents it sees (body)
+    KNOWN_POSE = 'known_pose'                  # its own pose (leaders: mocap, GNSS/INS)
+    ODOMETRY = 'odometry'                      # body linear velocity and rate
+    RELATIVE_POSITIONS = 'relative_positions'  # body-frame relative positions (RGB-D)
+    BEARING_RATES = 'bearing_rates'            # time derivatives of body bearings
+    RANGES = 'ranges'                          # distances to the agents it sees
+
+
+class EstimateFrame(Enum):
+    """How a method's estimates relate to the world, i.e. how errors are measured."""
+
+    WORLD = 'world'                            # world poses: errors measured directly
+    COMMON_YAW_TRANSLATION = 'common_yaw_translation'  # up to one yaw and one translation
+    ANCHOR_BODY = 'anchor_body'                # in the anchor's (moving) body frame
+
+
+@dataclass(frozen=True)
+class Roles:
+    """The special agents a method needs: ``leaders`` agents that know their pose (the
+    scenario's ``leaders:``; Boughellaba & Tayebi and Tran et al.: 2), or one ``anchor``."""
+
+    leaders: int = 0
+    anchor: bool = False
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One quantity that agent j sends the agents that listen to it (those with j among their
+    neighbours). ``per='agent'``: one value for all of them (e.g. ``p̂_j``); ``per='edge'``: one
+    value per listener i (e.g. ``R̂_j b^j_ji``). ``frame`` is the frame the value is expressed
+    in; ``unit`` values are unit vectors (validated on reception). The wire encoding of each
+    channel name lives in ``msg_defs``."""
+
+    name: str
+    per: Literal['agent', 'edge']
+    frame: str
+    unit: bool = False
+    shape: tuple[int, ...] = (3,)
+    doc: str = ''
+
+
+# ----------------------------------------------------------------------------- gains
+def gain(default: float, help: str, minimum: float = 0.0) -> Any:
+    """A field of a method's gains dataclass: ``default``, a one-line ``help`` (shown by the
+    node's parameter descriptions) and the exclusive lower bound ``minimum`` (gains are > 0)."""
+    return field(default=default, metadata={'help': help, 'minimum': minimum})
+
+
+def gain_fields(gains_cls: type) -> tuple[dataclasses.Field, ...]:
+    """The gains a method reads, in declaration order."""
+    return dataclasses.fields(gains_cls)
+
+
+def parse_gains(gains_cls: type, values: Mapping[str, Any], where: str = 'gains') -> Any:
+    """``gains_cls`` from ``values`` (missing keys take their defaults).
+
+    Raises:
+        ScenarioError: an unknown key, or a value that is not a finite number above the
+            gain's minimum, naming ``<where>.<gain>`` and the fix.
+    """
+    known = [f.name for f in gain_fields(gains_cls)]
+    for key in values:
+        if key not in known:
+            raise ScenarioError(f'{where}.{key}: unknown key. Fix: remove it or use one of: '
+                                f'{", ".join(sorted(known))}')
+    out = {}
+    for f in gain_fields(gains_cls):
+        value = values.get(f.name, f.default)
+        here = f'{where}.{f.name}'
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ScenarioError(f'{here}: expected a number, got {value!r}. Fix: write a plain '
+                                'number')
+        x = float(value)
+        if not math.isfinite(x):
+            raise ScenarioError(f'{here}: {value!r} is not finite. Fix: use a finite number')
+        if x <= f.metadata['minimum']:
+            raise ScenarioError(f'{here}: must be > {f.metadata["minimum"]:g}, got {x:g}. Fix: '
+                                'use a positive value')
+        out[f.name] = x
+    return gains_cls(**out)
+
+
+def format_gains(gains: Any) -> str:
+    """``k_R=1, k_p=1``: the gains as logs and tables show them."""
+    return ', '.join(f'{f.name}={getattr(gains, f.name):g}' for f in gain_fields(type(gains)))
+
+
+# ----------------------------------------------------------------------------- edges, state
+@dataclass(frozen=True, eq=False)
+class Edges:
+    """Directed sensing edges ``i → j`` (agent i measures j), fixed for a step.
+
+    ``agent[e]`` indexes the state row of the agent that owns edge ``e`` (always 0 in a node);
+    ``k[e]`` is ``k_ij``. Sums over each agent's edges use a sparse ``(n_agents, E)`` incidence
+    matrix built once. Compared by identity, so a method may cache what it derives from a
+    fleet's edges.
+    """
+
+    agent: Index
+    k: Array
+    n_agents: int
+    _incidence: sparse.csr_matrix | None = field(init=False, repr=False)
+    unit_k: bool = field(init=False, repr=False)  # every k_ij = 1: skip the product
+
+    def __post_init__(self) -> None:
+        agent = np.asarray(self.agent, dtype=np.intp)
+        k = np.asarray(self.k, dtype=float)
+        object.__setattr__(self, 'agent', agent)
+        object.__setattr__(self, 'k', k)
+        n_edges = agent.shape[0]
+        inc = None
+        if self.n_agents > 1:  # one agent (the node): a plain sum is cheaper
+            inc = sparse.csr_matrix(
+                (np.ones(n_edges), (agent, np.arange(n_edges))), shape=(self.n_agents, n_edges))
+        object.__setattr__(self, '_incidence', inc)
+        object.__setattr__(self, 'unit_k', bool(np.all(k == 1.0)))
+
+    def __len__(self) -> int:
+        return int(self.agent.shape[0])
+
+    def sum_by_agent(self, values: Array) -> Array:
+        """``out[i] = Σ_{e: agent[e] = i} values[e]``, shape ``(n_agents, 3)``."""
+        if self._incidence is None:
+            return values.sum(axis=0, keepdims=True)
+        return np.asarray(self._incidence @ values)
+
+    def weighted(self, terms: Array) -> Array:
+        """``k_ij · terms[e]`` (``terms`` itself when every ``k_ij = 1``)."""
+        return terms if self.unit_k else terms * self.k[:, None]
+
+
+S = TypeVar('S', bound='State')
+
+
+@dataclass
+class State:
+    """A method's per-agent state: every field an ``(N, ...)`` array, row i for agent i.
+    Every method estimates a pose: ``R_hat`` (body → the method's frame) and ``p_hat`` [m];
+    subclasses add their own fields."""
+
+    R_hat: Array   # (N, 3, 3)
+    p_hat: Array   # (N, 3) [m]
+
+    def rows(self: S, idx: Any) -> S:
+        """The state of the agents ``idx`` (an index array or slice), copied."""
+        return type(self)(**{f.name: np.array(getattr(self, f.name)[idx])
+                             for f in dataclasses.fields(self)})
+
+    def set_rows(self, idx: Any, other: State) -> None:
+        """Overwrite the rows ``idx`` with ``other`` (same type, one row per index)."""
+        for f in dataclasses.fields(self):
+            getattr(self, f.name)[idx] = getattr(other, f.name)
+
+    def is_finite(self) -> bool:
+        return all(bool(np.all(np.isfinite(getattr(self, f.name))))
+                   for f in dataclasses.fields(self))
+
+
+@dataclass(frozen=True)
+class StepInputs:
+    """What one step consumes for N agents and their E sensing edges, all at the step's start
+    time t (own bearings already rotated to t, neighbours' values as they sent them).
+
+    ``received[c]`` holds, for every channel ``c`` the method's ``sends`` declares, what the
+    neighbour j of edge ``e`` sent agent i: ``(E, ...)`` (per-agent channels repeated on every
+    edge from j)."""
+
+    delta_R: Array                 # (N, 3, 3) gyro increments R(t)ᵀ R(t + h) (body)
+    edges: Edges
+    bearings: Array                # (E, 3) own unit bearings b^i_ij (body frame of i)
+    received: Mapping[str, Array]
+
+    def agent(self, i: int) -> StepInputs:
+        """The inputs of agent ``i`` alone (``n_agents = 1``): what its node would pass."""
+        sel = np.flatnonzero(self.edges.agent == i)
+        edges = Edges(agent=np.zeros(sel.size, dtype=np.intp), k=self.edges.k[sel], n_agents=1)
+        return StepInputs(delta_R=self.delta_R[i:i + 1], edges=edges,
+                          bearings=self.bearings[sel],
+                          received={c: v[sel] for c, v in self.received.items()})
+
+
+# ----------------------------------------------------------------------------- findings
+@dataclass(frozen=True)
+class Finding:
+    """One broken (error) or doubtful (warning) assumption, with where and how to fix it."""
+
+    severity: str   # 'error' or 'warning'
+    agent: str
+    field: str
+    problem: str
+    fix: str
+
+    def __str__(self) -> str:
+        return f'{self.severity}: {self.agent}.{self.field}: {self.problem}. Fix: {self.fix}'
+
+
+@dataclass
+class CheckReport:
+    """What :meth:`Estimator.check` found, and the spectra of each agent's local matrix."""
+
+    findings: list[Finding] = field(default_factory=list)
+    spectra: dict[str, Array] = field(default_factory=dict)  # ascending eigenvalues per agent
+    spectra_of: str = ''    # which matrix, e.g. 'M_i = Σ_j k_ij b_ij b_ijᵀ'
+
+    @property
+    def errors(self) -> list[Finding]:
+        return [f for f in self.findings if f.severity == 'error']
+
+    @property
+    def warnings(self) -> list[Finding]:
+        return [f for f in self.findings if f.severity == 'warning']
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+    def format(self, max_spectra: int = 50) -> str:
+        lines = [str(f) for f in self.findings]
+        if self.spectra:
+            lines.append(f'spectra (eigenvalues of {self.spectra_of}):')
+            for k, (name, eig) in enumerate(self.spectra.items()):
+                if k == max_spectra:
+                    lines.append(f'  ... {len(self.spectra) - max_spectra} more')
+                    break
+                lines.append(f'  {name}: {{{", ".join(f"{e:.4g}" for e in eig)}}}')
+        return '\n'.join(lines)
+
+
+# ----------------------------------------------------------------------------- the interface
+G = TypeVar('G')
+
+
+class Estimator(ABC, Generic[G, S]):
+    """One method of the literature. An instance holds its gains; the state is separate, so
+    one instance serves every agent of a fleet or one agent in a node."""
+
+    method: ClassVar[str]                  # the scenario's `method:`, the registry key
+    title: ClassVar[str]                   # 'Boughellaba & Tayebi', for people
+    Gains: ClassVar[type]                  # frozen dataclass of `gain` fields
+    roles: ClassVar[Roles]
+    sensors: ClassVar[frozenset[Sensor]]
+    sends: ClassVar[tuple[Channel, ...]]
+    frame: ClassVar[EstimateFrame]
+    edge_gains: ClassVar[bool] = True      # per-edge k_ij (`gains.k_ij`, a neighbour's `k`)
+    reference_scenario: ClassVar[str]      # the file in config/ with the paper's simulation
+
+    def __init__(self, gains: G) -> None:
+        self.gains = gains
+
+    # --- state
+    @abstractmethod
+    def initial_state(self, R_hat: Array, p_hat: Array) -> S:
+        """The state of N agents whose initial pose estimates are ``R_hat`` ``(N, 3, 3)`` and
+        ``p_hat`` ``(N, 3)``."""
+
+    def with_known_pose(self, x: S, rows: Index, R: Array, p: Array) -> S:
+        """``x`` with the agents ``rows`` at their known pose ``R``, ``p`` (leaders) and every
+        other state of theirs at its initial value."""
+        pinned = self.initial_state(R, p)
+        x.set_rows(rows, pinned)
+        return x
+
+    def propagate(self, x: S, delta_R: Array) -> S:
+        """``x`` carried over a step by the gyro alone (no correction): ``R̂ ← R̂ ΔR``."""
+        out = x.rows(slice(None))
+        out.R_hat = so3.reorthonormalize(so3.matmul(x.R_hat, delta_R))
+        return out
+
+    # --- messages and the step
+    @abstractmethod
+    def outbox(self, x: S, sender: Index, bearings: Array) -> dict[str, Array]:
+        """What agents send their listeners, formed from their state and own measurements at
+        one instant: per-edge channels ``(M, ...)`` for sender rows ``sender`` ``(M,)`` whose
+        own body bearings to the listener are ``bearings`` ``(M, 3)``; per-agent channels
+        ``(N, ...)``, one row per agent of ``x``."""
+
+    @abstractmethod
+    def step(self, x: S, h: float, inputs: StepInputs,
+             reorthonormalize: bool = True) -> tuple[S, dict[str, Array]]:
+        """Advance every agent of ``x`` by ``h``; return the new state and per-agent
+        diagnostics (``'innovation'``: what drove the correction, ``(N, 3)``).
+        ``reorthonormalize``: pull rotations back onto SO(3) (the batch simulator does it every
+        few steps only)."""
+
+    # --- assumptions
+    @abstractmethod
+    def check(self, scenario: Scenario) -> CheckReport:
+        """The method's graph assumptions on ``scenario``: errors for what breaks convergence,
+        warnings for what weakens it, each naming the agent, the field and the fix."""
+
+    def conditioning(self, bearings: Array, k: Array) -> Array | None:
+        """The local matrix whose spectrum the method's convergence proof needs, from one
+        agent's bearings to its neighbours ``(M, 3)`` and their gains ``(M,)`` (any frame: the
+        spectrum is rotation invariant); None when the method has none."""
+        return None
+
+    def conditioning_problem(self, eig: Array) -> str | None:
+        """Why the spectrum ``eig`` (ascending) breaks the method's hypothesis, or None."""
+        return None
+
+
+def route(outbox: Mapping[str, Array], sends: Sequence[Channel],
+          sender_of_edge: Index) -> dict[str, Array]:
+    """The fleet's outbox as each edge's receiver sees it: per-edge channels are already one
+    row per edge (formed with ``sender=sender_of_edge``), per-agent ones are gathered."""
+    return {c.name: outbox[c.name] if c.per == 'edge'
+            else np.take(outbox[c.name], sender_of_edge, axis=0) for c in sends}

@@ -1,0 +1,137 @@
+"""Boughellaba & Tayebi: cascaded attitude/position observer from gyros and bearings.
+
+``method: boughellaba_tayebi`` (the default). Leaders 1, 2 know their pose; every follower
+estimates ``(R̂_i, p̂_i)`` from its gyro, its bearings ``b^i_ij`` to its neighbours and what
+they send (:mod:`.bearing_leaders`). Notation: ``[x]x`` is the skew matrix of ``x``;
+``P_x = I - x xᵀ/‖x‖²``; ``R̃_i = R_i R̂_iᵀ``.
+
+Continuous time, equations of the paper (the position observer in its v2 form: the projector
+uses the estimated world bearing ``R̂_i b^i_ij``, since ``R̂_i P_{b^i_ij} R̂_iᵀ = P_{R̂_i b^i_ij}``;
+v1's form with the unknown world bearing ``b_ij`` does not converge, its position error stays
+near 2.4 on the paper's scenario)::
+
+    σ_i     = Σ_j k_ij (R̂_j b^j_ij) × (R̂_i b^i_ij)                       (innovation)
+    dR̂_i/dt = R̂_i [ω_i]x - k_R [σ_i]x R̂_i                                (3)
+    dp̂_i/dt = -k_R [σ_i]x p̂_i - k_p Σ_j P_{R̂_i b^i_ij} (p̂_i - p̂_j)      (23)
+
+The term ``-k_R [σ_i]x p̂_i`` cancels the attitude correction in ``d(R̃_i p̂_i)/dt``; the
+position error is ``p̃_i = p_i - R̃_i p̂_i`` (v1 writes ``R̂_i``: a typo), while ``p̂_i`` itself
+converges to ``p_i`` and is what the agent reports. The attitude error obeys
+``dR̃_i/dt = k_R R̃_i [σ_i]x``. Lemma 1 needs ``M_i = Σ_j k_ij b_ij b_ijᵀ`` to have three
+distinct eigenvalues (checked as a warning: the paper's own agent 8 has {0, 1, 1} and still
+converges); the paper's (13) is off by a factor ½
+(``psi(R̃)ᵀ psi(M R̃) = ½ psi(R̃)ᵀ Q psi(R̃)``, ``Q = tr(M) I - M``).
+
+Discretisation over a step ``h`` (``ΔR`` the gyro increment ``R(t)ᵀ R(t+h)``)::
+
+    Q    = exp(-h k_R [σ_i]x)
+    R̂_i ← Q R̂_i ΔR_i
+    p̂_i ← Q (p̂_i - h k_p Σ_j P_{R̂_i b^i_ij} (p̂_i - p̂_j))
+
+The correction terms of (3) and (23) are the same left rotation, so one ``Q`` on both keeps R̂
+on SO(3) to machine precision and cancels the attitude correction in ``R̃_i p̂_i`` exactly, as
+in the paper's analysis. With the truth propagated by the same ``ΔR`` the discrete errors obey
+exactly ``R̃⁺ = R̃ exp(h k_R [σ]x)`` (Lie-Euler of the error dynamics) and forward Euler of
+(24): the gyro cancels out of the error dynamics and the true pose is an exact fixed point.
+The scheme is first order in ``h`` for the transient (``test_boughellaba_tayebi.py`` checks it
+against a tight-tolerance solution of (3) and (23)).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from ..core import so3
+from .base import Array, Edges, State, StepInputs, gain
+from .bearing_leaders import BearingLeaderEstimator, bearing_pull, repeated
+
+
+@dataclass(frozen=True)
+class CascadeGains:
+    """Gains of (3) and (23); per-edge ``k_ij`` live in :class:`base.Edges`."""
+
+    k_R: float = gain(1.0, 'attitude gain k_R of (3)')
+    k_p: float = gain(1.0, 'position gain k_p of (23)')
+
+
+def innovation(R_hat: Array, edges: Edges, b_body: Array, d_world: Array) -> tuple[Array, Array]:
+    """Innovation ``σ_i`` and the estimated world bearings ``y_ij = R̂_i b^i_ij``.
+
+    Args:
+        R_hat: ``(N, 3, 3)`` attitude estimates, paired in time with ``b_body``.
+        edges: the sensing edges.
+        b_body: ``(E, 3)`` agent i's own measured bearings ``b^i_ij`` (body frame, unit).
+        d_world: ``(E, 3)`` neighbour j's estimate of the same bearing in the world frame,
+            ``R̂_j b^j_ij = -R̂_j b^j_ji``.
+
+    Returns:
+        ``(sigma (N, 3), y (E, 3))``.
+    """
+    # np.take: ~3x faster than fancy indexing for these row gathers.
+    y = np.einsum('eab,eb->ea', np.take(R_hat, edges.agent, axis=0), b_body)
+    sigma = edges.sum_by_agent(edges.weighted(so3.cross(d_world, y)))
+    return sigma, y
+
+
+def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Edges,
+                 b_body: Array, d_world: Array, p_hat_nbr: Array, gains: CascadeGains,
+                 reorthonormalize: bool = True) -> tuple[Array, Array, Array]:
+    """Advance the observers of all agents by one step ``h`` (see the module docstring).
+
+    Args:
+        R_hat: ``(N, 3, 3)`` attitude estimates at time t.
+        p_hat: ``(N, 3)`` position estimates at time t [m].
+        delta_R: ``(N, 3, 3)`` gyro increments ``R(t)ᵀ R(t+h)`` (body frame).
+        h: step [s].
+        edges: sensing edges (``edges.n_agents == N``).
+        b_body: ``(E, 3)`` own bearings ``b^i_ij`` at time t (body frame).
+        d_world: ``(E, 3)`` neighbours' world bearings ``R̂_j b^j_ij`` at time t.
+        p_hat_nbr: ``(E, 3)`` neighbours' position estimates ``p̂_j`` [m].
+        gains: ``k_R``, ``k_p``.
+        reorthonormalize: pull R̂ back onto SO(3) after the step. ``Q`` and ``ΔR`` are
+            rotations to rounding error, so a caller stepping many agents may do it every few
+            steps only.
+
+    Returns:
+        ``(R̂, p̂)`` at ``t + h`` and the innovation ``σ`` used (world frame).
+    """
+    sigma, y = innovation(R_hat, edges, b_body, d_world)
+    pull = bearing_pull(p_hat, edges, y, p_hat_nbr)
+    Q = so3.exp(-h * gains.k_R * sigma)
+    R_next = so3.matmul(Q, R_hat, delta_R)
+    if reorthonormalize:
+        R_next = so3.reorthonormalize(R_next)
+    p_next = np.einsum('nab,nb->na', Q, p_hat - h * gains.k_p * pull)
+    return R_next, p_next, sigma
+
+
+class BoughellabaTayebi(BearingLeaderEstimator[CascadeGains, State]):
+    method: ClassVar[str] = 'boughellaba_tayebi'
+    title: ClassVar[str] = 'Boughellaba & Tayebi'
+    Gains: ClassVar[type] = CascadeGains
+    reference_scenario: ClassVar[str] = 'paper_8_agents.yaml'
+    conditioning_label: ClassVar[str] = 'M_i = Σ_j k_ij b_ij b_ijᵀ'
+
+    def initial_state(self, R_hat: Array, p_hat: Array) -> State:
+        return State(R_hat=np.array(R_hat, dtype=float), p_hat=np.array(p_hat, dtype=float))
+
+    def step(self, x: State, h: float, inputs: StepInputs,
+             reorthonormalize: bool = True) -> tuple[State, dict[str, Array]]:
+        d_world, p_nbr = self.neighbour_terms(inputs)
+        R_hat, p_hat, sigma = cascade_step(x.R_hat, x.p_hat, inputs.delta_R, h, inputs.edges,
+                                           inputs.bearings, d_world, p_nbr, self.gains,
+                                           reorthonormalize)
+        return State(R_hat=R_hat, p_hat=p_hat), {'innovation': sigma}
+
+    def conditioning(self, bearings: Array, k: Array) -> Array:
+        """``M_i = Σ_j k_ij b_ij b_ijᵀ`` (Lemma 1)."""
+        return np.einsum('e,ea,eb->ab', k, bearings, bearings)
+
+    def conditioning_problem(self, eig: Array) -> str | None:
+        if not repeated(eig):
+            return None
+        eigs = '{' + ', '.join(f'{e:.3g}' for e in eig) + '}'
+        return (f'M_i = Σ k_ij b_ij b_ijᵀ has repeated eigenvalues {eigs}: Lemma 1\'s '
+                'hypothesis fails (convergence is then not guaranteed)')

@@ -1,0 +1,441 @@
+"""``estimator``: one agent's estimator as a ROS 2 node (run one per agent, in /<agent>), with
+the scenario's ``method`` (any registered one: ``bearing_pose_estimation.estimators``).
+
+A thin adapter: it decodes messages (``msg_defs``), feeds
+:class:`estimators.agent.AgentEstimator`, runs its fixed steps ``h = 1/frequency`` as soon as
+the gyro data covers them (checked on every gyro sample and on a timer at ``frequency``) and
+publishes. Subscribes (relative names, remappable): ``imu`` (sensor_msgs/Imu), ``bearings``
+(sensor_msgs/PointCloud2), ``known_pose`` (leaders), and, for each neighbour j, the topics of
+the channels the method sends (``msg_defs.CHANNELS``; both leader-follower methods:
+``/<j>/estimate`` and ``/<j>/world_bearings``). Publishes ``estimate``
+(geometry_msgs/PoseStamped in ``world``) and its other channels (``world_bearings``: what its
+listeners need) every ``publish_rate`` period, on exact multiples of it, and its health on
+``/diagnostics``.
+
+Bad input is rejected, counted by cause, warned about (throttled) and reported in the
+diagnostics; it never stops the node and never reaches the estimate.
+
+Parameters (read-only): either ``scenario_file`` (+ ``agent``, default: the namespace) or the
+explicit set ``agent_id``, ``leader``, ``neighbours``, ``neighbour_ids``, ``neighbour_gains``,
+``initial_position``, ``initial_orientation`` (x, y, z, w), with ``method`` (empty: the
+registry's default, ``boughellaba_tayebi``); ``frequency`` [Hz], ``publish_rate`` [Hz] and the
+gains of every registered method, named as in a scenario's ``gains:`` (``k_R``, ``k_p`` for
+boughellaba_tayebi; ``k_omega``, ``k_c``, ``k_p`` for tran_anderson_ahn): 0 means the
+scenario's value, or 100 Hz / 50 Hz / the method's default gains in explicit mode; a gain of
+another method is an error.
+``start_time`` [s] (the scenario's t = 0 on the node's clock; negative: the first gyro stamp);
+the input limits ``sensor_timeout``, ``neighbour_timeout``, ``max_rate``; the expected frames
+``imu_frame``, ``bearings_frame`` (empty: accept any); ``diagnostics_period`` [s]; and the fault
+injection for tests and studies: ``inject_drop_rate`` (probability of dropping each neighbour
+message), ``inject_delay`` [s] (extra delay of each neighbour message), ``inject_seed``.
+Integers are accepted for numbers; a wrong type or range stops the node with a one-line error,
+and unknown keys in a parameter file are warned about (see :func:`node_main.declare`).
+"""
+from __future__ import annotations
+
+import heapq
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+from functools import partial
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+
+from .. import estimators
+from .. import msg_defs as wire
+from ..core import so3
+from ..core.errors import ScenarioError
+from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits, estimator_for
+from ..estimators.base import Estimator, format_gains, gain_fields
+from ..scenario.parse import load_scenario
+from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
+
+# Used only without a scenario file.
+_EXPLICIT = ('agent_id', 'leader', 'neighbours', 'neighbour_ids', 'neighbour_gains',
+             'initial_position', 'initial_orientation')
+
+
+def _gain_parameters() -> dict[str, str]:
+    """Every gain of every registered method, with its help and the methods that read it."""
+    out: dict[str, tuple[str, list[str]]] = {}
+    for method in estimators.methods():
+        for f in gain_fields(estimators.get(method).Gains):
+            out.setdefault(f.name, (f.metadata['help'], []))[1].append(method)
+    return {name: f'{text} ({", ".join(users)})' for name, (text, users) in out.items()}
+
+
+def _with_gains(method: str, base: Any, given: dict[str, float], where: str, fix: str) -> Any:
+    """``base`` (``method``'s gains) with the non-zero ``given`` gains; a gain of another
+    method is an error."""
+    own = [f.name for f in gain_fields(type(base))]
+    for gain, value in given.items():
+        if value and gain not in own:
+            other = next(m for m in estimators.methods()
+                         if gain in [f.name for f in gain_fields(estimators.get(m).Gains)])
+            raise ScenarioError(f'parameter {gain} is a {other} gain, but {where} is {method}. '
+                                f'Fix: remove {gain} ({method} takes {", ".join(own)}); {fix}')
+    return replace(base, **{g: v for g, v in given.items() if v})
+
+
+class EstimatorNode(Node):
+    def __init__(self, **node_kwargs) -> None:
+        """``node_kwargs`` go to rclpy's Node (``namespace``, ``context``,
+        ``parameter_overrides``, ``cli_args``, ...): several agents can share one process."""
+        super().__init__('estimator', **node_kwargs)
+        p = partial(declare, self)
+        scenario_file = p('scenario_file', '', 'scenario YAML; empty: explicit parameters')
+        default_agent = self.get_namespace().strip('/').split('/')[-1]
+        self.agent = p('agent', default_agent, 'agent name (default: namespace)')
+        frequency = p('frequency', 0.0, 'estimator rate [Hz]; 0: scenario / 100', 0.0, 10000.0)
+        publish_rate = p('publish_rate', 0.0, 'estimate and world-bearing rate [Hz]; '
+                         '0: scenario / 50', 0.0, 10000.0)
+        methods = estimators.methods()
+        method = p('method', '', f'estimator, {" or ".join(methods)}; empty: the scenario\'s '
+                   f'(explicit mode: {estimators.DEFAULT_METHOD})')
+        given_gains = {g: p(g, 0.0, f'{text}; 0: scenario / default', 0.0, 1e6)
+                       for g, text in _gain_parameters().items()}
+        self.start_time = p('start_time', 0.0, 't = 0 of the scenario on this clock [s]; '
+                            'negative: the first gyro stamp')
+        d = Limits()
+        limits = Limits(
+            sensor_timeout=p('sensor_timeout', d.sensor_timeout,
+                             'own bearings older than this are not used [s]', 0.0, 1e6),
+            neighbour_timeout=p('neighbour_timeout', d.neighbour_timeout,
+                                'a neighbour silent for longer is stale and not used [s]',
+                                0.0, 1e6),
+            max_rate=p('max_rate', d.max_rate, 'gyro rates above this are rejected [rad/s]',
+                       0.0, 1e6))
+        self.imu_frame = p('imu_frame', wire.body_frame(self.agent),
+                           'expected Imu frame_id; empty: any')
+        self.bearings_frame = p('bearings_frame', wire.body_frame(self.agent),
+                                'expected bearings frame_id; empty: any')
+        diagnostics_period = p('diagnostics_period', 1.0, '/diagnostics period [s]',
+                               0.01, 3600.0)
+        self.drop_rate = p('inject_drop_rate', 0.0, 'fault injection: probability of dropping '
+                           'each neighbour message', 0.0, 1.0)
+        self.delay = p('inject_delay', 0.0, 'fault injection: extra delay of each neighbour '
+                       'message [s]', 0.0, 60.0)
+        self.rng = np.random.default_rng(p('inject_seed', 0, 'fault injection: random seed',
+                                           0, 2**31 - 1))
+        explicit = {
+            'agent_id': p('agent_id', 0, 'explicit mode: this agent\'s id (1-based)'),
+            'leader': p('leader', False, 'explicit mode: a leader (known pose, no neighbours)'),
+            'neighbours': p('neighbours', [''], 'explicit mode: neighbour names'),
+            'neighbour_ids': p('neighbour_ids', [0], 'explicit mode: neighbour ids'),
+            'neighbour_gains': p('neighbour_gains', [0.0], 'explicit mode: k_ij per neighbour'),
+            'initial_position': p('initial_position', [0.0, 0.0, 0.0],
+                                  'explicit mode: initial p̂ [m]'),
+            'initial_orientation': p('initial_orientation', [0.0, 0.0, 0.0, 1.0],
+                                     'explicit mode: initial R̂ as a quaternion x, y, z, w'),
+        }
+        if method and method not in methods:
+            raise ScenarioError(f'parameter method: unknown method {method!r}. Fix: one of '
+                                f'{", ".join(methods)}, or empty')
+        if scenario_file:
+            scenario = load_scenario(scenario_file)
+            if self.agent not in scenario.index:
+                raise ScenarioError(f'{scenario_file}: agent {self.agent!r} is not in the '
+                                    'scenario. Fix: set the `agent` parameter or the namespace')
+            if method and method != scenario.method:
+                raise ScenarioError(f'parameter method is {method}, but {scenario_file} uses '
+                                    f'method {scenario.method}. Fix: remove the parameter (the '
+                                    'scenario file chooses the method)')
+            ignored = sorted(set(_EXPLICIT) & set(parameter_overrides(self)))
+            if ignored:
+                self.get_logger().warning(f'{", ".join(ignored)} ignored: they are for running '
+                                          'without a scenario_file, which is set')
+            template = estimator_for(scenario, self.agent, limits)
+            publish_rate = publish_rate or scenario.publish_rate
+            method = scenario.method
+            where, fix = "the scenario's method", 'the scenario file sets the method'
+        else:
+            method = method or estimators.DEFAULT_METHOD
+            template = self._explicit_estimator(
+                explicit, limits, estimators.build(method, estimators.get(method).Gains()))
+            publish_rate = publish_rate or 50.0
+            where = 'the method parameter'
+            fix = f'or set method: {" / ".join(m for m in methods if m != method)}'
+        gains = _with_gains(method, template.gains, given_gains, where, fix)
+        self.template = template
+        self.gains = gains
+        self.method = estimators.get(method)
+        self.h = 1.0 / frequency if frequency > 0 else template.h
+        # Publish on exact multiples of the publish period, so the monitor can pair estimates
+        # with ground truth at identical stamps.
+        self.publish_every = max(1, int(round(1.0 / (self.h * publish_rate))))
+        self.est: AgentEstimator | None = None
+        if self.start_time >= 0.0:
+            self.est = self._make_estimator(self.start_time)
+        self.rejected: Counter[str] = Counter()
+        self.events: Counter[str] = Counter()
+        self._published_k = -1
+        self._wall_first_step: float | None = None
+        self._delayed: list[tuple[float, int, Callable[[], None]]] = []  # (release, seq, fn)
+        self._seq = 0
+        self._diag_steps = (0, time.monotonic())
+
+        qos_in, qos_est = wire.SENSOR_QOS, wire.ESTIMATE_QOS
+        self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE, qos_est)
+        # The channels that need a message of their own (the others ride on the estimate).
+        self.wires = {c.name: wire.channel(c.name) for c in self.method.sends}
+        self.pub_channels = {name: (self.create_publisher(w.type, w.topic, qos_est), w.encode)
+                             for name, w in self.wires.items() if w.encode is not None}
+        self.pub_diag = self.create_publisher(DiagnosticArray, wire.DIAGNOSTICS, 10)
+        subs = [self.create_subscription(wire.Imu, wire.IMU, self.on_imu, qos_in),
+                self.create_subscription(wire.PointCloud2, wire.BEARINGS, self.on_bearings,
+                                         qos_in)]
+        if template.leader:
+            # Best effort matches both a reliable publisher (the simulator) and a best-effort
+            # one (many mocap and GNSS drivers); a reliable reader would miss the latter. A lost
+            # sample costs nothing: the gyro carries the pose to the next one.
+            subs.append(self.create_subscription(wire.PoseStamped, wire.KNOWN_POSE,
+                                                 self.on_known_pose, qos_in))
+        for nb in template.neighbours:
+            for name, w in self.wires.items():
+                subs.append(self.create_subscription(
+                    w.type, wire.topic(nb.name, w.topic),
+                    partial(self._link, self.on_neighbour, nb.agent_id, name), qos_est))
+        self._subs = subs
+        self.timer = self.create_timer(self.h, self.on_timer)
+        self.diag_timer = self.create_timer(diagnostics_period, self.publish_diagnostics)
+        # Until the first gyro sample, announce the t0 state on a wall-clock timer, but only once
+        # every subscription has a publisher: best-effort sensor readers drop what arrives before
+        # they are matched, so the simulator starts the clock only after hearing from everyone.
+        self.ready_timer = self.create_timer(
+            0.05, self.on_ready_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        role = 'leader' if template.leader else f'{len(template.neighbours)} neighbours'
+        faults = (f'; INJECTING drop {self.drop_rate:g}, delay {self.delay:g} s on neighbour '
+                  'messages' if self.drop_rate or self.delay else '')
+        self.get_logger().info(f'{self.agent} (id {template.agent_id}, {role}) at '
+                               f'{1.0 / self.h:g} Hz, {method}: {format_gains(gains)}{faults}')
+        warn_unknown_parameters(self)
+
+    # --------------------------------------------------------------------------- set-up
+    def _explicit_estimator(self, e: dict, limits: Limits,
+                            estimator: Estimator) -> AgentEstimator:
+        names = [n for n in e['neighbours'] if n]
+        if e['agent_id'] <= 0:
+            raise ScenarioError('parameter agent_id must be > 0 without a scenario_file. Fix: '
+                                'set agent_id (and neighbours, neighbour_ids) or scenario_file')
+        if not e['leader'] and not (len(names) == len(e['neighbour_ids'])
+                                    == len(e['neighbour_gains']) >= 2):
+            raise ScenarioError('parameters neighbours, neighbour_ids and neighbour_gains need '
+                                'the same length >= 2 for a follower. Fix: list each neighbour '
+                                'once in all three')
+        if any(not (k > 0 and np.isfinite(k)) for k in e['neighbour_gains']) and not e['leader']:
+            raise ScenarioError('parameter neighbour_gains: every gain must be > 0. Fix: use '
+                                'positive gains (e.g. 1.0)')
+        q = np.asarray(e['initial_orientation'], dtype=float)
+        p0 = np.asarray(e['initial_position'], dtype=float)
+        if q.shape != (4,) or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1) > 1e-3:
+            raise ScenarioError('parameter initial_orientation must be a unit quaternion '
+                                '[x, y, z, w]. Fix: normalise it')
+        if p0.shape != (3,) or not np.all(np.isfinite(p0)):
+            raise ScenarioError('parameter initial_position must be 3 finite numbers [m]')
+        nbrs = [] if e['leader'] else list(zip(names, e['neighbour_ids'], e['neighbour_gains']))
+        return AgentEstimator(estimator, agent_id=e['agent_id'], neighbours=nbrs,
+                              step=0.01, leader=e['leader'], R0=so3.from_quat(q), p0=p0,
+                              limits=limits)
+
+    def _make_estimator(self, t0: float) -> AgentEstimator:
+        t = self.template
+        return AgentEstimator(self.method(self.gains), agent_id=t.agent_id,
+                              neighbours=[(n.name, n.agent_id, n.k) for n in t.neighbours],
+                              step=self.h, R0=t.R0, p0=t.p0, t0=t0,
+                              leader=t.leader, known_ids=t.known_ids, limits=t.limits)
+
+    def _reject(self, cause: str, detail: str, count: int = 1) -> None:
+        self.rejected[cause] += count
+        self.get_logger().warning(f'rejected {detail}: {cause} ({self.rejected[cause]} so far)',
+                                  throttle_duration_sec=5.0)
+
+    def _decoded(self, msg: Any, decode: Callable[[Any], tuple], frame: str,
+                 what: str) -> tuple | None:
+        """``decode(msg)``, or None after counting the rejection: wrong frame (unless ``frame``
+        is empty) or a malformed message."""
+        if frame and msg.header.frame_id != frame:
+            self._reject('wrong_frame', f'{what} in frame {msg.header.frame_id!r}')
+            return None
+        try:
+            return decode(msg)
+        except wire.WireError as exc:
+            self._reject('malformed', f'{what} ({exc})')
+            return None
+
+    def _now(self) -> float | None:
+        """The node's clock [s], or None before a simulated clock has ticked (a late joiner's
+        first samples must not look like they come from the future)."""
+        ns = self.get_clock().now().nanoseconds
+        return ns * 1e-9 if ns > 0 else None
+
+    # --------------------------------------------------------------------------- inputs
+    def on_imu(self, msg: wire.Imu) -> None:
+        decoded = self._decoded(msg, wire.decode_imu, self.imu_frame, 'imu')
+        if decoded is None:
+            return
+        t, omega = decoded
+        if self.est is None:
+            self.est = self._make_estimator(t)
+            return
+        if not self.ready_timer.is_canceled():
+            self.ready_timer.cancel()
+        cause = self.est.add_gyro(t, omega, now=self._now())
+        if cause in TIME_EVENTS:
+            self.events[cause] += 1
+            self.get_logger().warning(f'{TIME_EVENTS[cause]} (t = {t:.3f} s)')
+            self._published_k = -1
+        elif cause is not None:
+            return self._reject(cause, f'imu sample at {t:.6f}')
+        # Steps run as soon as the gyro covers them. Waiting for the timer alone can deadlock
+        # a lockstep simulation: a clock tick handled before the IMU sample of the same
+        # instant fires the timer too early, and the clock then waits for this agent.
+        self.on_timer()
+
+    def on_bearings(self, msg: wire.PointCloud2) -> None:
+        decoded = self._decoded(msg, wire.decode_vectors, self.bearings_frame, 'bearings')
+        if decoded is None or self.est is None:
+            return
+        t, ids, vectors = decoded
+        for cause, n in Counter(self.est.add_bearings(t, ids, vectors)).items():
+            self._reject(cause, f'{n} bearing(s) at {t:.6f}', n)
+        if self.est.k == 0 and self.est.gyro.end <= self.est.t0:
+            self._publish(world=True)  # the t0 world bearings, before the first step
+
+    def on_known_pose(self, msg: wire.PoseStamped) -> None:
+        decoded = self._decoded(msg, wire.decode_pose, wire.WORLD_FRAME, 'known_pose')
+        if decoded is not None and self.est is not None:
+            t, R, p = decoded
+            cause = self.est.set_known_pose(t, R, p)
+            if cause is not None:
+                self._reject(cause, 'known_pose')
+
+    def _link(self, handler: Callable[..., None], *args: object) -> None:
+        """A neighbour message through the (optional) injected loss and delay."""
+        if self.drop_rate and self.rng.uniform() < self.drop_rate:
+            self.events['injected_drop'] += 1
+            return
+        if self.delay > 0.0:
+            self._seq += 1
+            heapq.heappush(self._delayed, ((self._now() or 0.0) + self.delay, self._seq,
+                                           lambda: handler(*args)))
+            return
+        handler(*args)
+
+    def _release_delayed(self) -> None:
+        now = self._now() or 0.0
+        while self._delayed and self._delayed[0][0] <= now:
+            heapq.heappop(self._delayed)[2]()
+
+    def on_neighbour(self, agent_id: int, channel: str, msg: object) -> None:
+        """Neighbour j's value of one channel (from its ``estimate``, ``world_bearings``, ...)."""
+        w = self.wires[channel]
+        what = f'{w.topic} of agent {agent_id}'
+        decoded = self._decoded(msg, w.decode, w.frame, what)
+        if decoded is None or self.est is None:
+            return
+        t, value = decoded
+        cause = self.est.add_neighbour(agent_id, t, {channel: value})
+        if cause not in (None, 'not_seen'):  # not_seen: j has no bearing to us yet
+            self._reject(cause, f'{what} at {t:.6f}')
+
+    # --------------------------------------------------------------------------- stepping
+    def on_ready_check(self) -> None:
+        if self.est is None or self.est.k > 0:
+            return
+        if all(sub.get_publisher_count() > 0 for sub in self._subs):
+            self._publish(world=True, force=True)
+
+    def on_timer(self) -> None:
+        if self.est is None:
+            return
+        if self._delayed:
+            self._release_delayed()
+        while self.est.steps_ready() > 0:
+            if self._wall_first_step is None:
+                self._wall_first_step = time.monotonic()
+            self.est.advance(1)
+            # On the absolute grid origin + n h (k restarts after a time jump or gap).
+            if round((self.est.t - self.est.origin) / self.h) % self.publish_every == 0:
+                self._publish(world=True)
+
+    def _publish(self, world: bool, force: bool = False) -> None:
+        """The estimate (unless already sent for this step or ``force``) and, with ``world``,
+        the channels that have messages of their own."""
+        est = self.est
+        assert est is not None  # called once the estimator exists
+        t = est.t
+        if force or self._published_k != est.k:
+            self.pub_estimate.publish(
+                wire.encode_pose(t, wire.WORLD_FRAME, est.R_hat[0], est.p_hat[0]))
+            self._published_k = est.k
+        if world and self.pub_channels:
+            sent = est.outbox()
+            for name, (pub, encode) in self.pub_channels.items():
+                value = sent[name]
+                if not isinstance(value, dict) or value:  # nothing measured yet: nothing to say
+                    pub.publish(encode(t, value))
+
+    # --------------------------------------------------------------------------- health
+    def publish_diagnostics(self) -> None:
+        """Per-agent health on /diagnostics: rate, rejections by cause, stale neighbours, the
+        spectrum of the method's local matrix (M_i, K_i) and its verdict, time events."""
+        status = DiagnosticStatus(name=f'{self.agent}/estimator', hardware_id=self.agent)
+        values = {'state_time_s': 'n/a'}
+        level, problems = DiagnosticStatus.OK, list[str]()
+        if self.est is not None:
+            est = self.est
+            steps, wall = self._diag_steps
+            now = time.monotonic()
+            values['state_time_s'] = f'{est.t:.3f}'
+            values['steps_per_wall_second'] = f'{(est.k - steps) / max(now - wall, 1e-9):.1f}'
+            self._diag_steps = (est.k, now)
+            if not est.leader:
+                stale = est.stale_neighbours(est.t)
+                values['stale_neighbours'] = ','.join(stale)
+                values['edges_used'] = str(est.last.edges_used)
+                if stale:
+                    level, problems = DiagnosticStatus.WARN, problems + ['stale neighbours']
+                eig = est.conditioning()
+                if eig is not None:
+                    values['conditioning_eigenvalues'] = ','.join(f'{e:.4g}' for e in eig)
+                    problem = est.estimator.conditioning_problem(eig)
+                    if problem is not None:
+                        level = max(level, DiagnosticStatus.WARN)
+                        problems.append(problem)
+            values['non_finite_steps'] = str(est.non_finite_steps)
+        for cause, n in sorted(self.rejected.items()):
+            values[f'rejected_{cause}'] = str(n)
+        for cause, n in sorted(self.events.items()):
+            values[f'event_{cause}'] = str(n)
+        if self.rejected:
+            level = max(level, DiagnosticStatus.WARN)
+            problems.append(f'{sum(self.rejected.values())} input(s) rejected')
+        status.level = level
+        status.message = '; '.join(problems) or 'ok'
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(msg)
+
+    def destroy_node(self) -> None:
+        """Log what this estimator achieved: steps, the step rate in wall time, rejections."""
+        if self.est is not None and self._wall_first_step is not None:
+            wall = max(time.monotonic() - self._wall_first_step, 1e-9)
+            self.get_logger().info(
+                f'{self.est.k} steps ({self.est.k * self.h:.2f} s of state time) in {wall:.1f} s '
+                f'wall: {self.est.k / wall:.1f} steps/s; rejected: {dict(self.rejected) or 0}; '
+                f'events: {dict(self.events) or 0}')
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> None:
+    raise SystemExit(run_node(EstimatorNode, 'estimator', args))
+
+
+if __name__ == '__main__':
+    main()

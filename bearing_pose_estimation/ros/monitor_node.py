@@ -1,0 +1,132 @@
+"""``monitor``: errors of a distributed run, in the same files as ``bearing-pose simulate``.
+
+Subscribes to every follower's ``/<agent>/estimate`` and ``/<agent>/ground_truth``, pairs them
+at identical stamps on a ``record_every`` grid (estimates come every estimator step, truth every
+ground-truth period, so the grid instants carry both), and writes ``metrics.csv``,
+``summary.json`` and the plots to ``out_dir`` once ``t = duration`` is recorded, then exits.
+Interrupted, it writes what it has. Progress goes to stdout.
+
+Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``out_dir``,
+``record_every`` [s], ``progress_every`` [s of sim time], ``plots``.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+from rclpy.node import Node
+from rclpy.task import Future
+
+from .. import msg_defs as wire
+from ..studies.results import PoseErrors, Recording, pose_errors
+from ..studies.summary import format_summary, summarize, write_metrics_csv, write_summary_json
+from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
+
+
+class MonitorNode(Node):
+    def __init__(self) -> None:
+        super().__init__('monitor')
+        self.scenario = s = scenario_parameter(self)
+        self.duration = declare(self, 'duration', 0.0, 'simulated time to record [s]; 0: the '
+                                "scenario's", 0.0, 1e9) or s.duration
+        self.out_dir = Path(declare(self, 'out_dir', 'results', 'output directory'))
+        self.record_ns = int(round(declare(self, 'record_every', 0.1, 'metrics row interval '
+                                           '[s]', 1e-3, 0.5) * 1e9))
+        self.progress_every = declare(self, 'progress_every', max(self.duration / 10.0, 1.0),
+                                      'progress line interval [s] of simulated time', 1e-3, 1e9)
+        self.plots = declare(self, 'plots', True, 'write the PNG plots')
+        warn_unknown_parameters(self)
+
+        self.followers = [a.name for a in s.followers]
+        # Errors as the method's estimates require (the followers are every agent that
+        # estimates; for methods without leaders, the whole fleet).
+        self.frame = s.estimator().frame
+        self._truth: dict[int, dict[int, tuple]] = {}   # ns -> follower index -> (R, p)
+        self._est: dict[int, dict[int, tuple]] = {}     # ns -> follower index -> (R̂, p̂)
+        self._recorded: set[int] = set()
+        self.rows: list[tuple[float, PoseErrors]] = []
+        self._last_progress = -np.inf
+        self.done = False
+        self.finished = Future()  # completes once the outputs are written
+        self.wall_start = time.monotonic()
+        for k, name in enumerate(self.followers):
+            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.GROUND_TRUTH),
+                                     partial(self._on_pose, self._truth, k), wire.SIM_PUB_QOS)
+            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE),
+                                     partial(self._on_pose, self._est, k), wire.ESTIMATE_QOS)
+
+    def _on_pose(self, table: dict, k: int, msg: wire.PoseStamped) -> None:
+        ns = wire.stamp_ns(msg.header.stamp)
+        if ns % self.record_ns or self.done or ns in self._recorded:
+            return  # only grid instants, once each (t0 estimates are announced repeatedly)
+        try:
+            _, R, p = wire.decode_pose(msg)
+        except wire.WireError as exc:
+            self.get_logger().warning(f'bad pose: {exc}', throttle_duration_sec=5.0)
+            return
+        table.setdefault(ns, {})[k] = (R, p)
+        self._complete(ns)
+
+    def _complete(self, ns: int) -> None:
+        n = len(self.followers)
+        truth, est = self._truth.get(ns, {}), self._est.get(ns, {})
+        if len(truth) < n or len(est) < n:
+            return
+        R = np.stack([truth[k][0] for k in range(n)])
+        p = np.stack([truth[k][1] for k in range(n)])
+        R_hat = np.stack([est[k][0] for k in range(n)])
+        p_hat = np.stack([est[k][1] for k in range(n)])
+        t = ns * 1e-9
+        errors = pose_errors(self.frame, R, p, R_hat, p_hat)
+        self.rows.append((t, errors))
+        del self._truth[ns], self._est[ns]
+        self._recorded.add(ns)
+        att, pos = errors.att_err, errors.pos_err
+        if t - self._last_progress >= self.progress_every - 1e-9 or t >= self.duration - 1e-9:
+            self._last_progress = t
+            print(f'  t = {t:7.1f} / {self.duration:g} s   mean attitude error {att.mean():.2e} '
+                  f'rad   mean position error {pos.mean():.2e} m', flush=True)
+        if t >= self.duration - 1e-9:
+            self.finish()
+
+    def recording(self) -> Recording | None:
+        if not self.rows:
+            return None
+        rows = sorted(self.rows, key=lambda r: r[0])
+        return Recording.of([t for t, _ in rows], self.followers, [e for _, e in rows])
+
+    def finish(self) -> None:
+        """Write the outputs (once), from whatever has been recorded."""
+        if self.done:
+            return
+        self.done = True
+        rec = self.recording()
+        if rec is None:
+            print('monitor: nothing recorded', file=sys.stderr)
+            self.finished.set_result(False)
+            return
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        summary = summarize(rec, scenario=self.scenario.name, source=self.scenario.source,
+                            mode='dds', step_s=self.scenario.step,
+                            wall_time_s=round(time.monotonic() - self.wall_start, 3),
+                            complete=bool(rec.t[-1] >= self.duration - 1e-9))
+        write_metrics_csv(rec, self.out_dir / 'metrics.csv')
+        write_summary_json(summary, self.out_dir / 'summary.json')
+        if self.plots:
+            from ..studies.plots import write_plots
+            write_plots(rec, self.out_dir)
+        print(format_summary(summary), flush=True)
+        self.finished.set_result(True)
+
+
+def main(args: list[str] | None = None) -> None:
+    # Interrupted, it still writes what it measured.
+    raise SystemExit(run_node(MonitorNode, 'monitor', args, until=lambda node: node.finished,
+                              on_interrupt=lambda node: node.finish()))
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,271 @@
+"""The life cycle shared by every node's ``main``: init, spin, clean shutdown on Ctrl-C.
+
+Clean shutdown matters: a node that dies without destroying its DDS participant leaves Fast DDS
+files in /dev/shm. SIGINT and SIGTERM only ask the spin loop to stop; everything after happens
+on the main thread, in order (see :class:`_StopRequest`). Configuration errors
+(:class:`ScenarioError`, and rclpy's parameter exceptions) are logged as fatal with their fix
+and give exit code 1, without a traceback.
+
+Parameters: :func:`declare` declares one read-only parameter with its type taken from the
+default. It accepts what a ROS user writes (``frequency: 100`` for a float, ``[2, 1]`` for a
+list of floats, ``[]`` for an empty list) and turns any other type or an out-of-range value
+into a one-line :class:`ScenarioError` naming the parameter and the fix.
+:func:`warn_unknown_parameters` warns about keys of a parameter file that no node declared
+(``neighbour_timout``), which rclpy otherwise ignores silently.
+"""
+from __future__ import annotations
+
+import difflib
+import faulthandler
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterException
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
+from rclpy.task import Future
+
+from .executor import DrainingExecutor
+from ..core.errors import ScenarioError
+from ..scenario.model import Scenario
+from ..scenario.parse import load_scenario
+
+# Which executor spins the nodes: 'draining' (ours, the default; see executor.py and
+# BENCHMARKS.md) or 'rclpy' (its SingleThreadedExecutor), kept for comparisons.
+EXECUTOR_ENV = 'BEARING_POSE_EXECUTOR'
+EXECUTORS = {'draining': DrainingExecutor, 'rclpy': SingleThreadedExecutor}
+
+
+def scenario_parameter(node: Node) -> Scenario:
+    """Declare the required ``scenario_file`` parameter and load the scenario it names."""
+    path = declare(node, 'scenario_file', '', 'scenario YAML file')
+    if not path:
+        raise ScenarioError('parameter scenario_file is empty. Fix: pass '
+                            '-p scenario_file:=/path/to/scenario.yaml')
+    return load_scenario(path)
+
+
+# --------------------------------------------------------------------------- parameters
+_T = Parameter.Type
+_KINDS = {_T.BOOL: 'true or false', _T.INTEGER: 'an integer', _T.DOUBLE: 'a number',
+          _T.STRING: 'a string', _T.INTEGER_ARRAY: 'a list of integers',
+          _T.DOUBLE_ARRAY: 'a list of numbers', _T.STRING_ARRAY: 'a list of strings',
+          _T.BOOL_ARRAY: 'a list of true/false'}
+_EXAMPLES = {_T.BOOL: 'true', _T.INTEGER: '1', _T.DOUBLE: '1.0', _T.STRING: 'text',
+             _T.INTEGER_ARRAY: '[1, 2]', _T.DOUBLE_ARRAY: '[1.0, 2.0]',
+             _T.STRING_ARRAY: '[agent_1, agent_2]', _T.BOOL_ARRAY: '[true, false]'}
+_ITEM = {_T.INTEGER_ARRAY: _T.INTEGER, _T.DOUBLE_ARRAY: _T.DOUBLE, _T.STRING_ARRAY: _T.STRING,
+         _T.BOOL_ARRAY: _T.BOOL}
+
+
+def parameter_overrides(node: Node) -> dict[str, Parameter]:
+    """The values given to ``node`` from outside: parameter files, ``-p`` and the constructor's
+    ``parameter_overrides``. rclpy has no public accessor (rclcpp has
+    ``get_parameter_overrides()``); Node keeps them in ``_parameter_overrides`` (rclpy 7.1.6,
+    pinned; test_estimator_params.py fails if that changes)."""
+    return dict(getattr(node, '_parameter_overrides', {}))
+
+
+def _item(kind: Parameter.Type, value: Any) -> Any:
+    """``value`` as a scalar of type ``kind`` (an int is a float too), or raise TypeError."""
+    if isinstance(value, bool) != (kind == _T.BOOL):
+        raise TypeError
+    if kind == _T.DOUBLE and isinstance(value, (int, float)):
+        return float(value)
+    if (kind == _T.INTEGER and isinstance(value, int)) or (kind == _T.STRING and isinstance(
+            value, str)) or kind == _T.BOOL:
+        return value
+    raise TypeError
+
+
+def _given(name: str, kind: Parameter.Type, given: Parameter) -> Any:
+    """An override converted to ``kind``, or a ScenarioError naming the parameter and the fix."""
+    value = given.value
+    if given.type_ == _T.NOT_SET and kind in _ITEM:  # `name: []` in YAML has no type
+        return []
+    try:
+        if kind in _ITEM:
+            if not isinstance(value, (list, tuple)) and type(value).__name__ != 'array':
+                raise TypeError
+            return [_item(_ITEM[kind], v) for v in value]
+        return _item(kind, value)
+    except TypeError:
+        got = _KINDS.get(given.type_, 'no value' if given.type_ == _T.NOT_SET else
+                         given.type_.name.lower())
+        raise ScenarioError(f'parameter {name} must be {_KINDS[kind]}, but {got} was given '
+                            f'({value!r}). Fix: e.g. `{name}: {_EXAMPLES[kind]}` in the '
+                            f'parameter file, or -p {name}:={_EXAMPLES[kind]}') from None
+
+
+def declare(node: Node, name: str, default: Any, description: str = '',
+            low: float | None = None, high: float | None = None) -> Any:
+    """Declare a read-only parameter whose type is the default's, and return its value.
+
+    Integers are accepted where numbers are expected, and ``[]`` for any list. Another type,
+    or a number outside ``[low, high]``, raises a :class:`ScenarioError` naming the parameter
+    and the fix (rclpy would raise with a traceback, or accept 100 only as 100.0)."""
+    kind = Parameter.Type.from_parameter_value(default)
+    descriptor = ParameterDescriptor(description=description, read_only=True)
+    if low is not None and high is not None:
+        if kind == _T.INTEGER:
+            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high),
+                                                     step=0)]
+        else:
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(low),
+                                                                  to_value=float(high),
+                                                                  step=0.0)]
+    given = parameter_overrides(node).get(name)
+    value = default if given is None else _given(name, kind, given)
+    if low is not None and high is not None:
+        numbers = value if isinstance(value, list) else [value]
+        if any(not low <= v <= high for v in numbers):
+            raise ScenarioError(f'parameter {name} must be in [{low:g}, {high:g}], but '
+                                f'{value!r} was given. Fix: a value in that range')
+    if value == [] and kind in _ITEM:  # declared with its type, without a value
+        node.declare_parameter(name, kind, descriptor, ignore_override=True)
+        return []
+    return node.declare_parameter(name, value, descriptor, ignore_override=True).value
+
+
+def warn_unknown_parameters(node: Node) -> list[str]:
+    """Warn (one log line) about given parameters this node never declared: rclpy ignores
+    them, so a misspelt key would silently keep its default. Returns them."""
+    unknown = sorted(k for k in parameter_overrides(node) if not node.has_parameter(k))
+    if unknown:
+        known = sorted(node.list_parameters([], 0).names)  # depth 0: all
+        hints = []
+        for key in unknown:
+            close = difflib.get_close_matches(key, known, n=1)
+            hints.append(f'{key} (did you mean {close[0]}?)' if close else key)
+        node.get_logger().warning(
+            f'unknown parameter(s) ignored: {", ".join(hints)}. Known parameters: '
+            f'{", ".join(known)}')
+    return unknown
+
+
+# How long one executor wait may block: the longest delay between a stop signal and the
+# spin loop noticing it when no timer or message wakes the executor.
+_POLL_S = 0.1
+
+
+class _StopRequest:
+    """SIGINT/SIGTERM handler that only records the request; a second signal interrupts.
+
+    rclpy's own handler shuts the context down from its signal thread while the executor may be
+    taking a message or destroying a handle; on shutdown that race crashed (SIGSEGV), hung in
+    ``destroy_node`` or raised from ``take_message`` in about one fleet shutdown in twelve
+    (``bench/shutdown_stress.py`` reproduces it). Stopping from the spin loop instead leaves one
+    thread doing everything, in order.
+    """
+
+    def __init__(self) -> None:
+        self.signal: int | None = None
+        self._previous = {sig: signal.signal(sig, self._handle)
+                          for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def _handle(self, signum: int, _frame: object) -> None:
+        if self.signal is not None:  # asked twice: stop waiting for the loop
+            raise KeyboardInterrupt
+        self.signal = signum
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+N = TypeVar('N', bound=Node)
+
+
+def run_node(factory: Callable[[], N | list[N]], name: str,
+             args: list[str] | None = None, until: Callable[[N], Future] | None = None,
+             on_interrupt: Callable[[N], None] | None = None) -> int:
+    """Create the node (or nodes: one executor spins them all), spin it (until ``until(node)``
+    completes, or until SIGINT/SIGTERM), and shut down cleanly. Returns the process exit code.
+
+    Args:
+        factory: builds the node, or a list of nodes (after ``rclpy.init``).
+        name: logger name for fatal configuration errors.
+        until: a future whose completion ends the spin (e.g. "outputs written").
+        on_interrupt: called when a signal stopped the spin (e.g. write partial outputs).
+    """
+    # SIGUSR1 dumps every thread's stack to stderr (the log): `bearing-pose run` sends it to a
+    # node that did not stop on SIGINT, so a hang explains itself.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
+    stop = _StopRequest()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    node: N | None = None
+    nodes: list[N] = []
+    executor = None
+    code = 0
+    try:
+        choice = os.environ.get(EXECUTOR_ENV, 'draining')
+        if choice not in EXECUTORS:
+            raise ScenarioError(f'{EXECUTOR_ENV}={choice!r} is not an executor. Fix: one of '
+                                f'{", ".join(EXECUTORS)}, or unset it')
+        made = factory()
+        nodes = made if isinstance(made, list) else [made]
+        node = nodes[0]
+        executor = EXECUTORS[choice]()
+        for each in nodes:
+            executor.add_node(each)
+        future = until(node) if until is not None else None
+        while stop.signal is None and (future is None or not future.done()):
+            executor.spin_once(timeout_sec=_POLL_S)
+        if stop.signal is not None:
+            rclpy.logging.get_logger(name).info(
+                f'{signal.Signals(stop.signal).name}: shutting down')
+            if on_interrupt is not None:
+                on_interrupt(node)
+        elif future is not None:
+            code = 0 if future.result() in (None, True) else 1
+    except KeyboardInterrupt:  # a second signal while stopping, or one during start-up
+        if node is not None and on_interrupt is not None:
+            on_interrupt(node)
+    except ScenarioError as exc:
+        rclpy.logging.get_logger(name).fatal(str(exc))
+        code = 1
+    except ParameterException as exc:  # e.g. `use_sim_time: 1`, declared by rclpy itself
+        rclpy.logging.get_logger(name).fatal(
+            f'parameter error: {exc}. Fix: give the parameter the type and range '
+            'it is declared with (see `ros2 param describe`) in the parameter file or -p')
+        code = 1
+    finally:
+        watchdog = threading.Timer(TEARDOWN_TIMEOUT_S, _teardown_hung, (name, code))
+        watchdog.daemon = True
+        watchdog.start()
+        if executor is not None:
+            executor.shutdown(timeout_sec=2.0)
+        for each in nodes:
+            try:
+                each.destroy_node()
+            except Exception as exc:  # noqa: BLE001
+                rclpy.logging.get_logger(name).warning(f'destroy_node failed: {exc!r}')
+        rclpy.try_shutdown()  # releases the DDS participant: no files left in /dev/shm
+        watchdog.cancel()
+        stop.restore()
+    return code
+
+
+# Destroying nodes takes well under a second. Fast DDS (2.14, in the Jazzy wheels) sometimes
+# deadlocks inside rcl_node_fini when many participants leave at once: about one process in
+# 200 in bench/shutdown_stress.py, always in rclpy's Node.destroy_node. Nothing can unblock it.
+TEARDOWN_TIMEOUT_S = 5.0
+
+
+def _teardown_hung(name: str, code: int) -> None:
+    """The watchdog's end: say what hung, with the stacks, and exit with the node's own code
+    (its work is done) instead of waiting for SIGKILL."""
+    sys.stderr.write(f'[ERROR] [{name}]: DDS teardown did not finish in {TEARDOWN_TIMEOUT_S:g} s '
+                     '(a Fast DDS deadlock in node destruction); exiting without it. Its files '
+                     'may stay in /dev/shm: `fastdds shm clean` removes them. Stacks:\n')
+    faulthandler.dump_traceback(all_threads=True)
+    sys.stderr.flush()
+    os._exit(code)

@@ -1,0 +1,211 @@
+"""``simulator``: the world of a scenario over DDS, with a simulated clock.
+
+Publishes, per agent, ``/<agent>/imu`` (interval-average gyro), ``/<agent>/bearings`` (body
+frame) and ``/<agent>/ground_truth``, plus ``/clock``, from :class:`world.World` (truth on a
+1 ms grid). It is the only clock publisher; every other node runs with ``use_sim_time``.
+
+Start: it waits until every estimator and the monitor are matched (subscriptions to its
+topics, and the estimators' own topics to each other) and every estimator has announced its
+t0 state (which it does only once its own subscriptions are matched), then starts the clock at
+t = 0, so t = 0 is the same for every node and no first sample is lost.
+
+Pacing (``lockstep``, default on): the clock never runs more than ``max_lag`` seconds ahead of
+the slowest estimator's published state, like Gazebo's lockstep. Results then do not depend on
+how loaded the machine is, and runs go as fast as the estimators can. ``real_time_factor`` > 0
+also caps the clock at that multiple of wall time.
+
+Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``lockstep``, ``max_lag``
+[s], ``real_time_factor``, ``wait_for_monitor``, ``wait_for_estimators``, ``start_timeout`` [s],
+``publish_clock`` (default true; false when another node owns ``/clock``, e.g. a bag replay:
+the stamps are simulated time either way).
+"""
+from __future__ import annotations
+
+import time
+from functools import partial
+
+import numpy as np
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.task import Future
+from rosgraph_msgs.msg import Clock as ClockMsg
+
+from .. import msg_defs as wire
+from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
+from ..sim.world import World
+
+# Sim time advanced per wall-timer callback at most: keeps the node responsive to Ctrl-C and to
+# the estimators' progress messages.
+_MAX_SIM_PER_TICK = 0.02
+
+
+class SimulatorNode(Node):
+    def __init__(self, **node_kwargs) -> None:
+        """``node_kwargs`` go to rclpy's Node (``context``, ``parameter_overrides``, ...)."""
+        super().__init__('simulator', **node_kwargs)
+        p = partial(declare, self)
+        self.scenario = s = scenario_parameter(self)
+        self.duration = p('duration', 0.0, 'simulated time [s]; 0: the scenario\'s',
+                          0.0, 1e9) or s.duration
+        self.lockstep = p('lockstep', True, 'keep the clock at most max_lag ahead of the '
+                          'slowest estimator')
+        self.max_lag = p('max_lag', 3.0 / s.publish_rate, 'lockstep lead [s]', 0.0, 1e6)
+        self.rtf = p('real_time_factor', 0.0, 'cap on sim seconds per wall second; 0: none',
+                     0.0, 1e6)
+        self.wait_for_monitor = p('wait_for_monitor', True, 'start only once the monitor is '
+                                  'matched')
+        # False: start without each estimator's t0 announcement (fault studies: late joiners,
+        # a restarted simulator). Use it with lockstep off, or a silent agent stops the clock.
+        self.wait_for_estimators = p('wait_for_estimators', True, 'start only once every '
+                                     'estimator announced its t0 state')
+        self.start_timeout = p('start_timeout', 120.0, 'give up starting after this [s]',
+                               0.0, 1e6)
+        # False: another node owns /clock (a bag replay, Gazebo); the stamps stay sim time.
+        self.publish_clock = p('publish_clock', True, 'publish /clock (the simulated time)')
+
+        self.world = World(s)
+        self.names = [a.name for a in s.agents]
+        # The topics the estimators exchange, from what the scenario's method sends.
+        self.channel_topics = list(dict.fromkeys(wire.channel(c.name).topic
+                                                 for c in s.estimator().sends))
+        self.pub_imu, self.pub_bearings, self.pub_truth = [], [], []
+        for name in self.names:
+            topic = lambda t, n=name: wire.topic(n, t)  # noqa: E731
+            qos = wire.SIM_PUB_QOS
+            self.pub_imu.append(self.create_publisher(wire.Imu, topic(wire.IMU), qos))
+            self.pub_bearings.append(
+                self.create_publisher(wire.PointCloud2, topic(wire.BEARINGS), qos))
+            self.pub_truth.append(
+                self.create_publisher(wire.PoseStamped, topic(wire.GROUND_TRUTH), qos))
+        self.pub_clock = (self.create_publisher(ClockMsg, wire.CLOCK, wire.CLOCK_QOS)
+                          if self.publish_clock else None)
+        # Estimators' progress: the stamp of each agent's latest estimate (lockstep pacing).
+        self.progress = np.full(len(self.names), -np.inf)
+        for k, name in enumerate(self.names):
+            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE),
+                                     partial(self._on_estimate, k), wire.ESTIMATE_QOS)
+
+        self.state = 'waiting'
+        self.lags: list[float] = []
+        self.failed = Future()  # completes only if start-up fails; otherwise spin until Ctrl-C
+        self.wall_start = time.monotonic()
+        self.sim_wall_start = 0.0
+        # /clock once per estimator step: finer ticks only cost every node callbacks.
+        self.steps_per_clock = max(1, int(round(s.step / self.world.dt)))
+        # A wall-clock timer: the simulator owns sim time, so it must not wait on it. A quarter
+        # of a step (at most 5 ms) keeps /clock smooth; every wake-up costs the executor ~0.3 ms
+        # of CPU, so a 1 ms tick alone took a third of a core (bench/fleet_scale.py).
+        self.timer = self.create_timer(min(0.005, s.step / 4.0), self.on_tick,
+                                       clock=Clock(clock_type=ClockType.STEADY_TIME))
+        waiting = 'estimators and monitor' if self.wait_for_monitor else 'estimators'
+        self.get_logger().info(f'{s.name}: {len(self.names)} agents, {self.duration:g} s'
+                               f'{"" if self.publish_clock else ", no /clock"}; '
+                               f'waiting for {waiting}')
+        warn_unknown_parameters(self)
+
+    def _on_estimate(self, k: int, msg: wire.PoseStamped) -> None:
+        self.progress[k] = max(self.progress[k], wire.from_stamp(msg.header.stamp))
+
+    # --------------------------------------------------------------------------- start
+    def _unmatched(self) -> list[str]:
+        """Topics whose expected peers are not matched yet."""
+        s, missing = self.scenario, []
+        for k, name in enumerate(self.names):
+            monitored = 1 if self.wait_for_monitor and name not in s.leaders else 0
+            need_truth = monitored + (1 if name in s.leaders else 0)
+            if self.pub_imu[k].get_subscription_count() < 1:
+                missing.append(wire.topic(name, wire.IMU))
+            if self.pub_bearings[k].get_subscription_count() < 1:
+                missing.append(wire.topic(name, wire.BEARINGS))
+            if self.pub_truth[k].get_subscription_count() < need_truth:
+                missing.append(wire.topic(name, wire.GROUND_TRUTH))
+            # Every listener subscribes to each channel topic of the agent; the simulator and
+            # the monitor to its estimate as well.
+            listeners = len(s.listeners(name))
+            wanted = dict.fromkeys(self.channel_topics, listeners)
+            wanted[wire.ESTIMATE] = wanted.get(wire.ESTIMATE, 0) + 1 + monitored
+            for topic, count in wanted.items():
+                if self.count_subscribers(wire.topic(name, topic)) < count:
+                    missing.append(wire.topic(name, topic))
+            if self.count_publishers(wire.topic(name, wire.ESTIMATE)) < 1:
+                missing.append(wire.topic(name, wire.ESTIMATE) + ' (publisher)')
+        return missing
+
+    def _start(self) -> None:
+        self.state = 'running'
+        self.sim_wall_start = time.monotonic()
+        self.get_logger().info(f'all matched after {self.sim_wall_start - self.wall_start:.2f} s;'
+                               ' clock starts at t = 0')
+        self._publish(clock=True)
+
+    # --------------------------------------------------------------------------- running
+    def on_tick(self) -> None:
+        if self.state == 'waiting':
+            missing = self._unmatched()
+            silent = [n for n, t in zip(self.names, self.progress)
+                      if t < 0.0 and self.wait_for_estimators]
+            if not missing and not silent:
+                self._start()
+            elif time.monotonic() - self.wall_start > self.start_timeout:
+                self.get_logger().error(
+                    f'not ready after {self.start_timeout:g} s: unmatched '
+                    f'{", ".join(missing[:10]) or "none"}; no t0 estimate from '
+                    f'{", ".join(silent[:10]) or "none"}')
+                self.state = 'failed'
+                self.failed.set_result(False)
+            return
+        if self.state != 'running':
+            return
+        w = self.world
+        limit = min(self.duration, w.t + _MAX_SIM_PER_TICK)
+        if self.lockstep:
+            limit = min(limit, float(self.progress.min()) + self.max_lag)
+        if self.rtf > 0.0:
+            limit = min(limit, (time.monotonic() - self.sim_wall_start) * self.rtf)
+        while w.t + w.dt <= limit + 1e-9:
+            w.step()
+            self._publish(clock=w.tick % self.steps_per_clock == 0)
+        # How far the slowest estimator's published state trails the clock (sim seconds).
+        self.lags.append(w.t - float(self.progress.min()))
+        if w.t >= self.duration - 1e-9:
+            self.state = 'done'
+            wall = time.monotonic() - self.sim_wall_start
+            lag = np.array(self.lags) * 1e3
+            text = (f'reached t = {w.t:g} s in {wall:.1f} s wall (x{w.t / max(wall, 1e-9):.2f} '
+                    f'real time); slowest estimate behind the clock: median '
+                    f'{np.median(lag):.1f} ms, max {lag.max():.1f} ms of sim time')
+            if self.rtf > 0.0:
+                # Paced by the wall clock, an estimate is due every publish period; trailing by
+                # more than two means the slowest agent missed a deadline. (In pure lockstep
+                # the clock waits for the estimators, so lag is by design, not a miss.)
+                late_ms = 2e3 / self.scenario.publish_rate
+                missed = float(np.mean(lag > late_ms + 1e-6)) * 100.0
+                text += (f'; more than {late_ms:.0f} ms behind (a missed deadline) in '
+                         f'{missed:.2f} % of ticks')
+            self.get_logger().info(text)
+
+    def _publish(self, clock: bool) -> None:
+        w, t = self.world, self.world.t
+        if w.due(w.imu_every) and w.tick > 0:  # a sample covers the period ending now
+            for i, omega in enumerate(w.imu()):
+                self.pub_imu[i].publish(wire.encode_imu(t, self.names[i], omega))
+        if w.due(w.bearing_every):
+            for i, name in enumerate(self.names):
+                j, b = w.bearings(i)
+                self.pub_bearings[i].publish(
+                    wire.encode_vectors(t, wire.body_frame(name), j + 1, b))
+        if w.due(w.truth_every):
+            for i, pub in enumerate(self.pub_truth):
+                pub.publish(wire.encode_pose(t, wire.WORLD_FRAME, w.R[i], w.p[i]))
+        if clock and self.pub_clock is not None:
+            self.pub_clock.publish(ClockMsg(clock=wire.to_stamp(t)))
+
+
+def main(args: list[str] | None = None) -> None:
+    # Spins until Ctrl-C; exits 1 by itself only if start-up fails.
+    raise SystemExit(run_node(SimulatorNode, 'simulator', args,
+                              until=lambda node: node.failed))
+
+
+if __name__ == '__main__':
+    main()

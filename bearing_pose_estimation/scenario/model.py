@@ -1,0 +1,199 @@
+"""The scenario model: typed, validated dataclasses (built by :mod:`.parse` from YAML).
+
+Units are SI; positions and attitudes (body → world) are in the scenario's ``world_frame``.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .. import estimators
+from ..core import so3
+from ..core.motion import AngularVelocity
+from ..estimators.base import Estimator
+
+
+@dataclass(frozen=True)
+class Neighbour:
+    name: str
+    k: float  # k_ij > 0
+
+
+@dataclass(frozen=True)
+class Agent:
+    """One agent. Units SI; frames: ``position`` and ``attitude`` (body → world) in ``world``."""
+
+    name: str
+    position: NDArray[np.float64]
+    attitude: NDArray[np.float64]
+    angular_velocity: AngularVelocity
+    neighbours: tuple[Neighbour, ...] = ()
+    initial_position: NDArray[np.float64] | None = None   # p̂_i(0), followers only
+    initial_attitude: NDArray[np.float64] | None = None   # R̂_i(0), followers only
+
+
+@dataclass(frozen=True)
+class RandomInit:
+    """Random initial estimates for followers that give none explicitly.
+
+    ``p̂(0) = p + N(0, position_std² I)``; ``R̂(0) = R exp(θ u)``, u uniform on the sphere,
+    θ uniform in ``[0, max_angle_deg]``.
+    """
+
+    seed: int = 0
+    position_std: float = 1.0
+    max_angle_deg: float = 180.0
+
+
+@dataclass(frozen=True)
+class BearingPerturbation:
+    """Deterministic bearing perturbation (Tran, Anderson & Ahn 2020): every measured bearing
+    is ``rot_X(θ0 sin(2π f t)) b``, the rotation about the body axis ``X`` (the paper: "an
+    arbitrary direction, e.g. the principal axes"; default x)."""
+
+    amplitude_deg: float   # θ0, in [0, 90]
+    frequency_hz: float    # f > 0
+    axis: tuple[float, float, float] = (1.0, 0.0, 0.0)   # X, a unit vector (body frame)
+
+
+@dataclass(frozen=True)
+class Noise:
+    """Measurement noise, all off by default; applied by :mod:`bearing_pose_estimation.noise`.
+
+    - ``gyro_std`` [rad/s]: white noise on each gyro sample (at ``simulation.imu_rate``),
+      per axis; the batch simulator averages it over the samples its step spans.
+    - ``gyro_bias`` [rad/s]: constant body-frame gyro bias, the same for every agent, plus
+      ``gyro_bias_std`` [rad/s]: each agent's own constant bias, drawn once per axis from
+      ``N(0, gyro_bias_std²)``. Measured rate = true + bias + white noise.
+    - ``bearing_std`` [rad]: each bearing is turned by a random rotation perpendicular to it,
+      whose two angular components each have this standard deviation (so the RMS angle is
+      ``√2 · bearing_std``: 1° gives 1.41°).
+    - ``bearing_perturbation``: the deterministic ``rot_X(θ0 sin 2πft)`` of each bearing.
+    - ``outlier_probability``: chance that a bearing is replaced by a uniformly random unit
+      vector.
+    - ``seed``: seeds every random draw, so a scenario and seed give the same run.
+    """
+
+    gyro_std: float = 0.0
+    gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gyro_bias_std: float = 0.0
+    bearing_std: float = 0.0
+    bearing_perturbation: BearingPerturbation | None = None
+    outlier_probability: float = 0.0
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class SimulationRates:
+    """How the simulator node samples the world. Truth is integrated with ``internal_step``
+    [s]; every sensor period must be a whole number of internal steps."""
+
+    internal_step: float = 0.001
+    imu_rate: float = 200.0          # gyro samples [Hz], interval averages
+    bearing_rate: float = 50.0       # bearing measurements [Hz]
+    ground_truth_rate: float = 50.0  # true poses [Hz], for the monitor and leaders
+
+    def ticks(self, rate: float) -> int:
+        """Internal steps per period of ``rate``."""
+        return int(round(1.0 / (rate * self.internal_step)))
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    agents: tuple[Agent, ...]
+    leaders: tuple[str, ...]
+    method: str = estimators.DEFAULT_METHOD   # the registry key (`estimators.methods()`)
+    gains: Any = None          # the method's own Gains dataclass; None: its defaults
+    description: str = ''
+    frequency: float = 100.0   # estimator rate [Hz]; batch step h = 1/frequency
+    publish_rate: float = 50.0  # estimators publish estimate + world bearings [Hz]
+    duration: float = 60.0     # default run length [s]
+    world_frame: str = 'world'
+    noise: Noise = Noise()
+    random_init: RandomInit | None = None
+    simulation: SimulationRates = SimulationRates()
+    source: str = '<memory>'
+    index: dict[str, int] = field(default_factory=dict, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.index.update({a.name: i for i, a in enumerate(self.agents)})
+        gains_cls = estimators.get(self.method).Gains
+        if self.gains is None:
+            object.__setattr__(self, 'gains', gains_cls())
+        elif not isinstance(self.gains, gains_cls):
+            raise TypeError(f'{self.method} takes {gains_cls.__module__}.Gains, got '
+                            f'{type(self.gains).__module__}.Gains: use Scenario.with_method')
+
+    def estimator(self) -> Estimator:
+        """The scenario's method with its gains."""
+        return estimators.build(self.method, self.gains)
+
+    def with_method(self, method: str, **gains: float) -> Scenario:
+        """The same scenario run by ``method``: each of its gains is the value of this
+        scenario's gain of the same name if there is one, else the default; then ``gains``.
+        (Same truth, initial estimates and noise: how methods are compared.)"""
+        gains_cls = estimators.get(method).Gains
+        mine = dataclasses.asdict(self.gains)
+        values = {f.name: mine.get(f.name, f.default) for f in dataclasses.fields(gains_cls)}
+        values.update(gains)
+        return dataclasses.replace(self, method=method, gains=gains_cls(**values),
+                                   index={})
+
+    @property
+    def followers(self) -> tuple[Agent, ...]:
+        return tuple(a for a in self.agents if a.name not in self.leaders)
+
+    @property
+    def step(self) -> float:
+        return 1.0 / self.frequency
+
+    @property
+    def publish_every(self) -> int:
+        """Estimator steps between two publications."""
+        return int(round(self.frequency / self.publish_rate))
+
+    def agent(self, name: str) -> Agent:
+        return self.agents[self.index[name]]
+
+    def agent_id(self, name: str) -> int:
+        """The id on the wire: the 1-based position in ``agents`` (the paper's agent number)."""
+        return self.index[name] + 1
+
+    def listeners(self, name: str) -> list[str]:
+        """Agents that have ``name`` as a neighbour (they receive what it sends)."""
+        return [a.name for a in self.agents if any(n.name == name for n in a.neighbours)]
+
+    def sensing_targets(self, name: str) -> list[str]:
+        """Agents that ``name`` measures bearings to: its neighbours and its listeners
+        (sensing is two-way on every edge)."""
+        targets = {n.name for n in self.agent(name).neighbours} | set(self.listeners(name))
+        return sorted(targets, key=self.index.__getitem__)
+
+
+def initial_estimates(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(R̂(0) (N,3,3), p̂(0) (N,3))`` for all agents: leaders exact, followers explicit or
+    drawn from the scenario's seeded ``initial_estimates.random`` block."""
+    n = len(scenario.agents)
+    R0 = np.stack([a.attitude for a in scenario.agents])
+    p0 = np.stack([a.position for a in scenario.agents])
+    ri = scenario.random_init
+    rng = np.random.default_rng(ri.seed if ri else 0)
+    for i, a in enumerate(scenario.agents):
+        if a.name in scenario.leaders:
+            continue
+        if a.initial_position is not None:
+            p0[i], R0[i] = a.initial_position, a.initial_attitude
+        else:
+            assert ri is not None  # parse_scenario guarantees it
+            u = rng.normal(size=3)
+            u /= np.linalg.norm(u)
+            theta = np.radians(ri.max_angle_deg) * rng.uniform()
+            R0[i] = a.attitude @ so3.exp(theta * u)
+            p0[i] = a.position + ri.position_std * rng.normal(size=3)
+    assert R0.shape == (n, 3, 3)
+    return R0, p0

@@ -1,0 +1,410 @@
+"""Scenario files: YAML → validated, typed :class:`.model.Scenario`.
+
+The format is documented in the README ("Scenario format") and by ``config/paper_8_agents.yaml``.
+Every error names the file, the field (``agents[3] (agent_4).neighbours[1]``) and the fix.
+Structural checks live here; each method's graph assumptions live in its estimator's
+``check`` (run by :func:`.check.check_scenario`). The method's gains and roles come from the
+estimator registry.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Set as AbstractSet
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from .. import estimators
+from ..core import so3
+from ..core.errors import ScenarioError
+from ..core.motion import AngularVelocity, Component, Sinusoid
+from ..estimators.base import parse_gains
+from .model import (Agent, BearingPerturbation, Neighbour, Noise, RandomInit, Scenario,
+                    SimulationRates)
+
+# Agent names become ROS namespaces and frame prefixes (`agent_3/base_link`).
+_NAME_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
+# The default weight of every sensing edge, for methods with per-edge gains.
+EDGE_GAIN = 'k_ij'
+
+
+# ----------------------------------------------------------------------------- parsing helpers
+class _Ctx:
+    """Where we are in the file, for error messages."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+
+    def fail(self, where: str, problem: str, fix: str) -> ScenarioError:
+        return ScenarioError(f'{self.source}: {where}: {problem}. Fix: {fix}')
+
+
+def _mapping(ctx: _Ctx, value: Any, where: str, allowed: AbstractSet[str],
+             required: AbstractSet[str] = frozenset()) -> dict:
+    if not isinstance(value, dict):
+        raise ctx.fail(where, f'expected a mapping, got {type(value).__name__}',
+                       f'write it as `key: value` lines ({", ".join(sorted(allowed))})')
+    unknown = sorted(str(k) for k in value if k not in allowed)
+    if unknown:
+        raise ctx.fail(f'{where}.{unknown[0]}', 'unknown key',
+                       f'remove it or use one of: {", ".join(sorted(allowed))}')
+    missing = sorted(required - set(value))
+    if missing:
+        raise ctx.fail(f'{where}.{missing[0]}', 'missing required field', f'add `{missing[0]}:`')
+    return value
+
+
+def _number(ctx: _Ctx, value: Any, where: str, positive: bool = False,
+            non_negative: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ctx.fail(where, f'expected a number, got {value!r}', 'write a plain number')
+    x = float(value)
+    if not math.isfinite(x):
+        raise ctx.fail(where, f'{value!r} is not finite', 'use a finite number')
+    if positive and x <= 0.0:
+        raise ctx.fail(where, f'must be > 0, got {x:g}', 'use a positive value')
+    if non_negative and x < 0.0:
+        raise ctx.fail(where, f'must be >= 0, got {x:g}', 'use zero or a positive value')
+    return x
+
+
+def _integer(ctx: _Ctx, value: Any, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ctx.fail(where, f'expected an integer, got {value!r}', 'write a whole number')
+    return int(value)
+
+
+def _vector(ctx: _Ctx, value: Any, where: str, n: int = 3) -> NDArray[np.float64]:
+    if not isinstance(value, (list, tuple)) or len(value) != n:
+        raise ctx.fail(where, f'expected a list of {n} numbers, got {value!r}',
+                       f'write it as [{", ".join(["0.0"] * n)}]')
+    return np.array([_number(ctx, v, f'{where}[{i}]') for i, v in enumerate(value)])
+
+
+def _string(ctx: _Ctx, value: Any, where: str) -> str:
+    if not isinstance(value, str):
+        raise ctx.fail(where, f'expected a string, got {value!r}', 'write a name')
+    return value
+
+
+def _attitude(ctx: _Ctx, value: Any, where: str) -> NDArray[np.float64]:
+    """``identity`` | ``{axis: [x,y,z], angle_deg: a}`` | ``{axis, angle: rad}`` |
+    ``{quaternion: [x, y, z, w]}`` (REP-103 order)."""
+    if value == 'identity':
+        return np.eye(3)
+    m = _mapping(ctx, value, where, {'axis', 'angle', 'angle_deg', 'quaternion'})
+    if 'quaternion' in m:
+        if set(m) != {'quaternion'}:
+            raise ctx.fail(where, 'quaternion cannot be combined with axis/angle',
+                           'give either `quaternion` or `axis` and `angle_deg`')
+        q = _vector(ctx, m['quaternion'], f'{where}.quaternion', 4)
+        norm = np.linalg.norm(q)
+        if abs(norm - 1.0) > 1e-6:
+            raise ctx.fail(f'{where}.quaternion', f'norm is {norm:.6g}, not 1',
+                           'normalise it (order is x, y, z, w)')
+        from scipy.spatial.transform import Rotation
+        return Rotation.from_quat(q).as_matrix()
+    if 'axis' not in m or ('angle' in m) == ('angle_deg' in m):
+        raise ctx.fail(where, 'an axis-angle attitude needs `axis` and exactly one of '
+                       '`angle` [rad] or `angle_deg`',
+                       'write e.g. {axis: [1, 0, 0], angle_deg: 18}, `identity` or '
+                       '{quaternion: [x, y, z, w]}')
+    axis = _vector(ctx, m['axis'], f'{where}.axis')
+    if np.linalg.norm(axis) < 1e-12:
+        raise ctx.fail(f'{where}.axis', 'axis is zero', 'give a non-zero rotation axis')
+    if 'angle' in m:
+        theta = _number(ctx, m['angle'], f'{where}.angle')
+    else:
+        theta = math.radians(_number(ctx, m['angle_deg'], f'{where}.angle_deg'))
+    return so3.axis_angle(axis, theta)
+
+
+def _term(ctx: _Ctx, value: Any, where: str) -> Sinusoid:
+    m = _mapping(ctx, value, where, {'sin', 'cos', 'amplitude', 'phase'})
+    if ('sin' in m) == ('cos' in m):
+        raise ctx.fail(where, 'a sinusoid term needs exactly one of `sin` or `cos` '
+                       '(its angular frequency in rad/s)',
+                       'write e.g. {sin: 9} for sin(9t) or {cos: 3, amplitude: -1} for -cos(3t)')
+    kind = 'sin' if 'sin' in m else 'cos'
+    freq = _number(ctx, m[kind], f'{where}.{kind}')
+    amp = _number(ctx, m.get('amplitude', 1.0), f'{where}.amplitude')
+    phase = _number(ctx, m.get('phase', 0.0), f'{where}.phase')
+    if kind == 'cos':
+        phase += 0.5 * math.pi
+    return Sinusoid(amplitude=amp, frequency=freq, phase=phase)
+
+
+def _component(ctx: _Ctx, value: Any, where: str) -> Component:
+    """A number, a sinusoid term, or a list of those (summed)."""
+    items = value if isinstance(value, list) else [value]
+    constant, terms = 0.0, []
+    for k, item in enumerate(items):
+        w = f'{where}[{k}]' if isinstance(value, list) else where
+        if isinstance(item, dict):
+            terms.append(_term(ctx, item, w))
+        else:
+            constant += _number(ctx, item, w)
+    return Component(constant=constant, terms=tuple(terms))
+
+
+def _angular_velocity(ctx: _Ctx, value: Any, where: str) -> AngularVelocity:
+    if not isinstance(value, list) or len(value) != 3:
+        raise ctx.fail(where, f'expected 3 components [x, y, z], got {value!r}',
+                       'write e.g. [1, -2, 1] or [{cos: 3, amplitude: -1}, 1, {sin: 2}]')
+    x, y, z = (_component(ctx, v, f'{where}[{i}]') for i, v in enumerate(value))
+    return AngularVelocity(x=x, y=y, z=z)
+
+
+def _neighbours(ctx: _Ctx, value: Any, where: str, default_k: float) -> tuple[Neighbour, ...]:
+    if not isinstance(value, list):
+        raise ctx.fail(where, f'expected a list, got {value!r}',
+                       'write e.g. [agent_1, agent_2] or [{name: agent_1, k: 2.0}, agent_2]')
+    out = []
+    for k, item in enumerate(value):
+        w = f'{where}[{k}]'
+        if isinstance(item, dict):
+            m = _mapping(ctx, item, w, {'name', 'k'}, {'name'})
+            name = _string(ctx, m['name'], f'{w}.name')
+            gain = _number(ctx, m.get('k', default_k), f'{w}.k', positive=True)
+        else:
+            name, gain = _string(ctx, item, w), default_k
+        out.append(Neighbour(name=name, k=gain))
+    return tuple(out)
+
+
+def _simulation(ctx: _Ctx, value: Any) -> SimulationRates:
+    m = _mapping(ctx, value, 'simulation',
+                 {'internal_step', 'imu_rate', 'bearing_rate', 'ground_truth_rate'})
+    d = SimulationRates()
+    dt = _number(ctx, m.get('internal_step', d.internal_step), 'simulation.internal_step',
+                 positive=True)
+    rates = {}
+    for key in ('imu_rate', 'bearing_rate', 'ground_truth_rate'):
+        rate = _number(ctx, m.get(key, getattr(d, key)), f'simulation.{key}', positive=True)
+        ticks = 1.0 / (rate * dt)
+        if ticks < 1.0 - 1e-9 or abs(ticks - round(ticks)) > 1e-6:
+            raise ctx.fail(f'simulation.{key}', f'a period of 1/{rate:g} s is not a whole number '
+                           f'of internal steps ({dt:g} s)',
+                           'choose a rate that divides 1/internal_step (e.g. 200, 100, 50 Hz '
+                           'with a 1 ms step)')
+        rates[key] = rate
+    return SimulationRates(internal_step=dt, **rates)
+
+
+def _noise(ctx: _Ctx, value: Any) -> Noise:
+    m = _mapping(ctx, value, 'noise', {'gyro_std', 'gyro_bias', 'gyro_bias_std', 'bearing_std',
+                                       'bearing_perturbation', 'outlier_probability', 'seed'})
+    perturbation = None
+    if 'bearing_perturbation' in m:
+        bp = _mapping(ctx, m['bearing_perturbation'], 'noise.bearing_perturbation',
+                      {'amplitude_deg', 'frequency_hz', 'axis'}, {'amplitude_deg', 'frequency_hz'})
+        where = 'noise.bearing_perturbation.amplitude_deg'
+        amplitude = _number(ctx, bp['amplitude_deg'], where)
+        if not 0.0 <= amplitude <= 90.0:
+            raise ctx.fail(where, f'must be in [0, 90] degrees, got {amplitude:g}',
+                           'use an amplitude θ0 between 0 and 90 degrees')
+        frequency = _number(ctx, bp['frequency_hz'], 'noise.bearing_perturbation.frequency_hz',
+                            positive=True)
+        axis = _vector(ctx, bp.get('axis', [1.0, 0.0, 0.0]), 'noise.bearing_perturbation.axis')
+        if np.linalg.norm(axis) < 1e-12:
+            raise ctx.fail('noise.bearing_perturbation.axis', 'axis is zero',
+                           'give a non-zero body axis, e.g. [1, 0, 0]')
+        x, y, z = (float(c) for c in axis / np.linalg.norm(axis))
+        perturbation = BearingPerturbation(amplitude_deg=amplitude, frequency_hz=frequency,
+                                           axis=(x, y, z))
+    p_out = _number(ctx, m.get('outlier_probability', 0.0), 'noise.outlier_probability')
+    if not 0.0 <= p_out < 1.0:
+        raise ctx.fail('noise.outlier_probability', f'must be in [0, 1), got {p_out:g}',
+                       'give the probability that a bearing is an outlier, e.g. 0.01')
+    bias = _vector(ctx, m.get('gyro_bias', [0.0, 0.0, 0.0]), 'noise.gyro_bias')
+    return Noise(
+        gyro_std=_number(ctx, m.get('gyro_std', 0.0), 'noise.gyro_std', non_negative=True),
+        gyro_bias=(float(bias[0]), float(bias[1]), float(bias[2])),
+        gyro_bias_std=_number(ctx, m.get('gyro_bias_std', 0.0), 'noise.gyro_bias_std',
+                              non_negative=True),
+        bearing_std=_number(ctx, m.get('bearing_std', 0.0), 'noise.bearing_std',
+                            non_negative=True),
+        bearing_perturbation=perturbation, outlier_probability=p_out,
+        seed=_integer(ctx, m.get('seed', 0), 'noise.seed'))
+
+
+_TOP_KEYS = {'name', 'description', 'method', 'world_frame', 'gains', 'frequency',
+             'publish_rate', 'duration',
+             'noise', 'leaders', 'agents', 'initial_estimates', 'simulation'}
+_AGENT_KEYS = {'name', 'position', 'attitude', 'angular_velocity', 'neighbours',
+               'initial_estimate'}
+
+
+def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
+    """Validate a scenario already loaded from YAML (a dict) and build a :class:`Scenario`.
+
+    Raises:
+        ScenarioError: on the first problem, naming the field and the fix.
+    """
+    ctx = _Ctx(source)
+    top = _mapping(ctx, data, 'top level', _TOP_KEYS, {'name', 'agents'})
+    name = _string(ctx, top['name'], 'name')
+    method = top.get('method', estimators.DEFAULT_METHOD)
+    if method not in estimators.methods():
+        raise ctx.fail('method', f'unknown method {method!r}',
+                       f'use one of: {", ".join(estimators.methods())}')
+    cls = estimators.get(method)
+    gain_names = {f.name for f in dataclasses.fields(cls.Gains)}
+    raw_gains = _mapping(ctx, top.get('gains', {}), 'gains',
+                         gain_names | ({EDGE_GAIN} if cls.edge_gains else set()))
+    try:
+        gains = parse_gains(cls.Gains, {k: v for k, v in raw_gains.items() if k in gain_names})
+    except ScenarioError as exc:
+        raise ScenarioError(f'{source}: {exc}') from None
+    k_ij = _number(ctx, raw_gains.get(EDGE_GAIN, 1.0), f'gains.{EDGE_GAIN}', positive=True)
+    frequency = _number(ctx, top.get('frequency', 100.0), 'frequency', positive=True)
+    publish_rate = _number(ctx, top.get('publish_rate', min(50.0, frequency)), 'publish_rate',
+                           positive=True)
+    ratio = frequency / publish_rate
+    if ratio < 1.0 - 1e-9 or abs(ratio - round(ratio)) > 1e-6:
+        raise ctx.fail('publish_rate', f'{publish_rate:g} Hz does not divide the estimator '
+                       f'frequency {frequency:g} Hz', 'use frequency / n, e.g. 50 for 100 Hz')
+    duration = _number(ctx, top.get('duration', 60.0), 'duration', positive=True)
+    world_frame = _string(ctx, top.get('world_frame', 'world'), 'world_frame')
+
+    noise = _noise(ctx, top.get('noise', {}))
+
+    simulation = _simulation(ctx, top.get('simulation', {}))
+
+    random_init = None
+    if 'initial_estimates' in top:
+        ie = _mapping(ctx, top['initial_estimates'], 'initial_estimates', {'random'}, {'random'})
+        r = _mapping(ctx, ie['random'], 'initial_estimates.random',
+                     {'seed', 'position_std', 'max_angle_deg'})
+        random_init = RandomInit(
+            seed=_integer(ctx, r.get('seed', 0), 'initial_estimates.random.seed'),
+            position_std=_number(ctx, r.get('position_std', 1.0),
+                                 'initial_estimates.random.position_std', non_negative=True),
+            max_angle_deg=_number(ctx, r.get('max_angle_deg', 180.0),
+                                  'initial_estimates.random.max_angle_deg', non_negative=True))
+        if random_init.max_angle_deg > 180.0:
+            raise ctx.fail('initial_estimates.random.max_angle_deg', 'must be <= 180',
+                           'use an angle in [0, 180] degrees')
+
+    n_leaders = cls.roles.leaders
+    raw_agents = top['agents']
+    if not isinstance(raw_agents, list) or len(raw_agents) < max(3, n_leaders + 1):
+        raise ctx.fail('agents', f'expected a list of at least {max(3, n_leaders + 1)} agents'
+                       + (f' ({n_leaders} leaders, 1 follower)' if n_leaders else ''),
+                       'list the agents under `agents:`, each starting with `- name: ...`')
+    leaders = top.get('leaders', [])
+    if (not isinstance(leaders, list) or len(leaders) != n_leaders
+            or not all(isinstance(x, str) for x in leaders) or len(set(leaders)) != n_leaders):
+        example = ', '.join(f'agent_{k + 1}' for k in range(n_leaders))
+        raise ctx.fail('leaders', f'expected the names of exactly {n_leaders} distinct agents '
+                       f'({cls.title} has {n_leaders} leaders), got {leaders!r}', f'write e.g. `leaders: [{example}]`')
+
+    agents: list[Agent] = []
+    seen: dict[str, int] = {}
+    for idx, raw in enumerate(raw_agents):
+        where = f'agents[{idx}]'
+        if isinstance(raw, dict) and isinstance(raw.get('name'), str):
+            where += f' ({raw["name"]})'  # name the agent in every error, even a missing field
+        m = _mapping(ctx, raw, where, _AGENT_KEYS, {'name', 'position'})
+        aname = _string(ctx, m['name'], f'{where}.name')
+        if not _NAME_RE.match(aname):
+            raise ctx.fail(f'{where}.name', f'{aname!r} is not a valid ROS name',
+                           'start with a letter; use only letters, digits and _')
+        if aname in seen:
+            raise ctx.fail(f'{where}.name', f'duplicate agent name {aname!r} (also agents['
+                           f'{seen[aname]}])', 'give every agent a unique name')
+        seen[aname] = idx
+        where = f'agents[{idx}] ({aname})'
+        is_leader = aname in leaders
+        position = _vector(ctx, m['position'], f'{where}.position')
+        attitude = _attitude(ctx, m.get('attitude', 'identity'), f'{where}.attitude')
+        omega = _angular_velocity(ctx, m.get('angular_velocity', [0, 0, 0]),
+                                  f'{where}.angular_velocity')
+        neighbours: tuple[Neighbour, ...] = ()
+        p0 = R0 = None
+        if is_leader:
+            for key in ('neighbours', 'initial_estimate'):
+                if key in m:
+                    what = 'neighbours' if key == 'neighbours' else 'initial estimate'
+                    raise ctx.fail(f'{where}.{key}', 'a leader knows its pose and has no '
+                                   f'{what} (Assumption 2b)',
+                                   f'remove `{key}` from {aname}, or remove {aname} from '
+                                   '`leaders`')
+        else:
+            if 'neighbours' not in m and n_leaders:
+                raise ctx.fail(f'{where}.neighbours', 'a follower needs neighbours',
+                               'list at least two earlier agents, e.g. '
+                               '`neighbours: [agent_1, agent_2]`')
+            neighbours = _neighbours(ctx, m.get('neighbours', []), f'{where}.neighbours', k_ij)
+            if 'initial_estimate' in m:
+                ie = _mapping(ctx, m['initial_estimate'], f'{where}.initial_estimate',
+                              {'position', 'attitude'}, {'position', 'attitude'})
+                p0 = _vector(ctx, ie['position'], f'{where}.initial_estimate.position')
+                R0 = _attitude(ctx, ie['attitude'], f'{where}.initial_estimate.attitude')
+            elif random_init is None:
+                raise ctx.fail(f'{where}.initial_estimate', 'missing, and there is no '
+                               'top-level `initial_estimates: {random: ...}` to draw it from',
+                               'add `initial_estimate: {position: [...], attitude: ...}` or '
+                               '`initial_estimates: {random: {seed: 0}}` at the top level')
+        agents.append(Agent(name=aname, position=position, attitude=attitude,
+                            angular_velocity=omega, neighbours=neighbours,
+                            initial_position=p0, initial_attitude=R0))
+
+    for lname in leaders:
+        if lname not in seen:
+            raise ctx.fail('leaders', f'{lname!r} is not an agent',
+                           f'use names from `agents` ({", ".join(list(seen)[:5])}, ...)')
+    for idx, a in enumerate(agents):
+        names = [nb.name for nb in a.neighbours]
+        for k, nb in enumerate(a.neighbours):
+            w = f'agents[{idx}] ({a.name}).neighbours[{k}]'
+            if nb.name not in seen:
+                raise ctx.fail(w, f'{nb.name!r} is not an agent', 'use a name from `agents`')
+            if nb.name == a.name:
+                raise ctx.fail(w, 'an agent cannot be its own neighbour', 'remove it')
+            if names.count(nb.name) > 1:
+                raise ctx.fail(w, f'{nb.name!r} is listed twice', 'list each neighbour once')
+
+    return Scenario(name=name, agents=tuple(agents), leaders=tuple(leaders), method=method,
+                    gains=gains, description=str(top.get('description', '')),
+                    frequency=frequency, publish_rate=publish_rate, duration=duration,
+                    world_frame=world_frame,
+                    noise=noise, random_init=random_init, simulation=simulation, source=source)
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read and validate a scenario file.
+
+    Raises:
+        ScenarioError: the file is missing, is not valid YAML, or is not a valid scenario.
+    """
+    return parse_scenario(read_scenario_data(path), source=str(path))
+
+
+def read_scenario_data(path: str | Path) -> Any:
+    """A scenario file's YAML content, not yet validated (ScenarioError if unreadable)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding='utf-8')
+    except OSError as exc:
+        raise ScenarioError(f'{path}: cannot read the scenario file ({exc.strerror}). '
+                            'Fix: check the path') from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, 'problem_mark', None)
+        at = f'line {mark.line + 1}, column {mark.column + 1}' if mark else 'somewhere'
+        problem = getattr(exc, 'problem', None) or str(exc)
+        raise ScenarioError(f'{path}: YAML syntax error at {at}: {problem}. '
+                            'Fix: correct the YAML at that position (indentation, colons, '
+                            'brackets)') from exc
+    if data is None:
+        raise ScenarioError(f'{path}: the file is empty (or only comments). Fix: write a '
+                            'scenario; see config/paper_8_agents.yaml and the README\'s '
+                            '"Scenario format"')
+    return data

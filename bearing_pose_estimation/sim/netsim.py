@@ -1,0 +1,507 @@
+"""The distributed system without DDS: per-agent estimators, the simulator node's world, and
+the links between agents, in one process and deterministic.
+
+It runs the same :class:`agent.AgentEstimator` the estimator node runs, fed exactly as the
+simulator node feeds it (:class:`world.World`: interval-average gyro, bearings, leaders' known
+pose). Neighbour messages are exchanged at the estimators' ``publish_rate``. netsim only drives
+the estimators: every check, rejection and time rule is the estimator's own. Faults:
+
+- :class:`LinkFaults`: each neighbour message is dropped with ``drop_rate`` and delivered
+  ``delay`` seconds late (what the node's ``inject_*`` parameters do);
+- :class:`Outage`: an agent is cut off over ``[start, end)``. ``network_only=True`` is a
+  network partition: no neighbour message in or out, while its own sensors (gyro, bearings,
+  known pose) keep feeding it, as on a robot whose IMU and camera are on board. Otherwise the
+  process is down — no input at all, no output — and comes back either as it was
+  (``restart=False``: paused, e.g. SIGSTOP; input sent meanwhile is lost) or as a fresh process
+  from its initial estimate (``restart=True``: killed and restarted). A process outage
+  starting at 0 is a late joiner;
+- :class:`ClockJump`: the simulator restarts at a given run time: its clock, truth and noise go
+  back to t = 0, so every estimator sees stamps jump back;
+- :class:`Garbage`: a fraction of every incoming input (gyro sample, bearing message,
+  neighbour message, leader's known pose) comes with a corrupted copy, or is replaced by it
+  (``replace=True``: the good input is lost): NaN/inf, zero-length or non-unit vectors,
+  unknown ids, stale, late or future stamps, absurd rates.
+
+:func:`simulate_network` also counts what the estimators rejected (by cause), their time-rule
+events, and any non-finite estimate. Exceptions are not caught: a crash of the estimator logic
+ends the run. :func:`fault_cases` is the one list of faults that ``bench/fault_matrix.py``
+measures and ``test/test_robustness.py`` tests, with :func:`reconvergence_time` and
+:func:`convergence_cost` as their shared measures. The DDS tests show that the nodes behave the
+same way.
+"""
+from __future__ import annotations
+
+from collections import Counter, deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits, estimator_for
+from ..estimators.base import Channel
+from ..scenario.model import Scenario, initial_estimates
+from ..studies.results import PoseErrors, Recording, pose_errors
+from .world import World
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LinkFaults:
+    drop_rate: float = 0.0  # probability of losing each neighbour message
+    delay: float = 0.0      # extra delay of each neighbour message [s]
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Outage:
+    agent: str
+    start: float                # run time [s]
+    end: float                  # run time [s]
+    restart: bool = True        # comes back as a fresh process (True) or as it was (False)
+    network_only: bool = False  # a partition: only neighbour messages are cut
+
+    def __post_init__(self) -> None:
+        if self.network_only and self.restart:
+            raise ValueError('a network partition (network_only) does not restart the process')
+
+
+@dataclass(frozen=True)
+class ClockJump:
+    """The simulator restarts at run time ``at``. A jump back of less than the estimators'
+    ``Limits.jump_back`` (1 s) is not a time jump to them: they reject the new stamps as
+    ``out_of_order`` until the clock catches up."""
+
+    at: float  # run time [s] at which the simulator's clock goes back to 0
+
+
+@dataclass(frozen=True)
+class Garbage:
+    fraction: float = 0.0  # probability that an input gets a corrupted copy
+    seed: int = 0
+    replace: bool = False  # the copy replaces the input (True) or follows it (False)
+
+
+# ----------------------------------------------------------------------------- the fault list
+@dataclass(frozen=True)
+class FaultCase:
+    """One row of the fault matrix: a short key, a label and the faults
+    :func:`simulate_network` injects."""
+
+    key: str
+    label: str
+    links: LinkFaults = LinkFaults()
+    outages: tuple[Outage, ...] = ()
+    clock_jump: ClockJump | None = None
+    garbage: Garbage = Garbage()
+
+    @property
+    def window(self) -> tuple[float, float] | None:
+        """When the fault happens, ``(start, end)`` in run time, or None (the whole run)."""
+        if self.clock_jump is not None:
+            return self.clock_jump.at, self.clock_jump.at
+        if self.outages:
+            return min(o.start for o in self.outages), max(o.end for o in self.outages)
+        return None
+
+
+def fault_cases(at: float = 20.0, length: float = 5.0, late_join: float = 10.0,
+                garbage: float = 0.1) -> list[FaultCase]:
+    """The fault matrix on the paper's 8-agent scenario, the reference (no fault) first.
+
+    ``at``, ``length``: when the outages and the clock jump happen [s]; ``late_join``: when
+    agent_7 starts [s]; ``garbage``: the fraction of inputs corrupted. The clock jump keeps
+    the records aligned with the estimators' steps when ``at`` is a multiple of the step. The
+    bench uses the defaults; the tests shrink the times to run fast.
+    """
+    end = at + length
+    return [
+        FaultCase('reference', 'none (reference)'),
+        FaultCase('loss', '30 % of neighbour messages lost',
+                  links=LinkFaults(drop_rate=0.3, seed=1)),
+        FaultCase('delay', 'neighbour messages 200 ms late', links=LinkFaults(delay=0.2)),
+        FaultCase('loss_delay', '30 % lost and 200 ms late',
+                  links=LinkFaults(drop_rate=0.3, delay=0.2, seed=1)),
+        FaultCase('partition', f'agent_4 cut off the network {at:g}-{end:g} s (partition; its '
+                  'own sensors keep running)',
+                  outages=(Outage('agent_4', at, end, restart=False, network_only=True),)),
+        FaultCase('pause', f'agent_4 paused {at:g}-{end:g} s (no input, no output)',
+                  outages=(Outage('agent_4', at, end, restart=False),)),
+        FaultCase('restart', f'agent_4 killed at {at:g} s, restarted at {end:g} s',
+                  outages=(Outage('agent_4', at, end, restart=True),)),
+        FaultCase('late_join', f'agent_7 joins late, at {late_join:g} s',
+                  outages=(Outage('agent_7', 0.0, late_join),)),
+        FaultCase('clock_jump', f'simulated clock jumps back to 0 at {at:g} s (simulator '
+                  'restart)', clock_jump=ClockJump(at)),
+        FaultCase('garbage', f'{100 * garbage:g} % of the inputs followed by a garbage copy '
+                  '(NaN/inf, zero-length, non-unit, unknown ids, stale/late/future stamps, '
+                  'absurd gyro)', garbage=Garbage(fraction=garbage, seed=1)),
+        FaultCase('garbage_replacing', f'the same garbage replacing {100 * garbage:g} % of the '
+                  'inputs (the good data is lost)',
+                  garbage=Garbage(fraction=garbage, seed=1, replace=True)),
+    ]
+
+
+# ----------------------------------------------------------------------------- garbage
+class _Corruptor:
+    """Draws which inputs are garbage and how; builds the corrupted copies (never in place:
+    one neighbour message goes to several listeners)."""
+
+    GYRO = ('nan', 'inf', 'absurd_rate', 'late_stamp', 'future_stamp')
+    BEARINGS = ('nan', 'inf', 'zero', 'not_unit', 'huge', 'unknown_id', 'own_id',
+                'stale_stamp', 'future_stamp')
+    # On the message's first per-agent channel (e.g. p̂_j) for the first two, on the value of
+    # its first per-edge channel meant for the listener (e.g. R̂_j b^j_ji) for the next two.
+    NEIGHBOUR = ('nan_value', 'inf_value', 'zero', 'not_unit', 'unknown_sender',
+                 'none_for_me', 'future_stamp')
+
+    def __init__(self, garbage: Garbage, channels: tuple[Channel, ...]) -> None:
+        self.agent_channel = next((c.name for c in channels if c.per == 'agent'), None)
+        self.edge_channel = next((c.name for c in channels if c.per == 'edge'), None)
+        self.fraction = garbage.fraction
+        self.replace = garbage.replace
+        self.rng = np.random.default_rng(garbage.seed)
+
+    def inputs(self, good: tuple, corrupt: tuple | None) -> list[tuple[tuple, bool]]:
+        """What arrives, each with whether it is garbage: the good input, its corrupted copy
+        instead, or both (the copy last)."""
+        if corrupt is None:
+            return [(good, False)]
+        return [(corrupt, True)] if self.replace else [(good, False), (corrupt, True)]
+
+    def _kind(self, kinds: tuple[str, ...]) -> str | None:
+        if self.fraction and self.rng.uniform() < self.fraction:
+            return kinds[int(self.rng.integers(len(kinds)))]
+        return None
+
+    def gyro(self, stamp: float, w: Array) -> tuple[float, Array] | None:
+        kind = self._kind(self.GYRO)
+        if kind is None:
+            return None
+        w = w.copy()
+        if kind == 'nan':
+            w[0] = np.nan
+        elif kind == 'inf':
+            w[1] = np.inf
+        elif kind == 'absurd_rate':
+            w[2] = 100.0  # rad/s
+        # Within the 1 s that would read as a clock jump (a legitimate restart, not garbage).
+        stamp += {'late_stamp': -0.1, 'future_stamp': 5.0}.get(kind, 0.0)
+        return stamp, w
+
+    def bearings(self, own_id: int, stamp: float, ids: NDArray[np.integer],
+                 b: Array) -> tuple[float, NDArray[np.integer], Array] | None:
+        kind = self._kind(self.BEARINGS)
+        if kind is None:
+            return None
+        ids, b = ids.copy(), b.copy()
+        if kind == 'nan':
+            b[:, 0] = np.nan
+        elif kind == 'inf':
+            b[:, 0] = -np.inf
+        elif kind == 'zero':
+            b[:] = 0.0
+        elif kind == 'not_unit':
+            b *= 3.0
+        elif kind == 'huge':
+            b[:] = 1e300
+        elif kind == 'unknown_id':
+            ids[:] = 99
+        elif kind == 'own_id':
+            ids[:] = own_id
+        stamp += {'stale_stamp': -5.0, 'future_stamp': 5.0}.get(kind, 0.0)
+        return stamp, ids, b
+
+    def neighbour(self, listener_id: int, msg: tuple) -> tuple | None:
+        kind = self._kind(self.NEIGHBOUR)
+        if kind is None:
+            return None
+        sender, stamp, values = msg
+        values = dict(values)
+        per_edge = dict(values.get(self.edge_channel, {}))
+        mine = per_edge.get(listener_id, np.array([1.0, 0.0, 0.0]))
+        if kind in ('nan_value', 'inf_value'):
+            bad = np.nan if kind == 'nan_value' else np.inf
+            if self.agent_channel is not None:
+                values[self.agent_channel] = np.array(values[self.agent_channel], dtype=float)
+                values[self.agent_channel][0 if kind == 'nan_value' else -1] = bad
+            else:
+                per_edge[listener_id] = np.full(3, bad)
+        elif kind == 'zero':
+            per_edge[listener_id] = np.zeros(3)
+        elif kind == 'not_unit':
+            per_edge[listener_id] = 3.0 * mine
+        elif kind == 'unknown_sender':
+            sender = 99
+        elif kind == 'none_for_me':
+            per_edge.pop(listener_id, None)
+        elif kind == 'future_stamp':
+            stamp += 5.0
+        if self.edge_channel is not None:
+            values[self.edge_channel] = per_edge
+        return sender, stamp, values
+
+    def known_pose(self, R: Array) -> tuple[Array] | None:
+        if self._kind(('nan',)) is None:
+            return None
+        R = R.copy()
+        R[0, 0] = np.nan
+        return (R,)
+
+
+# ----------------------------------------------------------------------------- the run
+@dataclass
+class InputTally:
+    """What became of the estimators' inputs, counted as the node counts them: rejections by
+    cause, time rules as events; the corrupted inputs (:class:`Garbage`) also on their own."""
+
+    rejected: Counter[str] = field(default_factory=Counter)          # every rejected input
+    events: Counter[str] = field(default_factory=Counter)            # time_jump, gyro_gap
+    garbage_injected: int = 0             # corrupted inputs (bearings: per point)
+    garbage_rejected: Counter[str] = field(default_factory=Counter)  # their causes
+
+    @property
+    def garbage_accepted(self) -> int:
+        return self.garbage_injected - sum(self.garbage_rejected.values())
+
+    def count(self, causes: Sequence[str | None], garbage: int | bool = 0) -> None:
+        """Record the outcome of one input: ``causes`` is what the ``add_*`` call returned,
+        ``garbage`` how many of its values (points, for bearings) were corrupted."""
+        self.garbage_injected += garbage
+        for cause in causes:
+            if cause is None:
+                continue
+            if cause in TIME_EVENTS:
+                self.events[cause] += 1
+                continue
+            self.rejected[cause] += 1
+            if garbage:
+                self.garbage_rejected[cause] += 1
+
+
+@dataclass
+class NetRun:
+    """A run of :func:`simulate_network`: the errors and what else it measured."""
+
+    recording: Recording
+    inputs: InputTally
+    non_finite_estimates: int  # estimates with a NaN/inf, checked after every step
+    non_finite_steps: int      # steps the estimators discarded as non-finite
+
+
+class _Network:
+    """The fleet, its world and links, with the faults of one run; :meth:`tick` advances
+    everything by one internal step of the world."""
+
+    def __init__(self, scenario: Scenario, links: LinkFaults, outages: tuple[Outage, ...],
+                 garbage: Garbage, limits: Limits) -> None:
+        self.scenario, self.links, self.outages, self.limits = scenario, links, outages, limits
+        self.world = World(scenario)
+        self.rng = np.random.default_rng(links.seed)
+        estimator = scenario.estimator()
+        self.frame = estimator.frame
+        self.bad = _Corruptor(garbage, estimator.sends)
+        self.names = [a.name for a in scenario.agents]
+        self.initial = initial_estimates(scenario)  # drawn once for the whole fleet
+        self.agents: dict[str, AgentEstimator] = {
+            n: estimator_for(scenario, n, limits, self.initial) for n in self.names}
+        self.per_step = int(round(scenario.step / self.world.dt))
+        self.per_publish = self.per_step * scenario.publish_every
+        self.in_flight: deque[tuple[float, str, tuple]] = deque()  # (deliver at, to, message)
+        self.tally = InputTally()
+        self.non_finite = 0
+        # The truth at the last second of estimator-step instants (step index -> (R, p)): an
+        # estimator waiting for a lost gyro sample is a step behind the world, and its error
+        # is measured against the truth at its own state time, as the monitor pairs stamps.
+        self.truth: dict[int, tuple[Array, Array]] = {}
+
+    # ------------------------------------------------------------------ who is cut off
+    def offline(self, name: str, now: float) -> bool:
+        """No neighbour messages in or out (any outage)."""
+        return any(o.agent == name and o.start <= now < o.end for o in self.outages)
+
+    def stopped(self, name: str, now: float) -> bool:
+        """No process: no input at all (an outage that is not a partition)."""
+        return any(o.agent == name and not o.network_only and o.start <= now < o.end
+                   for o in self.outages)
+
+    def restart(self, name: str) -> None:
+        """A restarted process: a fresh estimator from its initial estimate."""
+        self.agents[name] = estimator_for(self.scenario, name, self.limits, self.initial)
+
+    # ------------------------------------------------------------------ inputs
+    def feed_gyro(self, now: float) -> None:
+        world = self.world
+        for name, w in zip(self.names, world.imu()):
+            if self.stopped(name, now):
+                continue
+            for (stamp, rate), bad in self.bad.inputs((world.t, w), self.bad.gyro(world.t, w)):
+                self.tally.count([self.agents[name].add_gyro(stamp, rate, now=world.t)], bad)
+
+    def sense(self, now: float) -> None:
+        """Bearings and the leaders' known pose, when due."""
+        world, scenario = self.world, self.scenario
+        if world.due(world.bearing_every):
+            for i, name in enumerate(self.names):
+                if self.stopped(name, now):
+                    continue
+                j, b = world.bearings(i)
+                good = (world.t, j + 1, b)
+                for args, bad in self.bad.inputs(
+                        good, self.bad.bearings(scenario.agent_id(name), *good)):
+                    self.tally.count(self.agents[name].add_bearings(*args), bad * len(j))
+        if world.due(world.truth_every):
+            for name in scenario.leaders:
+                if self.stopped(name, now):
+                    continue
+                i = scenario.index[name]
+                for (R,), bad in self.bad.inputs((world.R[i],), self.bad.known_pose(world.R[i])):
+                    self.tally.count([self.agents[name].set_known_pose(world.t, R, world.p[i])],
+                                     bad)
+
+    # ------------------------------------------------------------------ links
+    def publish(self, now: float) -> None:
+        """Every estimator sends its p̂ and world bearings to its listeners."""
+        for name in self.names:
+            if self.offline(name, now):
+                continue
+            ag = self.agents[name]
+            msg = (self.scenario.agent_id(name), ag.t, ag.outbox())
+            for listener in self.scenario.listeners(name):
+                if self.links.drop_rate and self.rng.uniform() < self.links.drop_rate:
+                    continue
+                self.in_flight.append((now + self.links.delay, listener, msg))
+
+    def deliver(self, now: float) -> None:
+        while self.in_flight and self.in_flight[0][0] <= now + 1e-9:
+            _, to, msg = self.in_flight.popleft()
+            if self.offline(to, now):
+                continue
+            corrupt = self.bad.neighbour(self.scenario.agent_id(to), msg)
+            for args, bad in self.bad.inputs(msg, corrupt):
+                self.tally.count([self.agents[to].add_neighbour(*args)], bad)
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, now: float) -> None:
+        """Every running estimator takes the steps its gyro data allows; count any
+        non-finite estimate."""
+        for name in self.names:
+            if self.stopped(name, now):
+                continue
+            ag = self.agents[name]
+            ag.advance()
+            if not (np.all(np.isfinite(ag.R_hat)) and np.all(np.isfinite(ag.p_hat))):
+                self.non_finite += 1
+
+    def start(self) -> None:
+        self.sense(0.0)
+        self.publish(0.0)
+        self.deliver(0.0)
+
+    def tick(self, now: float) -> None:
+        """One internal step; ``now`` is the run time after it."""
+        world = self.world
+        world.step()
+        if world.due(world.imu_every):
+            self.feed_gyro(now)
+        self.sense(now)
+        self.deliver(now)
+        if world.tick % self.per_step == 0:
+            k = world.tick // self.per_step
+            self.truth[k] = (world.R.copy(), world.p.copy())
+            self.truth.pop(k - int(round(1.0 / self.scenario.step)), None)
+            self.step(now)
+        if world.tick % self.per_publish == 0:
+            self.publish(now)
+            self.deliver(now)
+
+    def errors(self, followers: list[int]) -> PoseErrors:
+        """The followers' pose errors (:func:`studies.results.pose_errors`), each estimate
+        against the truth at its estimator's state time (now, unless it waits for gyro data)."""
+        R, p = self.world.R.copy(), self.world.p.copy()
+        for i, name in enumerate(self.names):
+            k = int(round(self.agents[name].t / self.scenario.step))
+            if k in self.truth:
+                R[i], p[i] = self.truth[k][0][i], self.truth[k][1][i]
+        R_hat = np.concatenate([self.agents[name].R_hat for name in self.names])
+        p_hat = np.concatenate([self.agents[name].p_hat for name in self.names])
+        return pose_errors(self.frame, R, p, R_hat, p_hat, followers)
+
+
+def simulate_network(scenario: Scenario, duration: float, record_every: float = 0.1,
+                     links: LinkFaults = LinkFaults(), outages: tuple[Outage, ...] = (),
+                     clock_jump: ClockJump | None = None, garbage: Garbage = Garbage(),
+                     limits: Limits = Limits()) -> NetRun:
+    """Run the fleet for ``duration`` seconds of run time with the given faults; record the
+    followers' errors every ``record_every`` (run time, monotonic across a clock jump)."""
+    net = _Network(scenario, links, outages, garbage, limits)
+    dt = net.world.dt
+    per_record = int(round(record_every / dt))
+    restart_at: dict[int, list[str]] = {}
+    for o in outages:
+        if o.restart:
+            restart_at.setdefault(int(round(o.end / dt)), []).append(o.agent)
+    jump_tick = int(round(clock_jump.at / dt)) if clock_jump is not None else -1
+    followers = [scenario.index[a.name] for a in scenario.followers]
+    rows, times = [], []
+    net.start()
+    tick = 0  # the run's own clock, monotonic; world.t is the simulator's, which may jump
+    while tick * dt < duration - 1e-9:
+        tick += 1
+        for name in restart_at.get(tick, ()):
+            net.restart(name)
+        if tick == jump_tick:  # the simulator restarts: clock, truth and noise back to t = 0
+            net.world.reset()  # (instead of a step: world and run ticks stay in phase)
+            net.truth.clear()
+        else:
+            net.tick(tick * dt)
+        if tick % per_record == 0:
+            times.append(tick * dt)
+            rows.append(net.errors(followers))
+    rec = Recording.of(times, [net.names[i] for i in followers], rows)
+    return NetRun(rec, net.tally, non_finite_estimates=net.non_finite,
+                  non_finite_steps=sum(ag.non_finite_steps for ag in net.agents.values()))
+
+
+def run_network(scenario: Scenario, duration: float, record_every: float = 0.1,
+                links: LinkFaults = LinkFaults(), outages: tuple[Outage, ...] = (),
+                limits: Limits = Limits()) -> Recording:
+    """Run the fleet for ``duration`` seconds; errors of the followers every ``record_every``."""
+    return simulate_network(scenario, duration, record_every, links, outages,
+                            limits=limits).recording
+
+
+def run_case(scenario: Scenario, case: FaultCase, duration: float,
+             record_every: float = 0.5) -> NetRun:
+    """One row of the fault matrix."""
+    return simulate_network(scenario, duration, record_every, links=case.links,
+                            outages=case.outages, clock_jump=case.clock_jump,
+                            garbage=case.garbage)
+
+
+# ----------------------------------------------------------------------------- measures
+def reconvergence_time(rec: Recording, ref: Recording, fault_end: float) -> float | None:
+    """Time after ``fault_end`` until both mean errors of ``rec`` are at or below the
+    fault-free run's (``ref``, same record times) at ``fault_end``: how long the fleet needs
+    to get back to where it would have been. None if not by the end of the run."""
+    if fault_end > ref.t[-1] + 1e-9:
+        return None  # the run ended before the fault did
+    att, pos = rec.mean_errors()
+    ref_att, ref_pos = ref.mean_errors()
+    k = int(np.searchsorted(ref.t, fault_end - 1e-9))
+    back = np.flatnonzero((rec.t >= fault_end - 1e-9) & (att <= ref_att[k])
+                          & (pos <= ref_pos[k]))
+    return round(float(rec.t[back[0]] - fault_end), 9) if back.size else None
+
+
+def convergence_cost(rec: Recording, ref: Recording) -> float:
+    """How many seconds of convergence a fault lost by the end of the run: the end time minus
+    the first time the fault-free run (``ref``) was as good, for the mean error that lost
+    more (attitude or position; 0: no worse than the fault-free run)."""
+    costs = [0.0]
+    for err, ref_err in zip(rec.mean_errors(), ref.mean_errors()):
+        k = np.flatnonzero(ref_err <= err[-1])
+        if k.size:
+            costs.append(float(rec.t[-1] - ref.t[k[0]]))
+    return round(max(costs), 9)

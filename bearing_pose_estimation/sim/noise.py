@@ -1,0 +1,111 @@
+"""Measurement noise models, the one implementation used by the batch simulator
+(:mod:`.batch`) and the simulator node's world (:mod:`.world`). All are off by default; the
+scenario's ``noise:`` block (:class:`scenario.Noise`) switches them on.
+
+- Gyro: measured rate = true rate + constant body-frame bias + white noise. The bias of agent i
+  is ``gyro_bias + N(0, gyro_bias_std² I)``, drawn once. In the batch simulator a step's gyro
+  increment is ``ΔR exp(h (bias + noise))``.
+- Bearings, in this order: the deterministic perturbation ``rot_X(θ0 sin(2π f t)) b`` (Tran,
+  Anderson & Ahn 2020; ``rot_X`` about the body axis ``X``, default x; t the measurement time),
+  a random rotation perpendicular to the bearing whose two components each have standard
+  deviation ``bearing_std`` (:func:`perturb_bearings`), and, with probability
+  ``outlier_probability``, replacement by a uniformly random unit vector.
+
+Reproducible: every draw comes from generators seeded by ``noise.seed``, with separate streams
+for the bias, the gyro white noise and the bearings, so the same scenario, seed and sequence of
+calls give the same measurements. No rclpy here.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core import so3
+from ..scenario.model import Noise
+
+Array = NDArray[np.float64]
+
+
+def perturb_bearings(b: Array, std: float, rng: np.random.Generator) -> Array:
+    """Rotate each unit bearing by a small random rotation perpendicular to it.
+
+    The rotation vector is ``N(0, std² P_b)``: each of the two angular components
+    orthogonal to ``b`` has standard deviation ``std`` [rad].
+    """
+    if std == 0.0:
+        return b
+    phi = std * rng.normal(size=b.shape)
+    phi -= b * np.sum(phi * b, axis=-1, keepdims=True)
+    return np.einsum('eab,eb->ea', so3.exp(phi), b)
+
+
+def perturbation_angle(t: float, amplitude_deg: float, frequency_hz: float) -> float:
+    """``θ0 sin(2π f t)`` [rad] for the deterministic perturbation at time ``t`` [s]."""
+    return math.radians(amplitude_deg) * math.sin(2.0 * math.pi * frequency_hz * t)
+
+
+def random_unit_vectors(n: int, rng: np.random.Generator) -> Array:
+    """``n`` unit vectors uniform on the sphere, ``(n, 3)``."""
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def replace_outliers(b: Array, probability: float, rng: np.random.Generator) -> Array:
+    """Replace each row of ``b`` ``(n, 3)``, with ``probability``, by a uniform unit vector."""
+    if probability == 0.0 or b.shape[0] == 0:
+        return b
+    hit = rng.random(b.shape[0]) < probability
+    out = b.copy()
+    out[hit] = random_unit_vectors(int(np.count_nonzero(hit)), rng)
+    return out
+
+
+class NoiseModel:
+    """The scenario's noise for a fleet of ``n_agents`` (row i of any gyro array is agent i).
+
+    Attributes:
+        bias: ``(n_agents, 3)`` constant body-frame gyro bias [rad/s].
+    """
+
+    def __init__(self, noise: Noise, n_agents: int) -> None:
+        self.noise = noise
+        bias_ss, gyro_ss, bearing_ss = np.random.SeedSequence(noise.seed).spawn(3)
+        self.gyro_rng = np.random.default_rng(gyro_ss)
+        self.bearing_rng = np.random.default_rng(bearing_ss)
+        self.bias = np.tile(np.asarray(noise.gyro_bias, dtype=float), (n_agents, 1))
+        if noise.gyro_bias_std > 0.0:
+            self.bias += noise.gyro_bias_std * np.random.default_rng(bias_ss).normal(
+                size=(n_agents, 3))
+        self.has_bias = bool(np.any(self.bias != 0.0))
+
+    def _gyro_error(self, shape: tuple[int, ...], samples: float = 1.0) -> Array | None:
+        """bias + white noise averaged over ``samples`` IMU samples, or None when both are
+        zero."""
+        std = self.noise.gyro_std / math.sqrt(samples)
+        if std == 0.0:
+            return self.bias if self.has_bias else None
+        return self.bias + std * self.gyro_rng.normal(size=shape)
+
+    def gyro_rate(self, omega: Array) -> Array:
+        """Measured rates ``(n_agents, 3)`` from true rates: ``ω + bias + noise``."""
+        err = self._gyro_error(omega.shape)
+        return omega if err is None else omega + err
+
+    def gyro_increment(self, delta_R: Array, h: float, samples: float = 1.0) -> Array:
+        """What the gyros report over a step ``h`` spanning ``samples`` IMU samples:
+        ``ΔR exp(h (bias + noise))``, the noise being the average of those samples' noise
+        (``gyro_std`` is per IMU sample, so both simulators see the same noise density)."""
+        err = self._gyro_error((delta_R.shape[0], 3), max(samples, 1.0))
+        return delta_R if err is None else delta_R @ so3.exp(h * err)
+
+    def bearings(self, b: Array, t: float) -> Array:
+        """Measured body bearings ``(n, 3)`` from true unit bearings ``b`` at time ``t`` [s]."""
+        nz = self.noise
+        bp = nz.bearing_perturbation
+        if bp is not None:
+            angle = perturbation_angle(t, bp.amplitude_deg, bp.frequency_hz)
+            b = b @ so3.axis_angle(bp.axis, angle).T
+        b = perturb_bearings(b, nz.bearing_std, self.bearing_rng)
+        return replace_outliers(b, nz.outlier_probability, self.bearing_rng)

@@ -1,0 +1,150 @@
+"""Several estimators on one scenario, side by side (``bearing-pose compare``); no rclpy.
+
+Each method runs on the same scenario: same truth, same initial estimates, same noise seed.
+Only ``method`` and the gains change. :func:`method_data` derives, from the scenario file's
+content, one scenario per method: its ``gains:`` block holds the method's own gains, taken from
+the file where the file's method uses them, else the defaults, then ``--gains`` overrides. The
+batch runs and the optional distributed runs (one ``bearing-pose run`` per method, whose
+estimator nodes read the derived file) use that same derived scenario, so they can be compared
+row by row.
+"""
+from __future__ import annotations
+
+import copy
+import csv
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import estimators
+from ..estimators.base import format_gains, gain_fields
+from ..scenario.model import Scenario
+from ..scenario.parse import EDGE_GAIN, parse_scenario
+from ..sim.batch import BatchSimulator
+from .results import Recording
+from .summary import ATT_THRESHOLD_RAD, POS_THRESHOLD_M, quantities, when
+
+OUTPUT_FILES = ('compare.csv', 'compare.md', 'compare_errors.png')
+
+
+@dataclass(frozen=True)
+class Run:
+    """One method's errors on the scenario, from the batch simulator or over DDS."""
+
+    method: str
+    mode: str            # 'batch' or 'dds'
+    scenario: Scenario   # the derived scenario this run used
+    rec: Recording
+
+    @property
+    def label(self) -> str:
+        return self.method if self.mode == 'batch' else f'{self.method} (DDS)'
+
+
+def parse_gain_overrides(texts: list[str]) -> dict[str, dict[str, float]]:
+    """``['tran_anderson_ahn:k_omega=3,k_c=2', ...]`` → ``{method: {gain: value}}``.
+
+    Raises:
+        ValueError: naming the bad text and the fix.
+    """
+    out: dict[str, dict[str, float]] = {}
+    for text in texts:
+        method, sep, assignments = text.partition(':')
+        if not sep or method not in estimators.methods():
+            raise ValueError(f'--gains {text!r}: expected METHOD:GAIN=VALUE[,GAIN=VALUE...] with '
+                             f'METHOD one of {", ".join(estimators.methods())}')
+        allowed = sorted(f.name for f in gain_fields(estimators.get(method).Gains))
+        for item in assignments.split(','):
+            key, eq, value = item.partition('=')
+            key = key.strip()
+            if not eq or key not in allowed:
+                raise ValueError(f'--gains {text!r}: {key or item!r} is not a gain of {method}; '
+                                 f'use one of {", ".join(allowed)} ({EDGE_GAIN} is per edge: set '
+                                 'it in the scenario file)')
+            try:
+                number = float(value)
+            except ValueError:
+                number = math.nan
+            if not (math.isfinite(number) and number > 0):
+                raise ValueError(f'--gains {text!r}: {key} must be a positive number, '
+                                 f'got {value!r}')
+            out.setdefault(method, {})[key] = number
+    return out
+
+
+def method_data(data: Mapping[str, Any], scenario: Scenario, method: str,
+                overrides: Mapping[str, float] | None = None) -> dict[str, Any]:
+    """The scenario file's content (``data``; ``scenario`` is it parsed) with ``method`` and a
+    ``gains:`` block of that method: every gain it reads (the file's value where the file's
+    method has a gain of that name, else the default; then ``overrides``), and the file's
+    ``k_ij`` if any."""
+    derived = copy.deepcopy(dict(data))
+    derived['method'] = method
+    gains = dataclasses.asdict(scenario.with_method(method, **(overrides or {})).gains)
+    if EDGE_GAIN in (data.get('gains') or {}):
+        gains[EDGE_GAIN] = data['gains'][EDGE_GAIN]
+    derived['gains'] = gains
+    return derived
+
+
+def method_scenarios(data: Mapping[str, Any], scenario: Scenario, methods: list[str],
+                     overrides: Mapping[str, Mapping[str, float]] | None = None
+                     ) -> dict[str, tuple[dict[str, Any], Scenario]]:
+    """Per method: the derived file content and the scenario parsed from it."""
+    for m in methods:
+        estimators.get(m)  # ScenarioError naming the known methods
+    out = {}
+    for m in methods:
+        d = method_data(data, scenario, m, (overrides or {}).get(m))
+        out[m] = (d, parse_scenario(d, source=f'{scenario.source} (method {m})'))
+    return out
+
+
+def run_batch(scenarios: Mapping[str, Scenario], duration: float,
+              record_every: float = 0.1) -> list[Run]:
+    """One batch run per method; every run starts from the same state."""
+    return [Run(m, 'batch', s, BatchSimulator(s).run(duration, record_every=record_every))
+            for m, s in scenarios.items()]
+
+
+def rows(runs: list[Run]) -> list[dict[str, Any]]:
+    """Per run: method, mode, gains, duration and every quantity of :mod:`.summary`."""
+    return [{'method': run.method, 'mode': run.mode, 'gains': format_gains(run.scenario.gains),
+             'duration_s': float(run.rec.t[-1]), **quantities(run.rec)} for run in runs]
+
+
+def write_csv(runs: list[Run], path: Path) -> None:
+    """``t`` then, per run, its mean attitude [rad] and position [m] errors, on the batch
+    runs' time grid (DDS runs, recorded at the monitor's rows, are interpolated onto it)."""
+    t = runs[0].rec.t
+    with path.open('w', newline='') as fh:
+        w = csv.writer(fh)
+        w.writerow(['t'] + [f'{_column(r)}_{q}' for r in runs
+                            for q in ('attitude_error_mean_rad', 'position_error_mean_m')])
+        series = [np.interp(t, r.rec.t, e.mean(axis=1), right=np.nan)
+                  for r in runs for e in (r.rec.att_err, r.rec.pos_err)]
+        for k, tk in enumerate(t):
+            w.writerow([f'{tk:.6f}'] + [f'{s[k]:.9e}' for s in series])
+
+
+def _column(run: Run) -> str:
+    return run.method if run.mode == 'batch' else f'{run.method}_dds'
+
+
+def table(rows_: list[dict[str, Any]]) -> str:
+    """The comparison as a Markdown table."""
+    lines = ['| method | run | gains | at [s] | mean attitude error [rad] | mean position error '
+             f'[m] | attitude < {ATT_THRESHOLD_RAD:g} rad from | position < {POS_THRESHOLD_M:g} '
+             'm from |', '|---|---|---|---|---|---|---|---|']
+    for r in rows_:
+        lines.append(f"| {r['method']} | {r['mode']} | {r['gains']} | {r['duration_s']:g} | "
+                     f"{r['final_attitude_error_mean_rad']:.3e} | "
+                     f"{r['final_position_error_mean_m']:.3e} | "
+                     f"{when(r['attitude_below_1e-3_rad_from_s'])} | "
+                     f"{when(r['position_below_1e-2_m_from_s'])} |")
+    return '\n'.join(lines) + '\n'
