@@ -3,7 +3,7 @@ implementation of the same equations (eq. 3 and 23).
 
 The straightforward version is what one writes first: a Python loop over neighbours with
 np.cross / np.outer and scipy's Rotation for the exponential. The package's version is
-:func:`observer.cascade_step` with one agent (what the estimator node calls each step) and the
+:func:`estimators.boughellaba_tayebi.cascade_step` with one agent (what the estimator node calls each step) and the
 batch simulator's vectorised step over a whole fleet. Medians of repeated timings, one core.
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/core_step.py
@@ -20,7 +20,8 @@ import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from bearing_pose_estimation.core import so3  # noqa: E402
-from bearing_pose_estimation.estimators.boughellaba_tayebi import CascadeGains, Edges, cascade_step  # noqa: E402
+from bearing_pose_estimation.estimators.base import Edges  # noqa: E402
+from bearing_pose_estimation.estimators.boughellaba_tayebi import CascadeGains, cascade_step  # noqa: E402
 
 
 def straightforward(R_hat, p_hat, delta_R, h, b_body, d_world, p_nbr, k, k_R, k_p):
@@ -58,8 +59,8 @@ def main() -> None:
         k = np.ones(n)
         edges = Edges(agent=np.zeros(n, dtype=np.intp), k=k, n_agents=1)
         a = straightforward(R, p, dR, h, b, d, pj, k, 1.0, 1.0)
-        res = cascade_step(R[None], p[None], dR[None], h, edges, b, d, pj, gains)
-        assert np.allclose(a[0], res.R_hat[0], atol=1e-12) and np.allclose(a[1], res.p_hat[0])
+        R1, p1, _ = cascade_step(R[None], p[None], dR[None], h, edges, b, d, pj, gains)
+        assert np.allclose(a[0], R1[0], atol=1e-12) and np.allclose(a[1], p1[0])
         plain = median_us(lambda: straightforward(R, p, dR, h, b, d, pj, k, 1.0, 1.0))
         ours = median_us(lambda: cascade_step(R[None], p[None], dR[None], h, edges, b, d, pj,
                                               gains))

@@ -167,3 +167,103 @@ def test_the_cube_scenario_is_valid_and_converges():
     turned = np.degrees([so3.angle(R0[i].T @ sim.R[i]) for i in range(8)])
     np.testing.assert_allclose(turned[2:5], np.degrees(0.15 * 60.0) % 360, atol=1e-6)
     np.testing.assert_allclose(turned[[0, 1, 5, 6, 7]], 0.0, atol=1e-9)
+
+
+# ------------------------------------------------------------- continuous-time reference
+def _reference(T: float, R_hat0: np.ndarray, p_hat0: np.ndarray, k_omega: float, k_p: float,
+               k_c: float) -> tuple[np.ndarray, ...]:
+    """Tran et al.'s observer in continuous time, as the module docstring writes it, solved
+    with a tight-tolerance RK solver, agent by agent in plain loops (no code shared with the
+    package): ``dR̂_i/dt = R̂_i [ω_i - Ω̃_i]x``, ``dΩ̃_i/dt = -k_ω Ω̃_i + Σ_j (R̂_iᵀ d_ij) × b^i_ij
+    (+ k_c (R̂_iᵀ c) × c^i)``, ``dp̂_i/dt = -k_p Σ_j R̂_i P_{b^i_ij} R̂_iᵀ (p̂_i - p̂_j)``."""
+    from scipy.integrate import solve_ivp
+
+    from test_boughellaba_tayebi import _paper_omega
+
+    p = np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [0, 2, 0],
+                  [0, 0, 2], [2, 0, 2], [2, 2, 2], [0, 2, 2]], float)
+    N = {2: [0, 1], 3: [1, 2], 4: [0, 3], 5: [1, 3, 4], 6: [2, 3, 5], 7: [0, 6]}
+
+    def hat(x):
+        return np.array([[0, -x[2], x[1]], [x[2], 0, -x[0]], [-x[1], x[0], 0]])
+
+    def unit(v):
+        return v / np.linalg.norm(v)
+
+    def rhs(t, x):
+        R = x[:72].reshape(8, 3, 3)
+        Rh = x[72:144].reshape(8, 3, 3).copy()
+        Om = x[144:168].reshape(8, 3).copy()
+        ph = x[168:].reshape(8, 3).copy()
+        Rh[:2], Om[:2], ph[:2] = R[:2], 0.0, p[:2]  # leaders know their pose
+        w = _paper_omega(t)
+        dR, dRh, dOm, dph = (np.zeros((8, 3, 3)), np.zeros((8, 3, 3)), np.zeros((8, 3)),
+                             np.zeros((8, 3)))
+        for i in range(8):
+            dR[i] = R[i] @ hat(w[i])
+        for i, nbrs in N.items():
+            torque, pull, b_i, d = np.zeros(3), np.zeros(3), [], []
+            for j in nbrs:
+                b = (p[j] - p[i]) / np.linalg.norm(p[j] - p[i])
+                b_i.append(R[i].T @ b)               # b^i_ij, measured by i
+                d.append(-(Rh[j] @ (R[j].T @ -b)))   # d_ij = -R̂_j b^j_ji, b^j_ji measured by j
+                torque += np.cross(Rh[i].T @ d[-1], b_i[-1])
+                P = np.eye(3) - np.outer(b_i[-1], b_i[-1])
+                pull += Rh[i] @ P @ Rh[i].T @ (ph[i] - ph[j])
+            if len(nbrs) == 2:
+                c_i, c = unit(np.cross(b_i[0], b_i[1])), unit(np.cross(d[0], d[1]))
+                torque += k_c * np.cross(Rh[i].T @ c, c_i)
+            dRh[i] = Rh[i] @ hat(w[i] - Om[i])
+            dOm[i] = -k_omega * Om[i] + torque
+            dph[i] = -k_p * pull
+        return np.concatenate([dR.ravel(), dRh.ravel(), dOm.ravel(), dph.ravel()])
+
+    x0 = np.concatenate([np.tile(np.eye(3), (8, 1, 1)).ravel(), R_hat0.ravel(),
+                         np.zeros(24), p_hat0.ravel()])
+    sol = solve_ivp(rhs, (0.0, T), x0, method='DOP853', rtol=1e-12, atol=1e-12)
+    x = sol.y[:, -1]
+    return x[72:144].reshape(8, 3, 3), x[144:168].reshape(8, 3), x[168:].reshape(8, 3)
+
+
+def test_discrete_scheme_converges_to_continuous_solution_at_first_order():
+    """The discrete step against an independent solution of the continuous equations on the
+    paper scenario: the error halves with the step (first order), and is small at h = 5 ms."""
+    T = 2.0
+    scenario = parse_scenario(_paper_tran(k_omega=1.5, k_c=0.7))
+    first = BatchSimulator(scenario)
+    R_ref, Om_ref, p_ref = _reference(T, first.R_hat, first.p_hat, 1.5, 1.0, 0.7)
+    errs = []
+    for h in (0.02, 0.01, 0.005):
+        sim = BatchSimulator(scenario, step=h)
+        sim.run(T, record_every=T)
+        assert sim.t == pytest.approx(T)
+        f = sim.follower_idx
+        errs.append(max(np.abs(sim.R_hat[f] - R_ref[f]).max(),
+                        np.abs(sim.x.Omega_tilde[f] - Om_ref[f]).max(),
+                        np.abs(sim.p_hat[f] - p_ref[f]).max()))
+    orders = np.log2(np.array(errs[:-1]) / np.array(errs[1:]))
+    assert errs[-1] < 0.05
+    assert np.all((orders > 0.85) & (orders < 1.15)), (errs, orders)
+
+
+def test_the_node_diagnostics_report_the_checks_K_i():
+    """One function (Estimator.conditioning) gives `check`'s spectra and the node's
+    /diagnostics: for a two-neighbour follower K_i includes k_c c cᵀ (the node's diagnostics
+    once left it out), from the body-frame bearings the agent measures."""
+    from bearing_pose_estimation.estimators.agent import estimator_for
+    from bearing_pose_estimation.sim.world import World
+
+    scenario = load_scenario(CUBE)
+    report = check_scenario(scenario)
+    world = World(scenario)
+    two = [a.name for a in scenario.followers if len(a.neighbours) == 2]
+    assert two
+    for a in scenario.followers:
+        est = estimator_for(scenario, a.name)
+        j, b = world.bearings(scenario.index[a.name])
+        assert est.add_bearings(0.0, j + 1, b) == []
+        np.testing.assert_allclose(est.conditioning(), report.spectra[a.name], atol=1e-12)
+    agent = scenario.agent(two[0])  # without the k_c term the spectrum differs
+    b = [(scenario.agent(nb.name).position - agent.position) for nb in agent.neighbours]
+    M = sum(nb.k * np.outer(v, v) / (v @ v) for v, nb in zip(b, agent.neighbours))
+    assert not np.allclose(np.linalg.eigvalsh(M), report.spectra[two[0]], atol=1e-3)

@@ -342,6 +342,23 @@ def _add_method_options(p: argparse.ArgumentParser) -> None:
                    '(repeatable; k_ij stays per edge, from the scenario)')
 
 
+def _add_output_options(p: argparse.ArgumentParser, suffix: str, per_run: bool = False,
+                        jobs: bool = False, plots: bool = True) -> None:
+    """The options every study shares: ``--duration``, ``--out`` (default
+    ``results/<scenario name><suffix>``), ``--jobs`` (``jobs``), ``--no-plots`` (``plots``),
+    ``--force``."""
+    p.add_argument('--duration', type=float, metavar='S', help=f'simulated time '
+                   f'{"per run " if per_run else ""}[s] (default: the scenario\'s)')
+    p.add_argument('--out', metavar='DIR',
+                   help=f'output directory (default: results/<scenario name>{suffix})')
+    if jobs:
+        p.add_argument('--jobs', type=int, metavar='J',
+                       help='worker processes (default: the number of cores)')
+    if plots:
+        p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
+    p.add_argument('--force', action='store_true', help='overwrite outputs already in DIR')
+
+
 def _add_dds_options(p: argparse.ArgumentParser) -> None:
     """The options of a distributed run (``run``, ``compare --distributed``)."""
     p.add_argument('--domain-id', type=int, metavar='N',
@@ -379,16 +396,11 @@ def build_parser() -> argparse.ArgumentParser:
                        'DIR/fig3_position_error.png; refuses to overwrite any of them without '
                        '--force.')
     p.add_argument('scenario', help='scenario YAML file')
-    p.add_argument('--duration', type=float, help='simulated time [s] (default: the scenario\'s)')
-    p.add_argument('--out', metavar='DIR',
-                   help='output directory (default: results/<scenario name>)')
+    _add_output_options(p, '')
     p.add_argument('--step', type=float, help='step [s] (default: 1 / scenario frequency)')
     p.add_argument('--record-every', type=float, default=0.1,
                    help='metrics row interval [s], at most 0.5 (default: 0.1)')
-    p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
-    p.add_argument('--force', action='store_true',
-                   help='overwrite outputs already in DIR')
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser('compare', help='run several estimators on one scenario; table and plot',
@@ -401,16 +413,12 @@ def build_parser() -> argparse.ArgumentParser:
                        'time), DIR/compare.md (the table it prints) and DIR/compare_errors.png '
                        '(overlaid errors); refuses to overwrite any of them without --force.')
     _add_method_options(p)
-    p.add_argument('--duration', type=float, help='simulated time [s] (default: the scenario\'s)')
-    p.add_argument('--out', metavar='DIR',
-                   help='output directory (default: results/<scenario name>_compare)')
+    _add_output_options(p, '_compare')
     p.add_argument('--record-every', type=float, default=0.1,
                    help='row interval of compare.csv [s], at most 0.5 (default: 0.1)')
     p.add_argument('--distributed', action='store_true',
                    help='also run each method over DDS, one process per agent')
-    p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
     _add_dds_options(p)
-    p.add_argument('--force', action='store_true', help='overwrite outputs already in DIR')
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser('noise-study', help="Tran et al.'s bearing perturbation, per method; "
@@ -428,14 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar='F', help='perturbation frequencies [Hz] (default: 1 5 10 25)')
     p.add_argument('--axis', nargs=3, type=float, default=[1.0, 0.0, 0.0], metavar=('X', 'Y', 'Z'),
                    help='body axis X of the perturbation rotation (default: 1 0 0)')
-    p.add_argument('--duration', type=float, help='simulated time per run [s] (default: the '
-                   'scenario\'s)')
-    p.add_argument('--jobs', type=int, metavar='J',
-                   help='worker processes (default: the number of cores)')
-    p.add_argument('--out', metavar='DIR',
-                   help='output directory (default: results/<scenario name>_noise_study)')
-    p.add_argument('--no-plots', action='store_true', help='skip the PNG plot')
-    p.add_argument('--force', action='store_true', help='overwrite outputs already in DIR')
+    _add_output_options(p, '_noise_study', per_run=True, jobs=True)
     p.set_defaults(func=cmd_noise_study)
 
     p = sub.add_parser('montecarlo', help='many batch runs with different seeds; statistics',
@@ -448,13 +449,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--runs', type=int, required=True, metavar='N', help='number of runs (>= 1)')
     p.add_argument('--seed', type=int, metavar='S',
                    help="first seed (default: the scenario's noise.seed)")
-    p.add_argument('--duration', type=float, metavar='D',
-                   help='simulated time per run [s] (default: the scenario\'s)')
-    p.add_argument('--out', metavar='DIR',
-                   help='output directory (default: results/<scenario name>_montecarlo)')
-    p.add_argument('--jobs', type=int, metavar='J',
-                   help='worker processes (default: the number of cores)')
-    p.add_argument('--force', action='store_true', help='overwrite outputs already in DIR')
+    _add_output_options(p, '_montecarlo', per_run=True, jobs=True, plots=False)
     p.set_defaults(func=cmd_montecarlo)
 
     p = sub.add_parser('run', help='run every agent as its own ROS 2 process over DDS',
@@ -464,14 +459,8 @@ def build_parser() -> argparse.ArgumentParser:
                        'plots, then stop everything. DIR/params/ holds one ROS 2 parameter '
                        'file per process; DIR/logs/ one log per process.')
     p.add_argument('scenario', help='scenario YAML file')
-    p.add_argument('--duration', type=float, metavar='S',
-                   help='simulated time [s] (default: the scenario\'s)')
-    p.add_argument('--out', metavar='DIR',
-                   help='output directory (default: results/<scenario name>_dds)')
-    p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
+    _add_output_options(p, '_dds')
     _add_dds_options(p)
-    p.add_argument('--force', action='store_true',
-                   help='overwrite outputs already in DIR (results, params/, logs/)')
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser('generate', help='write a random valid scenario',

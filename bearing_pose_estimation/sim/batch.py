@@ -26,12 +26,12 @@ from ..estimators.base import Edges, State, StepInputs, route
 from ..scenario.model import Scenario, initial_estimates
 from ..studies.results import PoseErrors, Recording, pose_errors
 from .noise import NoiseModel
-from .truth import Truth
+from .truth import OnTruth, Truth
 
 Array = NDArray[np.float64]
 
 
-class BatchSimulator:
+class BatchSimulator(OnTruth):
     """Simulate a scenario with all agents' estimators in lock-step.
 
     Args:
@@ -66,16 +66,6 @@ class BatchSimulator:
         self.reset()
 
     @property
-    def R(self) -> Array:
-        """True attitudes now, ``(N, 3, 3)``."""
-        return self.truth.R
-
-    @property
-    def p(self) -> Array:
-        """True positions, ``(N, 3)``."""
-        return self.truth.p
-
-    @property
     def R_hat(self) -> Array:
         """Attitude estimates now, ``(N, 3, 3)`` (assignable, e.g. to start from a guess)."""
         return self.x.R_hat
@@ -100,19 +90,15 @@ class BatchSimulator:
         self.truth.reset()
         self.x: State = self.estimator.initial_state(*initial_estimates(self.scenario))
 
-    @property
-    def t(self) -> float:
-        return self.truth.t
-
     def inputs(self) -> StepInputs:
-        """What every agent's step consumes now (the gyro increment is the truth's; the noisy
-        one is set by :meth:`step`)."""
+        """What every agent's next step consumes, measured now (noise drawn)."""
         both = self.truth.body_bearings(self._ends, self._ends_b_world)
         n_edges = len(self.edges)
         b_own = self.noise.bearings(both[:n_edges], self.t)
         b_theirs = self.noise.bearings(both[n_edges:], self.t)
         sent = self.estimator.outbox(self.x, self.edge_nbr, b_theirs)
-        return StepInputs(delta_R=self.truth.increment(), edges=self.edges, bearings=b_own,
+        return StepInputs(delta_R=self.gyro_increment(self.truth.increment()), edges=self.edges,
+                          bearings=b_own,
                           received=route(sent, self.estimator.sends, self.edge_nbr))
 
     def gyro_increment(self, delta_R: Array) -> Array:
@@ -124,8 +110,6 @@ class BatchSimulator:
     def step(self) -> None:
         """Advance truth and every estimator by one step ``h``."""
         inputs = self.inputs()
-        inputs = StepInputs(delta_R=self.gyro_increment(inputs.delta_R), edges=inputs.edges,
-                            bearings=inputs.bearings, received=inputs.received)
         self.truth.advance()
         self.x, _ = self.estimator.step(self.x, self.h, inputs,
                                         reorthonormalize=self.truth.reorthonormalizes)

@@ -39,6 +39,7 @@ class Truth:
         """Back to t = 0 and the scenario's attitudes."""
         self.k = 0
         self.R = np.stack([a.attitude for a in self.scenario.agents])
+        self._next: tuple[int, Array] | None = None  # the increment from step k, once computed
 
     @property
     def t(self) -> float:
@@ -54,7 +55,9 @@ class Truth:
         """``ΔR_i = R_i(t)ᵀ R_i(t + dt)`` of every agent, ``(N, 3, 3)`` (body frame)."""
         if self._constant is not None:
             return self._constant
-        return magnus_increment(self.omega, self.t, self.dt)
+        if self._next is None or self._next[0] != self.k:  # measured, then stepped: once
+            self._next = (self.k, magnus_increment(self.omega, self.t, self.dt))
+        return self._next[1]
 
     def advance(self) -> Array:
         """Advance by ``dt``; return the increment used."""
@@ -75,3 +78,22 @@ class Truth:
         """What ``owner[m]`` measures of the world bearing ``b_world[m]``: ``R_iᵀ b``,
         ``(M, 3)``."""
         return np.einsum('eba,eb->ea', np.take(self.R, owner, axis=0), b_world)
+
+
+class OnTruth:
+    """What a simulator built on a :class:`Truth` shows of it: true attitudes ``R``
+    ``(N, 3, 3)``, positions ``p`` ``(N, 3)`` [m] and the time ``t`` [s]."""
+
+    truth: Truth
+
+    @property
+    def R(self) -> Array:
+        return self.truth.R
+
+    @property
+    def p(self) -> Array:
+        return self.truth.p
+
+    @property
+    def t(self) -> float:
+        return self.truth.t

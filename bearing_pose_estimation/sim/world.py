@@ -19,12 +19,12 @@ from numpy.typing import NDArray
 from ..core import so3
 from ..scenario.model import Scenario
 from .noise import NoiseModel
-from .truth import Truth
+from .truth import OnTruth, Truth
 
 Array = NDArray[np.float64]
 
 
-class World:
+class World(OnTruth):
     """Truth of a scenario on the internal time grid ``t = tick · internal_step``, and its
     sensors."""
 
@@ -48,20 +48,8 @@ class World:
         self._R_last_imu = self.R.copy()
 
     @property
-    def R(self) -> Array:
-        return self.truth.R
-
-    @property
-    def p(self) -> Array:
-        return self.truth.p
-
-    @property
     def tick(self) -> int:
         return self.truth.k
-
-    @property
-    def t(self) -> float:
-        return self.truth.t
 
     def step(self) -> None:
         """Advance the truth by one internal step."""
