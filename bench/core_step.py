@@ -3,8 +3,9 @@ implementation of the same equations (eq. 3 and 23).
 
 The straightforward version is what one writes first: a Python loop over neighbours with
 np.cross / np.outer and scipy's Rotation for the exponential. The package's version is
-:func:`estimators.boughellaba_tayebi.cascade_step` with one agent (what the estimator node calls each step) and the
-batch simulator's vectorised step over a whole fleet. Medians of repeated timings, one core.
+:func:`estimators.boughellaba_tayebi.cascade_step` with one agent (what the estimator node calls
+each step) and the batch simulator's vectorised step over a whole fleet. Medians of repeated
+timings, one core.
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/core_step.py
 """
@@ -21,7 +22,8 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from bearing_pose_estimation.core import so3  # noqa: E402
 from bearing_pose_estimation.estimators.base import Edges  # noqa: E402
-from bearing_pose_estimation.estimators.boughellaba_tayebi import CascadeGains, cascade_step  # noqa: E402
+from bearing_pose_estimation.estimators.boughellaba_tayebi import (  # noqa: E402
+    CascadeGains, cascade_step)
 
 
 def straightforward(R_hat, p_hat, delta_R, h, b_body, d_world, p_nbr, k, k_R, k_p):

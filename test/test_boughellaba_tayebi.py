@@ -8,7 +8,8 @@ from scipy.integrate import solve_ivp
 
 from bearing_pose_estimation.core import so3
 from bearing_pose_estimation.estimators.base import Edges
-from bearing_pose_estimation.estimators.boughellaba_tayebi import CascadeGains, cascade_step, innovation
+from bearing_pose_estimation.estimators.boughellaba_tayebi import (CascadeGains, cascade_step,
+                                                                   innovation)
 from bearing_pose_estimation.scenario import load_scenario, parse_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
 
@@ -153,8 +154,9 @@ def _paper_omega(t: float) -> np.ndarray:
 
 
 def _reference(T: float, R_hat0: np.ndarray, p_hat0: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Solve (1), (3) and (23) as written in estimators/boughellaba_tayebi.py with a tight-tolerance RK solver,
-    agent by agent in plain loops (no code shared with the package)."""
+    """Solve (1), (3) and (23) as written in estimators/boughellaba_tayebi.py with a
+    tight-tolerance RK solver, agent by agent in plain loops (no code shared with the
+    package)."""
     p = np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [0, 2, 0],
                   [0, 0, 2], [2, 0, 2], [2, 2, 2], [0, 2, 2]], float)
     N = {2: [0, 1], 3: [1, 2], 4: [0, 3], 5: [1, 3, 4], 6: [2, 3, 5], 7: [0, 6]}

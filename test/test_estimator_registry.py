@@ -61,7 +61,8 @@ class Toy(Estimator[ToyGains, State]):
         sigma = e.sum_by_agent(e.weighted(np.cross(d, y)))
         R = so3.reorthonormalize(so3.exp(-h * k * sigma) @ x.R_hat @ inputs.delta_R)
         diff = x.p_hat[e.agent] - inputs.received['position']
-        pull = e.sum_by_agent(diff - y * (np.sum(y * diff, axis=1) / np.sum(y * y, axis=1))[:, None])
+        along = np.sum(y * diff, axis=1) / np.sum(y * y, axis=1)
+        pull = e.sum_by_agent(diff - y * along[:, None])
         return State(R_hat=R, p_hat=x.p_hat - h * k * pull), {'innovation': sigma}
 
     def check(self, scenario):

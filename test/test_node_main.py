@@ -1,5 +1,6 @@
 """run_node's life cycle in a real process: a signal stops the spin loop and the node is torn
-down in order (exit 0); a teardown that hangs is cut short by the watchdog, said loudly."""
+down in order (exit 0); a teardown that hangs is cut short by the watchdog, said loudly, even
+when it hangs holding the GIL."""
 import os
 import signal
 import subprocess
@@ -16,7 +17,7 @@ from rclpy.node import Node
 from bearing_pose_estimation.ros import node_main
 
 node_main.TEARDOWN_TIMEOUT_S = 1.0
-hang = sys.argv[1] == 'hang'
+hang = sys.argv[1]
 
 class Probe(Node):
     def __init__(self):
@@ -27,8 +28,11 @@ class Probe(Node):
     def destroy_node(self):
         print('DESTROYING', flush=True)
         super().destroy_node()  # the last node: the DDS participant goes with it
-        if hang:
+        if hang == 'hang':
             time.sleep(60)  # what a deadlocked teardown looks like from Python
+        elif hang == 'hang_holding_gil':  # a C call that blocks without releasing the GIL
+            import ctypes
+            ctypes.PyDLL(None).sleep(60)
 
 raise SystemExit(node_main.run_node(Probe, 'probe'))
 '''
@@ -62,3 +66,16 @@ def test_a_hung_teardown_is_cut_short_by_the_watchdog():
     assert 'DDS teardown did not finish in 1 s' in err and 'fastdds shm clean' in err
     assert 'in destroy_node' in err  # the stack dump shows where it hung
     assert not launch.leaked_shm(shm)  # the hang came after the participant was released
+
+
+def test_a_teardown_hung_holding_the_gil_still_ends():
+    """The Python watchdog cannot run then; faulthandler's C timer ends the process one second
+    later (exit code 1: the launcher reports it) with the stacks, instead of waiting for
+    SIGKILL."""
+    proc = _start('hang_holding_gil')
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    assert time.monotonic() - t0 < 10.0
+    assert proc.returncode == 1, err
+    assert 'Timeout' in err and 'in destroy_node' in err

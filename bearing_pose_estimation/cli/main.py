@@ -336,7 +336,8 @@ def _add_method_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('scenario', help='scenario YAML file')
     p.add_argument('--methods', nargs='+', default=list(estimators.methods()),
                    choices=estimators.methods(),
-                   metavar='METHOD', help=f'methods to run (default: all: {", ".join(estimators.methods())})')
+                   metavar='METHOD',
+                   help=f'methods to run (default: all: {", ".join(estimators.methods())})')
     p.add_argument('--gains', action='append', default=[], metavar='METHOD:GAIN=V[,GAIN=V]',
                    help='override gains of one method, e.g. tran_anderson_ahn:k_omega=3,k_c=2 '
                    '(repeatable; k_ij stays per edge, from the scenario)')

@@ -12,12 +12,13 @@ A method is a subclass of :class:`Estimator`, registered under the scenario's ``
   or per sensing edge, with its frame);
 - ``frame``: how its estimates are expressed (:class:`EstimateFrame`), so that errors are
   measured after the right alignment (:mod:`bearing_pose_estimation.studies.results`);
+
 and implements its per-agent state (a :class:`State` dataclass of ``(N, ...)`` arrays, the
-class's second type parameter) and its initial value, its graph-assumption check (:meth:`Estimator.check`, findings
-that name the agent, the field and the fix) and one vectorised :meth:`Estimator.step`. The batch
-simulator calls that step for the whole fleet, the agent's node logic
-(:class:`bearing_pose_estimation.estimators.agent.AgentEstimator`) for one agent: each method's
-math exists once.
+class's second type parameter) and its initial value, its graph-assumption check
+(:meth:`Estimator.check`, findings that name the agent, the field and the fix) and one
+vectorised :meth:`Estimator.step`. The batch simulator calls that step for the whole fleet, the
+agent's node logic (:class:`bearing_pose_estimation.estimators.agent.AgentEstimator`) for one
+agent: each method's math exists once.
 
 Sensing edges: edge ``e`` is ``i → j``, agent i (row ``edges.agent[e]`` of the state) senses
 and listens to its neighbour j. A step consumes, per edge, i's own measurement and what j sent

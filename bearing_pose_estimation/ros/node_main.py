@@ -241,6 +241,10 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
         watchdog = threading.Timer(TEARDOWN_TIMEOUT_S, _teardown_hung, (name, code))
         watchdog.daemon = True
         watchdog.start()
+        # The watchdog is a Python thread: a teardown that hangs holding the GIL (the Fast DDS
+        # deadlock seen on 2026-12-01 did) never lets it run. faulthandler's timer is a C
+        # thread: one second later it dumps the stacks and exits with code 1.
+        faulthandler.dump_traceback_later(TEARDOWN_TIMEOUT_S + 1.0, exit=True)
         if executor is not None:
             executor.shutdown(timeout_sec=2.0)
         for each in nodes:
@@ -250,6 +254,7 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
                 rclpy.logging.get_logger(name).warning(f'destroy_node failed: {exc!r}')
         rclpy.try_shutdown()  # releases the DDS participant: no files left in /dev/shm
         watchdog.cancel()
+        faulthandler.cancel_dump_traceback_later()
         stop.restore()
     return code
 

@@ -1,7 +1,7 @@
 """``simulator``: the world of a scenario over DDS, with a simulated clock.
 
 Publishes, per agent, ``/<agent>/imu`` (interval-average gyro), ``/<agent>/bearings`` (body
-frame) and ``/<agent>/ground_truth``, plus ``/clock``, from :class:`world.World` (truth on a
+frame) and ``/<agent>/ground_truth``, plus ``/clock``, from :class:`sim.world.World` (truth on a
 1 ms grid). It is the only clock publisher; every other node runs with ``use_sim_time``.
 
 Start: it waits until every estimator and the monitor are matched (subscriptions to its

@@ -302,7 +302,8 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
             or not all(isinstance(x, str) for x in leaders) or len(set(leaders)) != n_leaders):
         example = ', '.join(f'agent_{k + 1}' for k in range(n_leaders))
         raise ctx.fail('leaders', f'expected the names of exactly {n_leaders} distinct agents '
-                       f'({cls.title} has {n_leaders} leaders), got {leaders!r}', f'write e.g. `leaders: [{example}]`')
+                       f'({cls.title} has {n_leaders} leaders), got {leaders!r}',
+                       f'write e.g. `leaders: [{example}]`')
 
     agents: list[Agent] = []
     seen: dict[str, int] = {}

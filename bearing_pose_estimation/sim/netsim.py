@@ -1,10 +1,10 @@
 """The distributed system without DDS: per-agent estimators, the simulator node's world, and
 the links between agents, in one process and deterministic.
 
-It runs the same :class:`agent.AgentEstimator` the estimator node runs, fed exactly as the
-simulator node feeds it (:class:`world.World`: interval-average gyro, bearings, leaders' known
-pose). Neighbour messages are exchanged at the estimators' ``publish_rate``. netsim only drives
-the estimators: every check, rejection and time rule is the estimator's own. Faults:
+It runs the same :class:`estimators.agent.AgentEstimator` the estimator node runs, fed exactly
+as the simulator node feeds it (:class:`.world.World`: interval-average gyro, bearings, leaders'
+known pose). Neighbour messages are exchanged at the estimators' ``publish_rate``. netsim only
+drives the estimators: every check, rejection and time rule is the estimator's own. Faults:
 
 - :class:`LinkFaults`: each neighbour message is dropped with ``drop_rate`` and delivered
   ``delay`` seconds late (what the node's ``inject_*`` parameters do);
