@@ -97,7 +97,6 @@ def test_compare_runs_each_method_on_the_same_scenario(tmp_path, capsys):
     the batch simulator gives for the scenario with that method and its gains (the file's, the
     defaults, or --gains); outputs are not overwritten without --force."""
     import csv
-    import dataclasses
 
     from bearing_pose_estimation.scenario import load_scenario
     from bearing_pose_estimation.sim.batch import BatchSimulator

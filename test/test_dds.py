@@ -4,7 +4,6 @@ Each test starts the very executables `bearing-pose run` (and `ros2 run`) start,
 this run's private ROS_DOMAIN_ID (see conftest.py), and stops them with SIGINT.
 """
 import csv
-import dataclasses
 import json
 import os
 import signal

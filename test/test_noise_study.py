@@ -1,5 +1,4 @@
 """The Tran et al. noise experiment (noise_study.py, `bearing-pose noise-study`)."""
-import dataclasses
 from pathlib import Path
 
 import numpy as np

@@ -1,7 +1,6 @@
 """Tran, Anderson & Ahn's observer (estimators/tran_anderson_ahn.py): fixed point, convergence, the
 position equilibrium formula, the two-neighbour extra direction, and the node's logic
 (AgentEstimator) matching the batch simulator."""
-import dataclasses
 from pathlib import Path
 
 import numpy as np
