@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry
 from numpy.typing import NDArray
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 from sensor_msgs.msg import Imu, PointCloud2, PointField
@@ -25,7 +26,12 @@ Array = NDArray[np.float64]
 
 # ----------------------------------------------------------------------------- topics
 IMU = 'imu'                        # sensor_msgs/Imu, in: own gyro
+ODOM = 'odom'                      # nav_msgs/Odometry, in: own odometry (body twist)
 BEARINGS = 'bearings'              # sensor_msgs/PointCloud2, in: own unit bearings (body frame)
+# sensor_msgs/PointCloud2, in: ⁱp_ij = R_iᵀ (p_j - p_i) [m] (body frame), one point per agent j
+RELATIVE_POSITIONS = 'relative_positions'
+BEARING_RATES = 'bearing_rates'    # sensor_msgs/PointCloud2, in: d/dt b^i_ij [1/s] (body frame)
+RANGES = 'ranges'                  # sensor_msgs/PointCloud2, in: ‖p_j - p_i‖ [m] (field `range`)
 KNOWN_POSE = 'known_pose'          # geometry_msgs/PoseStamped, in: leaders' known pose
 ESTIMATE = 'estimate'              # geometry_msgs/PoseStamped, out: (R̂_i, p̂_i) in world
 WORLD_BEARINGS = 'world_bearings'  # sensor_msgs/PointCloud2, out: R̂_i b^i_il for listeners l
@@ -46,6 +52,11 @@ WORLD_FRAME = 'world'
 def body_frame(agent: str) -> str:
     """REP-105 style body frame with the agent prefix tf2 lacks: ``agent_3/base_link``."""
     return f'{agent}/base_link'
+
+
+def odom_frame(agent: str) -> str:
+    """REP-105 odometry frame of an agent (where its dead reckoning starts): ``agent_3/odom``."""
+    return f'{agent}/odom'
 
 
 # ----------------------------------------------------------------------------- QoS
@@ -110,62 +121,202 @@ def decode_imu(msg: Imu) -> tuple[float, Array]:
     return from_stamp(msg.header.stamp), omega
 
 
+# ----------------------------------------------------------------------------- Odometry
+def encode_odometry(t: float, agent: str, v: Array, omega: Array, R_odom: Array | None = None,
+                    p_odom: Array | None = None, v_std: float = 0.0,
+                    omega_std: float = 0.0) -> Odometry:
+    """Odometry sample: the body twist in ``child_frame_id`` = ``<agent>/base_link`` (REP-105),
+    the dead-reckoned pose in ``header.frame_id`` = ``<agent>/odom``.
+
+    The sample stamped ``t`` = ``t_k`` is an interval average, like the Imu gyro samples: the
+    constant body twist ``(v_k, ω_k)`` that produces the true pose increment over
+    ``(t_{k-1}, t_k]``, i.e. the SE(3) logarithm of the relative pose
+    ``T_{k-1}⁻¹ T_k`` divided by ``h = t_k - t_{k-1}``. Its ``ω_k`` is the gyro sample of the
+    same interval. Integrating the samples piecewise constant, ``R_k = R_{k-1} exp(ω_k h)`` and
+    ``p_k = p_{k-1} + R_{k-1} J(ω_k h) v_k h`` (J: left Jacobian of SO(3)), is then exact from
+    stamp to stamp; holding a sampled instantaneous velocity over a step leaves an O(h) bias.
+
+    Args:
+        v: body-frame linear velocity [m/s] (``twist.twist.linear``).
+        omega: body rate [rad/s] (``twist.twist.angular``).
+        R_odom, p_odom: the dead-reckoned attitude (body → odom) and position [m] for RViz;
+            identity and zero when not given.
+        v_std, omega_std: standard deviations [m/s], [rad/s]; ``twist.covariance`` (row-major
+            6x6, x y z roll pitch yaw) is diagonal with ``v_std²`` and ``omega_std²``.
+            ``pose.covariance`` stays zero: the estimator does not read the pose.
+    """
+    msg = Odometry()
+    msg.header.stamp = to_stamp(t)
+    msg.header.frame_id = odom_frame(agent)
+    msg.child_frame_id = body_frame(agent)
+    pose, twist = msg.pose.pose, msg.twist.twist
+    if p_odom is not None:
+        pose.position.x, pose.position.y, pose.position.z = map(float, p_odom)
+    if R_odom is not None:
+        o = pose.orientation
+        o.x, o.y, o.z, o.w = map(float, so3.to_quat(R_odom))
+    twist.linear.x, twist.linear.y, twist.linear.z = map(float, v)
+    twist.angular.x, twist.angular.y, twist.angular.z = map(float, omega)
+    cov = np.zeros(36)
+    cov[[0, 7, 14]] = v_std ** 2
+    cov[[21, 28, 35]] = omega_std ** 2
+    msg.twist.covariance = cov
+    return msg
+
+
+def decode_odometry(msg: Odometry, child_frame: str | None = None) -> tuple[float, Array, Array]:
+    """``(stamp, v, omega)`` of an odometry sample (:func:`encode_odometry`); the pose and the
+    covariances are not read.
+
+    Args:
+        child_frame: when given, the frame the twist must be expressed in (the agent's
+            :func:`body_frame`): a twist in another frame would be misread.
+
+    Raises:
+        WireError: a ``child_frame_id`` other than ``child_frame``, or a non-finite twist.
+    """
+    if child_frame is not None and msg.child_frame_id != child_frame:
+        raise WireError(f'Odometry twist is in child_frame_id {msg.child_frame_id!r}, '
+                        f'expected {child_frame!r}')
+    lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+    v = np.array([lin.x, lin.y, lin.z])
+    omega = np.array([ang.x, ang.y, ang.z])
+    if not (np.all(np.isfinite(v)) and np.all(np.isfinite(omega))):
+        raise WireError('non-finite twist')
+    return from_stamp(msg.header.stamp), v, omega
+
+
 # ----------------------------------------------------------------------------- PointCloud2
-# One point per observed agent: a float64 unit vector and the observed agent's id (its 1-based
+# One point per observed agent: float64 values and the observed agent's id (its 1-based
 # position in the scenario's `agents` list, the paper's agent number). One message per agent
-# and instant, so the topic count grows with agents, not edges.
-_CLOUD_DTYPE = np.dtype([('x', '<f8'), ('y', '<f8'), ('z', '<f8'), ('agent_id', '<u4')])
-_CLOUD_FIELDS = [PointField(name='x', offset=0, datatype=PointField.FLOAT64, count=1),
-                 PointField(name='y', offset=8, datatype=PointField.FLOAT64, count=1),
-                 PointField(name='z', offset=16, datatype=PointField.FLOAT64, count=1),
-                 PointField(name='agent_id', offset=24, datatype=PointField.UINT32, count=1)]
+# and instant, so the topic count grows with agents, not edges. Vectors (bearings, relative
+# positions, bearing rates) are fields x, y, z; a scalar (range) is one field.
+_FORMATS: dict[int, np.dtype] = {PointField.FLOAT64: np.dtype('<f8'),  # datatype -> numpy
+                                 PointField.UINT32: np.dtype('<u4')}
+_VECTOR_FIELDS = {'x': PointField.FLOAT64, 'y': PointField.FLOAT64, 'z': PointField.FLOAT64,
+                  'agent_id': PointField.UINT32}
 
 
-def encode_vectors(t: float, frame_id: str, ids: NDArray[np.integer], vectors: Array) -> PointCloud2:
-    """Unit vectors tagged with agent ids as a PointCloud2 (fields x, y, z: FLOAT64;
-    agent_id: UINT32; little endian, dense)."""
-    vectors = np.asarray(vectors, dtype=float).reshape(-1, 3)
-    data = np.empty(len(vectors), dtype=_CLOUD_DTYPE)
-    data['x'], data['y'], data['z'] = vectors.T
-    data['agent_id'] = np.asarray(ids, dtype=np.uint32)
+def _scalar_fields(field: str) -> dict[str, int]:
+    return {field: PointField.FLOAT64, 'agent_id': PointField.UINT32}
+
+
+def _cloud_dtype(want: dict[str, int], offsets: list[int], point_step: int) -> np.dtype:
+    """The numpy view of points of ``point_step`` bytes with the fields ``want``
+    (``{name: datatype}``) at ``offsets``."""
+    return np.dtype({'names': list(want), 'formats': [_FORMATS[d] for d in want.values()],
+                     'offsets': offsets, 'itemsize': point_step})
+
+
+def _cloud_layout(want: dict[str, int]) -> tuple[np.dtype, list[PointField]]:
+    """The packed layout of the fields ``want``, in this order: its dtype and PointFields."""
+    sizes = [_FORMATS[datatype].itemsize for datatype in want.values()]
+    offsets = [sum(sizes[:k]) for k in range(len(sizes))]
+    fields = [PointField(name=name, offset=offset, datatype=datatype, count=1)
+              for (name, datatype), offset in zip(want.items(), offsets)]
+    return _cloud_dtype(want, offsets, sum(sizes)), fields
+
+
+_CLOUD_DTYPE, _CLOUD_FIELDS = _cloud_layout(_VECTOR_FIELDS)
+
+
+def _encode_cloud(t: float, frame_id: str, data: np.ndarray,
+                  fields: list[PointField]) -> PointCloud2:
+    """A little-endian, dense, one-row PointCloud2 of the structured array ``data``."""
     msg = PointCloud2()
     msg.header.stamp = to_stamp(t)
     msg.header.frame_id = frame_id
-    msg.height, msg.width = 1, len(vectors)
-    msg.fields = _CLOUD_FIELDS
+    msg.height, msg.width = 1, len(data)
+    msg.fields = fields
     msg.is_bigendian = False
-    msg.point_step = _CLOUD_DTYPE.itemsize
+    msg.point_step = data.dtype.itemsize
     msg.row_step = msg.point_step * msg.width
     msg.is_dense = True
     msg.data = data.tobytes()
     return msg
 
 
-def decode_vectors(msg: PointCloud2) -> tuple[float, NDArray[np.uint32], Array]:
-    """Inverse of :func:`encode_vectors`. Accepts any field order or padding (e.g. a user's
-    detector) as long as x, y, z are FLOAT64 and agent_id is UINT32.
+def _decode_cloud(msg: PointCloud2, want: dict[str, int]) -> tuple[float, np.ndarray]:
+    """The stamp and the points of ``msg`` as a structured array of the fields ``want``
+    (``{name: datatype}``), in any order and with any padding.
 
     Raises:
-        WireError: missing or mistyped fields, inconsistent sizes, or big-endian data.
+        WireError: missing or mistyped fields, fields that overlap each other or the end of
+            the point, inconsistent sizes, or big-endian data.
     """
     fields = {f.name: f for f in msg.fields}
-    want = {'x': PointField.FLOAT64, 'y': PointField.FLOAT64, 'z': PointField.FLOAT64,
-            'agent_id': PointField.UINT32}
     for name, datatype in want.items():
         if name not in fields or fields[name].datatype != datatype or fields[name].count != 1:
             raise WireError(f'PointCloud2 needs field {name!r} of datatype {datatype} '
                             f'(fields: {sorted(fields)})')
     if msg.is_bigendian:
         raise WireError('big-endian PointCloud2 is not supported')
+    sizes = [_FORMATS[datatype].itemsize for datatype in want.values()]
     n = msg.width * msg.height
-    if msg.point_step < 28 or len(msg.data) != n * msg.point_step:
+    if msg.point_step < sum(sizes) or len(msg.data) != n * msg.point_step:
         raise WireError(f'PointCloud2 data is {len(msg.data)} bytes, expected '
                         f'{n} points x {msg.point_step} bytes')
-    dtype = np.dtype({'names': list(want), 'formats': ['<f8', '<f8', '<f8', '<u4'],
-                      'offsets': [fields[k].offset for k in want], 'itemsize': msg.point_step})
-    data = np.frombuffer(bytes(msg.data), dtype=dtype, count=n)
+    offsets = [fields[name].offset for name in want]
+    spans = sorted(zip(offsets, sizes, want))
+    ends = [offset for offset, _, _ in spans[1:]] + [msg.point_step]
+    for (offset, size, name), end in zip(spans, ends):
+        if offset + size > end:
+            raise WireError(f'PointCloud2 field {name!r} (offset {offset}, {size} bytes) '
+                            f'overlaps the next field or the end of the {msg.point_step}-byte '
+                            f'point')
+    dtype = _cloud_dtype(want, offsets, msg.point_step)
+    return from_stamp(msg.header.stamp), np.frombuffer(bytes(msg.data), dtype=dtype, count=n)
+
+
+def encode_vectors(t: float, frame_id: str, ids: NDArray[np.integer],
+                   vectors: Array) -> PointCloud2:
+    """Vectors tagged with agent ids as a PointCloud2 (fields x, y, z: FLOAT64; agent_id:
+    UINT32; little endian, dense): unit bearings, relative positions [m], bearing rates
+    [1/s]."""
+    vectors = np.asarray(vectors, dtype=float).reshape(-1, 3)
+    data = np.empty(len(vectors), dtype=_CLOUD_DTYPE)
+    data['x'], data['y'], data['z'] = vectors.T
+    data['agent_id'] = np.asarray(ids, dtype=np.uint32)
+    return _encode_cloud(t, frame_id, data, _CLOUD_FIELDS)
+
+
+def decode_vectors(msg: PointCloud2) -> tuple[float, NDArray[np.uint32], Array]:
+    """Inverse of :func:`encode_vectors`. Accepts any field order or padding (e.g. a user's
+    detector) as long as x, y, z are FLOAT64 and agent_id is UINT32. The values are not
+    checked (finite, unit norm): each receiver validates its points.
+
+    Raises:
+        WireError: missing, mistyped or overlapping fields, inconsistent sizes, or big-endian
+            data.
+    """
+    t, data = _decode_cloud(msg, _VECTOR_FIELDS)
     vectors = np.stack([data['x'], data['y'], data['z']], axis=1).astype(float)
-    return from_stamp(msg.header.stamp), data['agent_id'].astype(np.uint32), vectors
+    return t, data['agent_id'].astype(np.uint32), vectors
+
+
+def encode_scalars(t: float, frame_id: str, ids: NDArray[np.integer], values: Array,
+                   field: str = 'range') -> PointCloud2:
+    """Scalars tagged with agent ids as a PointCloud2 (fields ``field``: FLOAT64; agent_id:
+    UINT32; little endian, dense), e.g. ranges [m]."""
+    values = np.asarray(values, dtype=float).reshape(-1)
+    dtype, fields = _cloud_layout(_scalar_fields(field))
+    data = np.empty(len(values), dtype=dtype)
+    data[field] = values
+    data['agent_id'] = np.asarray(ids, dtype=np.uint32)
+    return _encode_cloud(t, frame_id, data, fields)
+
+
+def decode_scalars(msg: PointCloud2,
+                   field: str = 'range') -> tuple[float, NDArray[np.uint32], Array]:
+    """Inverse of :func:`encode_scalars`: ``(stamp, ids, values)``. Accepts any field order or
+    padding as long as ``field`` is FLOAT64 and agent_id is UINT32. The values are not checked.
+
+    Raises:
+        WireError: missing, mistyped or overlapping fields, inconsistent sizes, or big-endian
+            data.
+    """
+    t, data = _decode_cloud(msg, _scalar_fields(field))
+    return t, data['agent_id'].astype(np.uint32), data[field].astype(float)
 
 
 # ----------------------------------------------------------------------------- PoseStamped

@@ -153,12 +153,15 @@ def _paper_omega(t: float) -> np.ndarray:
                      [-c(2 * t), s(9 * t), 1], [-c(4 * t), 1, 2], [-2, 1, s(9 * t)]], float)
 
 
-def _reference(T: float, R_hat0: np.ndarray, p_hat0: np.ndarray) -> tuple[np.ndarray, ...]:
+def _reference(T: float, R_hat0: np.ndarray, p_hat0: np.ndarray,
+               motion=None) -> tuple[np.ndarray, ...]:
     """Solve (1), (3) and (23) as written in estimators/boughellaba_tayebi.py with a
     tight-tolerance RK solver, agent by agent in plain loops (no code shared with the
-    package)."""
-    p = np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [0, 2, 0],
-                  [0, 0, 2], [2, 0, 2], [2, 2, 2], [0, 2, 2]], float)
+    package). ``motion``: ``(p(t), v(t))``, the true positions and world velocities
+    ``(8, 3)`` of a moving fleet, whose body velocity ``R_iᵀ v_i`` is fed forward
+    (``dp̂_i/dt += R̂_i R_iᵀ v_i``); None: the paper's static cube."""
+    p0 = np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [0, 2, 0],
+                   [0, 0, 2], [2, 0, 2], [2, 2, 2], [0, 2, 2]], float)
     N = {2: [0, 1], 3: [1, 2], 4: [0, 3], 5: [1, 3, 4], 6: [2, 3, 5], 7: [0, 6]}
     k_R = k_p = 1.0
 
@@ -166,6 +169,7 @@ def _reference(T: float, R_hat0: np.ndarray, p_hat0: np.ndarray) -> tuple[np.nda
         return np.array([[0, -x[2], x[1]], [x[2], 0, -x[0]], [-x[1], x[0], 0]])
 
     def rhs(t, x):
+        p, v = (motion[0](t), motion[1](t)) if motion else (p0, np.zeros((8, 3)))
         R = x[:72].reshape(8, 3, 3)
         Rh = x[72:144].reshape(8, 3, 3).copy()
         ph = x[144:].reshape(8, 3).copy()
@@ -184,7 +188,7 @@ def _reference(T: float, R_hat0: np.ndarray, p_hat0: np.ndarray) -> tuple[np.nda
                 P = np.eye(3) - np.outer(b_i, b_i)
                 pull += Rh[i] @ P @ Rh[i].T @ (ph[i] - ph[j])
             dRh[i] = Rh[i] @ hat(w[i] - k_R * Rh[i].T @ sigma)
-            dph[i] = -k_R * hat(sigma) @ ph[i] - k_p * pull
+            dph[i] = -k_R * hat(sigma) @ ph[i] - k_p * pull + Rh[i] @ R[i].T @ v[i]
         return np.concatenate([dR.ravel(), dRh.ravel(), dph.ravel()])
 
     x0 = np.concatenate([np.tile(np.eye(3), (8, 1, 1)).ravel(), R_hat0.ravel(), p_hat0.ravel()])

@@ -105,8 +105,8 @@ def test_compare_runs_each_method_on_the_same_scenario(tmp_path, capsys):
     assert main(['compare', PAPER, '--duration', '5', '--out', str(out),
                  '--gains', 'tran_anderson_ahn:k_omega=3,k_c=0.5']) == 0
     captured = capsys.readouterr()
-    assert '| boughellaba_tayebi | batch | k_R=1, k_p=1 | 5 |' in captured.out
-    assert '| tran_anderson_ahn | batch | k_omega=3, k_p=1, k_c=0.5 | 5 |' in captured.out
+    assert '| boughellaba_tayebi | batch | k_R=1, k_p=1, k_v=1 | 5 |' in captured.out
+    assert '| tran_anderson_ahn | batch | k_omega=3, k_p=1, k_c=0.5, k_v=1 | 5 |' in captured.out
     # Tran's own condition on agent_8 (two orthogonal bearings: K_i = I with k_c = 1 would be
     # {1, 1, 1}; with k_c = 0.5 it is {0.5, 1, 1}).
     assert '(tran_anderson_ahn): warning: agent_8.neighbours: K_i' in captured.err

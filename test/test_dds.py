@@ -36,7 +36,13 @@ THREE_AGENTS = {
         {'name': 'agent_2', 'position': [2, 0, 0],
          'angular_velocity': [{'cos': 3, 'amplitude': -1}, 1, {'sin': 2}]},
         {'name': 'agent_3', 'position': [1, 2, 0], 'angular_velocity': [0.5, 1, {'sin': 9}],
+         'velocity': {'world': [0.2, {'sin': 1, 'amplitude': 0.3}, 0]},
          'neighbours': ['agent_1', 'agent_2']}]}
+
+
+def _p3(t: float) -> np.ndarray:
+    """agent_3 of THREE_AGENTS moves: p_3(t) = (1 + 0.2 t, 2 + 0.3 (1 - cos t), 0)."""
+    return np.array([1.0 + 0.2 * t, 2.0 + 0.3 * (1.0 - np.cos(t)), 0.0])
 
 
 @pytest.fixture()
@@ -72,7 +78,8 @@ def _start(group: launch.ProcessGroup, scenario_file: Path, out: Path, duration:
 def test_messages_on_the_wire(tmp_path, no_leftovers):
     """Types, frames and stamps as msg_defs documents them, and the time consistency of what a
     leader sends: R̂_1 b^1_13 must be the true world bearing at every stamp, although agent_1
-    spins at |ω| = 2.4 rad/s (pairing two instants 20 ms apart would be off by ~0.05)."""
+    spins at |ω| = 2.4 rad/s (pairing two instants 20 ms apart would be off by ~0.05) and
+    agent_3 moves (0.2-0.36 m/s: a bearing 20 ms old would be off by ~3e-3)."""
     scenario_file = tmp_path / 'three.yaml'
     scenario_file.write_text(yaml.safe_dump(THREE_AGENTS))
     env = launch.dds_env(DOMAIN, tmp_path / 'ros_logs')
@@ -80,6 +87,7 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
         '/agent_3/imu': (wire.Imu, wire.SENSOR_QOS),
         '/agent_3/bearings': (wire.PointCloud2, wire.SENSOR_QOS),
         '/agent_3/estimate': (wire.PoseStamped, wire.ESTIMATE_QOS),
+        '/agent_3/odom': (wire.Odometry, wire.SENSOR_QOS),
         '/agent_1/world_bearings': (wire.PointCloud2, wire.ESTIMATE_QOS),
         '/agent_1/ground_truth': (wire.PoseStamped, wire.SIM_PUB_QOS),
         '/clock': (Clock, wire.CLOCK_QOS),
@@ -130,7 +138,6 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
 
     truth = m['/agent_1/ground_truth']
     assert truth and {x.header.frame_id for x in truth} == {'world'}
-    b_13 = np.array([1.0, 2.0, 0.0]) / np.sqrt(5.0)
     checked = 0
     for msg in m['/agent_1/world_bearings']:
         assert msg.header.frame_id == 'world'
@@ -138,9 +145,22 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
         if t > 0.0:
             row = dict(zip(ids.tolist(), vectors))
             assert sorted(row) == [3]  # a leader senses only its listeners
+            b_13 = _p3(t) / np.linalg.norm(_p3(t))
             np.testing.assert_allclose(row[3], b_13, atol=1e-9)
             checked += 1
     assert checked > 20
+
+    # Odometry (the fleet moves): 100 Hz, the twist in the body frame (REP-105), interval
+    # averages: agent_3's speed over (t - 10 ms, t] is the speed at the midpoint to ~1e-5.
+    odom = m['/agent_3/odom']
+    assert {(x.header.frame_id, x.child_frame_id) for x in odom} == {
+        ('agent_3/odom', 'agent_3/base_link')}
+    odom_stamps = np.array([wire.from_stamp(x.header.stamp) for x in odom])
+    np.testing.assert_allclose(np.round(odom_stamps / 0.01) * 0.01, odom_stamps, atol=1e-9)
+    for msg in odom[-20:]:
+        t, v, _ = wire.decode_odometry(msg, 'agent_3/base_link')
+        speed = np.hypot(0.2, 0.3 * np.sin(t - 0.005))
+        assert np.linalg.norm(v) == pytest.approx(speed, abs=1e-4), t
     clock = [wire.from_stamp(c.clock) for c in m['/clock']]
     assert clock and np.all(np.diff(clock) > 0)
 

@@ -2,8 +2,9 @@
 suite runs over ``estimators.methods()``, each on its own reference scenario (the paper's
 simulation in config/), and ``test_estimator_registry.py`` runs it on a toy registered there.
 
-- the truth is a fixed point of the step (whatever the agents' rotation);
-- the one-agent step (what the node runs) equals the batch row;
+- the truth is a fixed point of the step (whatever the agents' rotation), and stays one when
+  the fleet moves (odometry or the method's own sensors of motion);
+- the one-agent step (what the node runs) equals the batch row, static or moving;
 - finite inputs never give non-finite outputs, degenerate geometry included;
 - what it sends matches what it declares (channels, shapes), and so does its state;
 - bad gains are refused with the field named, in the gains and through a scenario file;
@@ -39,8 +40,18 @@ def reference_data(method: str) -> dict:
     return data
 
 
-def _sim(method: str) -> BatchSimulator:
-    return BatchSimulator(parse_scenario(reference_data(method), source=f'<{method}>'))
+def moving_data(method: str) -> dict:
+    """The reference scenario with every agent translating (world-frame velocities)."""
+    data = reference_data(method)
+    for k, agent in enumerate(data['agents']):
+        agent['velocity'] = {'world': [0.2, {'sin': 0.5, 'amplitude': 0.2, 'phase': k},
+                                       {'cos': 0.3, 'amplitude': 0.05}]}
+    return data
+
+
+def _sim(method: str, moving: bool = False) -> BatchSimulator:
+    data = moving_data(method) if moving else reference_data(method)
+    return BatchSimulator(parse_scenario(data, source=f'<{method}>'))
 
 
 def _assert_states_close(a, b, atol: float) -> None:
@@ -51,17 +62,24 @@ def _assert_states_close(a, b, atol: float) -> None:
 
 # ----------------------------------------------------------------------------- the checks
 def check_truth_is_a_fixed_point(method: str) -> None:
-    sim = _sim(method)
-    sim.x = sim.estimator.initial_state(sim.R.copy(), sim.p.copy())
-    for _ in range(300):
-        sim.step()
-    errors = sim.errors()
-    assert errors.att_err.max() < 1e-12 and errors.pos_err.max() < 1e-12, errors
-    assert np.abs(sim.truth.omega(sim.t)).max() > 0.1  # the agents did rotate
+    for moving in (False, True):
+        sim = _sim(method, moving)
+        p0 = sim.p.copy()
+        sim.x = sim.estimator.initial_state(sim.R.copy(), sim.p.copy())
+        for _ in range(300):
+            sim.step()
+        errors = sim.errors()
+        assert errors.att_err.max() < 1e-12 and errors.pos_err.max() < 1e-12, (moving, errors)
+        assert np.abs(sim.truth.omega(sim.t)).max() > 0.1  # the agents did rotate
+        assert (np.abs(sim.p - p0).min() > 0.1) == moving   # and moved, when they do
 
 
 def check_one_agent_step_equals_the_batch_row(method: str) -> None:
-    sim = _sim(method)
+    for moving in (False, True):
+        _one_agent_step_equals_the_batch_row(_sim(method, moving))
+
+
+def _one_agent_step_equals_the_batch_row(sim: BatchSimulator) -> None:
     for _ in range(25):  # into the transient: every term is non-zero
         sim.step()
     inputs = sim.inputs()
@@ -134,12 +152,17 @@ def check_bad_gains_are_refused_with_the_field_named(method: str) -> None:
     assert cls.Gains() == parse_gains(cls.Gains, {})
     for f in gain_fields(cls.Gains):
         assert f.metadata['help'], f.name
-        for bad in (-1.0, 0.0, float('nan'), float('inf'), 'fast', True):
+        zero_ok = f.metadata.get('zero_allowed', False)  # a term that 0 switches off
+        if zero_ok:
+            assert getattr(parse_gains(cls.Gains, {f.name: 0}), f.name) == 0.0
+        for bad in (-1.0, float('nan'), float('inf'), 'fast', True) + (() if zero_ok
+                                                                       else (0.0,)):
             with pytest.raises(ScenarioError, match=rf'gains\.{f.name}: .*Fix:'):
                 parse_gains(cls.Gains, {f.name: bad})
         data = reference_data(method)
         data['gains'] = {f.name: -2.0}
-        with pytest.raises(ScenarioError, match=rf'gains\.{f.name}: must be > 0'):
+        with pytest.raises(ScenarioError,
+                           match=rf'gains\.{f.name}: must be {">=" if zero_ok else ">"} 0'):
             parse_scenario(data, source='s.yaml')
     data = reference_data(method)
     data['gains'] = {'k_typo': 1.0}

@@ -4,7 +4,8 @@ through the batch simulator and the node logic (netsim) without any other module
 
 The toy: the attitude observer (3) of Boughellaba & Tayebi and a first-order bearing-only
 position observer ``dp̂_i/dt = -k Σ_j P_{R̂_i b^i_ij} (p̂_i - p̂_j)``, one gain ``k`` for both,
-and its own name for the position channel."""
+its own name for the position channel, and odometry feed-forward ``+ R̂_i v_i`` for moving
+fleets."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -41,6 +42,7 @@ class Toy(Estimator[ToyGains, State]):
     roles: ClassVar[Roles] = Roles(leaders=2)
     sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.BEARINGS,
                                                      Sensor.KNOWN_POSE})
+    optional_sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.ODOMETRY})
     sends: ClassVar[tuple[Channel, ...]] = (
         Channel('position', per='agent', frame='world'),
         Channel('world_bearing', per='edge', frame='world', unit=True))
@@ -60,10 +62,14 @@ class Toy(Estimator[ToyGains, State]):
         y = np.einsum('eab,eb->ea', x.R_hat[e.agent], inputs.bearings)
         sigma = e.sum_by_agent(e.weighted(np.cross(d, y)))
         R = so3.reorthonormalize(so3.exp(-h * k * sigma) @ x.R_hat @ inputs.delta_R)
-        diff = x.p_hat[e.agent] - inputs.received['position']
+        own = x.p_hat[e.agent] if inputs.p_own is None else inputs.p_own
+        diff = own - inputs.received['position']
         along = np.sum(y * diff, axis=1) / np.sum(y * y, axis=1)
         pull = e.sum_by_agent(diff - y * along[:, None])
-        return State(R_hat=R, p_hat=x.p_hat - h * k * pull), {'innovation': sigma}
+        p_hat = x.p_hat - h * k * pull
+        if inputs.displacement is not None:
+            p_hat = p_hat + np.einsum('nab,nb->na', x.R_hat, inputs.displacement)
+        return State(R_hat=R, p_hat=p_hat), {'innovation': sigma}
 
     def check(self, scenario):
         report = CheckReport(spectra_of='none')
@@ -120,3 +126,39 @@ def test_an_unregistered_method_is_refused_with_the_known_ones():
         parse_scenario(data)
     with pytest.raises(ValueError, match='built in'):
         estimators.unregister('boughellaba_tayebi')
+
+
+class AnchorToy(Toy):
+    """The toy with one anchor instead of two leaders (the role Presenza et al. need)."""
+
+    method: ClassVar[str] = 'toy_anchor'
+    roles: ClassVar[Roles] = Roles(anchor=True)
+
+
+def test_roles_are_what_each_method_declares():
+    """Two leaders, one anchor or none: the scenario must give exactly the method's roles,
+    and errors name the field and the fix."""
+    estimators.register(AnchorToy)
+    try:
+        data = yaml.safe_load(PAPER.read_text())
+        data['method'], data['gains'] = 'toy_anchor', {}
+        data['initial_estimates'] = {'random': {'seed': 0}}  # for agent_2, no leader now
+        leaders = data.pop('leaders')
+        with pytest.raises(ScenarioError, match=r'anchor: .*needs one anchor.*Fix: add'):
+            parse_scenario(data)
+        data['anchor'] = 'agent_9'
+        with pytest.raises(ScenarioError, match=r"anchor: 'agent_9' is not an agent"):
+            parse_scenario(data)
+        data['anchor'] = 'agent_1'
+        s = parse_scenario(data)
+        assert s.anchor == 'agent_1' and s.anchor_index == 0 and s.leaders == ()
+        assert [a.name for a in s.followers] == [f'agent_{k}' for k in range(2, 9)]
+        data['leaders'] = leaders
+        with pytest.raises(ScenarioError, match=r'leaders: .*has no leaders.*Fix: remove'):
+            parse_scenario(data)
+        paper = yaml.safe_load(PAPER.read_text())
+        paper['anchor'] = 'agent_1'
+        with pytest.raises(ScenarioError, match=r'anchor: Boughellaba & Tayebi has no anchor'):
+            parse_scenario(paper)
+    finally:
+        estimators.unregister(AnchorToy.method)

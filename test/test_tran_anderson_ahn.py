@@ -170,17 +170,20 @@ def test_the_cube_scenario_is_valid_and_converges():
 
 # ------------------------------------------------------------- continuous-time reference
 def _reference(T: float, R_hat0: np.ndarray, p_hat0: np.ndarray, k_omega: float, k_p: float,
-               k_c: float) -> tuple[np.ndarray, ...]:
+               k_c: float, motion=None) -> tuple[np.ndarray, ...]:
     """Tran et al.'s observer in continuous time, as the module docstring writes it, solved
     with a tight-tolerance RK solver, agent by agent in plain loops (no code shared with the
     package): ``dR̂_i/dt = R̂_i [ω_i - Ω̃_i]x``, ``dΩ̃_i/dt = -k_ω Ω̃_i + Σ_j (R̂_iᵀ d_ij) × b^i_ij
-    (+ k_c (R̂_iᵀ c) × c^i)``, ``dp̂_i/dt = -k_p Σ_j R̂_i P_{b^i_ij} R̂_iᵀ (p̂_i - p̂_j)``."""
+    (+ k_c (R̂_iᵀ c) × c^i)``, ``dp̂_i/dt = -k_p Σ_j R̂_i P_{b^i_ij} R̂_iᵀ (p̂_i - p̂_j)``.
+    ``motion``: ``(p(t), v(t))``, the true positions and world velocities ``(8, 3)`` of a
+    moving fleet, whose body velocity ``R_iᵀ v_i`` is fed forward (``dp̂_i/dt += R̂_i R_iᵀ
+    v_i``); None: the paper's static cube."""
     from scipy.integrate import solve_ivp
 
     from test_boughellaba_tayebi import _paper_omega
 
-    p = np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [0, 2, 0],
-                  [0, 0, 2], [2, 0, 2], [2, 2, 2], [0, 2, 2]], float)
+    p0 = np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [0, 2, 0],
+                   [0, 0, 2], [2, 0, 2], [2, 2, 2], [0, 2, 2]], float)
     N = {2: [0, 1], 3: [1, 2], 4: [0, 3], 5: [1, 3, 4], 6: [2, 3, 5], 7: [0, 6]}
 
     def hat(x):
@@ -190,6 +193,7 @@ def _reference(T: float, R_hat0: np.ndarray, p_hat0: np.ndarray, k_omega: float,
         return v / np.linalg.norm(v)
 
     def rhs(t, x):
+        p, v = (motion[0](t), motion[1](t)) if motion else (p0, np.zeros((8, 3)))
         R = x[:72].reshape(8, 3, 3)
         Rh = x[72:144].reshape(8, 3, 3).copy()
         Om = x[144:168].reshape(8, 3).copy()
@@ -214,7 +218,7 @@ def _reference(T: float, R_hat0: np.ndarray, p_hat0: np.ndarray, k_omega: float,
                 torque += k_c * np.cross(Rh[i].T @ c, c_i)
             dRh[i] = Rh[i] @ hat(w[i] - Om[i])
             dOm[i] = -k_omega * Om[i] + torque
-            dph[i] = -k_p * pull
+            dph[i] = -k_p * pull + Rh[i] @ R[i].T @ v[i]
         return np.concatenate([dR.ravel(), dRh.ravel(), dOm.ravel(), dph.ravel()])
 
     x0 = np.concatenate([np.tile(np.eye(3), (8, 1, 1)).ravel(), R_hat0.ravel(),

@@ -11,6 +11,9 @@ from scipy.spatial import cKDTree
 
 # Agents closer than this [m] are collocated: bearings between them are undefined.
 COLLOCATED_M = 1e-6
+# Moving agents that come closer than this [m] are about to collide: a warning (bearings are
+# undefined at collision; a real fleet's bodies would touch first).
+CLOSE_APPROACH_M = 0.2
 
 
 def find_cycle(names: Sequence[str], nbrs: Mapping[str, Sequence[str]]) -> list[str] | None:
@@ -68,3 +71,60 @@ def widest_angle(b: NDArray[np.float64]) -> float:
     ``(M, 3)``: 0 when they are all collinear."""
     sines = np.linalg.norm(np.cross(b[:, None, :], b[None, :, :]), axis=-1)
     return float(np.arcsin(np.clip(sines.max(), 0.0, 1.0)))
+
+
+def widest_angles(b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`widest_angle` of many sets at once: ``b`` ``(..., M, 3)`` unit vectors, ``M >= 2``;
+    returns ``(...)`` [rad, in [0, π/2]]."""
+    first, second = np.triu_indices(b.shape[-2], 1)
+    sines = np.linalg.norm(np.cross(b[..., first, :], b[..., second, :]), axis=-1)
+    return np.arcsin(np.clip(sines.max(axis=-1), 0.0, 1.0))
+
+
+def close_approaches(times: NDArray[np.float64], positions: NDArray[np.float64],
+                     radius: float) -> tuple[NDArray[np.intp], NDArray[np.intp],
+                                             NDArray[np.float64], NDArray[np.float64]]:
+    """Every pair of agents that comes closer than ``radius`` [m], with its closest approach.
+
+    ``positions`` ``(K, N, 3)`` are sampled at ``times`` ``(K,)``; between two samples each
+    agent moves on the straight line joining them, so an approach between samples is found
+    too. Per segment, a KD-tree of its first sample finds the pairs within ``radius`` plus twice
+    the farthest any agent moves over it (no pair closer on the segment can be farther at its
+    start); each pair's minimum on the segment is then exact for the straight lines.
+
+    Returns ``(i, j, distance, time)``, one entry per pair ``i < j`` (its closest approach, the
+    earliest of equal ones), sorted by ``(i, j)``.
+    """
+    k_samples, n = positions.shape[:2]
+    empty_i, empty_f = np.zeros(0, dtype=np.intp), np.zeros(0)
+    if n < 2 or k_samples == 0:
+        return empty_i, empty_i, empty_f, empty_f
+    if k_samples == 1:  # one instant: a zero-length segment
+        positions = np.concatenate([positions, positions])
+        times = np.concatenate([times, times])
+    seg_list, pair_list = [], []
+    for k in range(len(positions) - 1):
+        moved = float(np.linalg.norm(positions[k + 1] - positions[k], axis=1).max())
+        pairs = cKDTree(positions[k]).query_pairs(radius + 2.0 * moved + 1e-9,
+                                                  output_type='ndarray')
+        if len(pairs):
+            seg_list.append(np.full(len(pairs), k, dtype=np.intp))
+            pair_list.append(pairs)
+    if not pair_list:
+        return empty_i, empty_i, empty_f, empty_f
+    seg = np.concatenate(seg_list)
+    pairs = np.concatenate(pair_list).astype(np.intp)
+    i, j = pairs[:, 0], pairs[:, 1]
+    d0 = positions[seg, j] - positions[seg, i]
+    dd = positions[seg + 1, j] - positions[seg + 1, i] - d0
+    dd2 = np.einsum('ea,ea->e', dd, dd)
+    s = np.divide(-np.einsum('ea,ea->e', d0, dd), dd2, out=np.zeros_like(dd2), where=dd2 > 0)
+    s = np.clip(s, 0.0, 1.0)
+    dist = np.linalg.norm(d0 + s[:, None] * dd, axis=1)
+    when = times[seg] + s * (times[seg + 1] - times[seg])
+    key = i * n + j
+    order = np.lexsort((when, dist, key))           # per pair: closest, then earliest
+    key, i, j, dist, when = key[order], i[order], j[order], dist[order], when[order]
+    first = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    keep = first[dist[first] < radius]
+    return i[keep], j[keep], dist[keep], when[keep]

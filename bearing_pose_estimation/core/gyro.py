@@ -32,8 +32,10 @@ STAMP_TOLERANCE = 1e-9
 GAP_FACTOR = 1.5
 
 
-class GyroBuffer:
-    """Interval-average gyro samples of one agent over a sliding time window.
+class IntervalBuffer:
+    """Interval-average samples (vectors) of one agent over a sliding time window: sample k
+    holds over ``(t[k], t[k+1]]``. :class:`GyroBuffer` integrates rates into rotations,
+    :class:`core.odometry.OdometryBuffer` twists into displacements.
 
     Args:
         start: the time the first interval starts (the scenario's t = 0).
@@ -91,6 +93,22 @@ class GyroBuffer:
         return (self.start - STAMP_TOLERANCE <= min(t0, t1)
                 and max(t0, t1) <= self.end + STAMP_TOLERANCE)
 
+    def segments(self, t0: float, t1: float) -> list[tuple[NDArray[np.float64], float]]:
+        """The samples over ``[t0, t1]`` (``t0 <= t1``, covered) as ``(value, duration)``, in
+        time order, the first and last cut at ``t0`` and ``t1``."""
+        out = []
+        k = max(bisect.bisect_right(self._t, t0) - 1, 0)
+        while k < len(self._w) and self._t[k] < t1:
+            a, b = max(self._t[k], t0), min(self._t[k + 1], t1)
+            if b > a:
+                out.append((self._w[k], b - a))
+            k += 1
+        return out
+
+
+class GyroBuffer(IntervalBuffer):
+    """Interval-average gyro samples of one agent: exact rotation increments."""
+
     def increment(self, t0: float, t1: float) -> NDArray[np.float64]:
         """``R(t0)ᵀ R(t1)``: the body-frame rotation from ``t0`` to ``t1`` (either order).
 
@@ -107,12 +125,8 @@ class GyroBuffer:
         if cached is not None:
             return cached
         R = np.eye(3)
-        k = max(bisect.bisect_right(self._t, t0) - 1, 0)
-        while k < len(self._w) and self._t[k] < t1:
-            a, b = max(self._t[k], t0), min(self._t[k + 1], t1)
-            if b > a:
-                R = R @ so3.exp(self._w[k] * (b - a))
-            k += 1
+        for omega, duration in self.segments(t0, t1):
+            R = R @ so3.exp(omega * duration)
         if len(self._cache) > 64:
             self._cache.clear()
         self._cache[key] = R

@@ -97,6 +97,42 @@ def exp(phi: ArrayLike) -> Array:
     return out
 
 
+# Below this angle the Jacobians' coefficients use their Taylor series (no cancellation).
+_SERIES_ANGLE = 1e-2
+
+
+def jacobian_apply(phi: ArrayLike, v: ArrayLike) -> Array:
+    """``J(φ) v`` with ``J`` the left Jacobian of SO(3),
+    ``J = I + (1 - cos θ)/θ² [φ]x + (θ - sin θ)/θ³ [φ]x²``, over the last axis: the
+    translation of the SE(3) exponential of the twist ``(v, φ)``, i.e. the displacement of a
+    body moving with constant body velocity ``v/s`` and rate ``φ/s`` for ``s`` seconds."""
+    phi, v = np.asarray(phi, dtype=float), np.asarray(v, dtype=float)
+    theta2 = np.sum(phi * phi, axis=-1)
+    theta = np.sqrt(theta2)
+    small = theta < _SERIES_ANGLE
+    safe = np.where(small, 1.0, theta)
+    b = np.where(small, 0.5 - theta2 / 24.0 + theta2 ** 2 / 720.0,
+                 (1.0 - np.cos(safe)) / safe ** 2)
+    c = np.where(small, 1.0 / 6.0 - theta2 / 120.0 + theta2 ** 2 / 5040.0,
+                 (safe - np.sin(safe)) / safe ** 3)
+    pv = cross(phi, v)
+    return v + b[..., None] * pv + c[..., None] * cross(phi, pv)
+
+
+def jacobian_inv_apply(phi: ArrayLike, v: ArrayLike) -> Array:
+    """``J(φ)⁻¹ v`` (:func:`jacobian_apply`):
+    ``J⁻¹ = I - ½ [φ]x + (1/θ² - (1 + cos θ)/(2 θ sin θ)) [φ]x²``, for ``θ < π``."""
+    phi, v = np.asarray(phi, dtype=float), np.asarray(v, dtype=float)
+    theta2 = np.sum(phi * phi, axis=-1)
+    theta = np.sqrt(theta2)
+    small = theta < _SERIES_ANGLE
+    safe = np.where(small, 1.0, theta)
+    e = np.where(small, 1.0 / 12.0 + theta2 / 720.0 + theta2 ** 2 / 30240.0,
+                 1.0 / safe ** 2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
+    pv = cross(phi, v)
+    return v - 0.5 * pv + e[..., None] * cross(phi, pv)
+
+
 def _exp_one(phi: Array) -> Array:
     """:func:`exp` of one vector with scalar math: ~10x faster than the batched path, which
     matters in the per-agent node (many small rotations per step)."""

@@ -10,13 +10,21 @@ allows. Time alignment:
   gyro, ``b(t) = R(t)ᵀ R(t_b) b(t_b)``, so it pairs with ``R̂_i(t)``. (Pairing a 20 ms old
   bearing with the current R̂ leaves a permanent error of order ``|ω| · 20 ms``.)
 - What a neighbour sends (the method's channels, e.g. ``R̂_j b^j_ji`` and ``p̂_j``) is formed by
-  j at one instant (:meth:`base.Estimator.outbox`). A value like ``R̂_j b^j_ji`` is constant once
-  j has converged, so its transport delay costs nothing at steady state.
+  j at one instant (:meth:`base.Estimator.outbox`), its stamp ``t_s``. For static fleets such
+  a value is constant once j has converged, so its transport delay costs nothing at steady
+  state. A moving fleet's values change during the delay, so the step pairs them with this
+  agent's own bearing measured at ``t_s`` (interpolated between samples, rotated to the step
+  time with the gyro) and with ``p̂_i`` moved back to ``t_s`` by its own odometry
+  (:attr:`base.StepInputs.p_own`): exact at the true poses for any motion, and the corrections
+  are not delayed.
+- Odometry (when the method uses it and samples arrive): interval-average twists integrated
+  exactly (:class:`core.odometry.OdometryBuffer`) into the displacement over each step; while
+  odometry is live the steps wait for it as they wait for the gyro.
 - What this agent sends its listeners, :meth:`outbox`, is formed the same way at the state
   time.
 
 Leaders run the same class with ``leader=True``: their pose comes from :meth:`set_known_pose`
-and is propagated with the gyro between pose samples.
+and is propagated with the gyro (and odometry) between pose samples.
 """
 from __future__ import annotations
 
@@ -28,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.gyro import GyroBuffer
+from ..core.odometry import OdometryBuffer
 from .base import Channel, Edges, Estimator, Sensor, State, StepInputs
 
 if TYPE_CHECKING:
@@ -36,8 +45,11 @@ if TYPE_CHECKING:
 Array = NDArray[np.float64]
 # Keep this many bearing samples per target: a bearing newer than the gyro data must wait.
 _BEARING_HISTORY = 8
+# Keep this many values of each neighbour channel, to pair them at one instant.
+_NEIGHBOUR_HISTORY = 4
 # What the agent logic can feed a method today; others come with their sensors' models.
-SUPPORTED_SENSORS = frozenset({Sensor.GYRO, Sensor.BEARINGS, Sensor.KNOWN_POSE})
+SUPPORTED_SENSORS = frozenset({Sensor.GYRO, Sensor.BEARINGS, Sensor.KNOWN_POSE,
+                               Sensor.ODOMETRY})
 
 
 @dataclass
@@ -50,10 +62,35 @@ class NeighbourState:
     k: float
     values: dict[str, Array] = field(default_factory=dict)
     stamps: dict[str, float] = field(default_factory=dict)
+    # The last few values of each channel: j's channels travel in separate messages, and a
+    # moving fleet needs them from one instant (:meth:`at_one_instant`).
+    history: dict[str, deque[tuple[float, Array]]] = field(default_factory=dict)
 
     def clear(self) -> None:
         self.values.clear()
         self.stamps.clear()
+        self.history.clear()
+
+    def at_one_instant(self, channels: list[str],
+                       not_after: float) -> tuple[float, dict[str, Array]] | None:
+        """The newest stamp, not after ``not_after`` (j may run ahead of us), at which every
+        channel has a value, with those values; None if there is none (e.g. a sender that
+        publishes its channels at different instants)."""
+        first = self.history.get(channels[0])
+        if not first:
+            return None
+        for stamp, value in reversed(first):
+            if stamp > not_after + 1e-9:
+                continue
+            out = {channels[0]: value}
+            for name in channels[1:]:
+                match = [v for s, v in self.history.get(name, ()) if abs(s - stamp) < 1e-9]
+                if not match:
+                    break
+                out[name] = match[-1]
+            else:
+                return stamp, out
+        return None
 
 
 # Causes that are events of the time rules, not bad input (see AgentEstimator), with what
@@ -68,6 +105,7 @@ class Limits:
     used: no input can put a non-finite value into the estimate."""
 
     max_rate: float = 35.0          # |ω| above this [rad/s] is absurd (2000 deg/s: gyro range)
+    max_speed: float = 100.0        # an odometry speed above this [m/s] is absurd
     unit_tolerance: float = 1e-3    # a bearing with | ‖b‖ - 1 | above this is not a unit vector
     sensor_timeout: float = 0.5     # own bearings older than this [s] are not used
     neighbour_timeout: float = 0.5  # a neighbour silent for longer [s] is stale: not used
@@ -83,6 +121,7 @@ class StepInfo:
     t: float = 0.0
     edges_used: int = 0
     stale: tuple[str, ...] = ()     # neighbours not used for being silent too long
+    odometry: bool = False          # the step fed the odometry displacement forward
     # The method's per-agent diagnostics (e.g. 'innovation': σ_i for Boughellaba & Tayebi,
     # the torque driving Ω̃_i for Tran et al.), row 0 of what its step returned.
     diagnostics: dict[str, Array] = field(default_factory=dict)
@@ -153,6 +192,9 @@ class AgentEstimator:
         self.neighbours = [NeighbourState(n, int(i), float(k)) for n, i, k in neighbours]
         self._by_id = {nb.agent_id: nb for nb in self.neighbours}
         self.gyro = GyroBuffer(t0, gyro_horizon)
+        self.uses_odometry = estimator.uses(Sensor.ODOMETRY)
+        self.odometry = OdometryBuffer(t0, gyro_horizon)
+        self.odometry_missing_steps = 0   # steps run without odometry while it was expected
         self._bearings: dict[int, deque[tuple[float, Array]]] = {}
         self._known_pose: tuple[float, Array, Array] | None = None
         self.last = StepInfo(t=self.t0)
@@ -183,6 +225,7 @@ class AgentEstimator:
         n = np.ceil((stamp - self.origin) / self.h - 1e-9)
         self.t0, self.k = self.origin + n * self.h, 0
         self.gyro.reset(stamp)
+        self.odometry.reset(stamp)
         self._bearings.clear()
         if reset_estimate:
             self.x = self.estimator.initial_state(self.R0[None], self.p0[None])
@@ -213,6 +256,39 @@ class AgentEstimator:
             return 'gyro_gap'
         self.gyro.add(stamp, omega)
         return None
+
+    def add_odometry(self, stamp: float, v: Array, omega: Array,
+                     now: float | None = None) -> str | None:
+        """An interval-average odometry twist (body velocity ``v`` [m/s], rate ``omega``
+        [rad/s]; see :mod:`core.odometry`). Ignored (``unused``) by methods without odometry.
+        After a gap longer than ``max_gyro_gap`` the integration restarts at this sample
+        (``odometry_gap``); the steps over the gap run without it."""
+        lim = self.limits
+        v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
+        if not self.uses_odometry:
+            return 'unused'
+        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(omega)) and np.isfinite(stamp)):
+            return 'non_finite'
+        if float(np.linalg.norm(omega)) > lim.max_rate:
+            return 'absurd_rate'
+        if float(np.linalg.norm(v)) > lim.max_speed:
+            return 'absurd_speed'
+        if now is not None and stamp > now + lim.max_future:
+            return 'future_stamp'
+        end = self.odometry.end
+        if stamp <= end:
+            return 'out_of_order'
+        if stamp - end > lim.max_gyro_gap:
+            self.odometry.reset(stamp)
+            return 'odometry_gap'
+        self.odometry.add_twist(stamp, v, omega)
+        return None
+
+    def odometry_live(self) -> bool:
+        """Odometry samples keep up with the gyro (within ``sensor_timeout``): steps wait for
+        them and feed them forward."""
+        return (self.uses_odometry and bool(self.odometry._w)
+                and self.odometry.end >= self.gyro.end - self.limits.sensor_timeout)
 
     def add_bearings(self, stamp: float, ids: NDArray[np.integer],
                      bearings: Array) -> list[str]:
@@ -282,6 +358,8 @@ class AgentEstimator:
                 return 'out_of_order'
         nb.values.update(mine)
         nb.stamps.update(dict.fromkeys(mine, float(stamp)))
+        for name, v in mine.items():
+            nb.history.setdefault(name, deque(maxlen=_NEIGHBOUR_HISTORY)).append((float(stamp), v))
         return None
 
     def set_known_pose(self, stamp: float, R: Array, p: Array) -> str | None:
@@ -294,8 +372,11 @@ class AgentEstimator:
 
     # ------------------------------------------------------------------------------ stepping
     def steps_ready(self) -> int:
-        """How many steps the gyro data allows now."""
-        return max(0, int(np.floor((self.gyro.end - self.t) / self.h + 1e-9)))
+        """How many steps the gyro data (and live odometry) allows now."""
+        end = self.gyro.end
+        if self.odometry_live():
+            end = min(end, self.odometry.end)
+        return max(0, int(np.floor((end - self.t) / self.h + 1e-9)))
 
     def advance(self, max_steps: int | None = None) -> int:
         """Run every step the gyro data allows (at most ``max_steps``); return how many ran."""
@@ -306,18 +387,38 @@ class AgentEstimator:
             self._step()
         return n
 
-    def body_bearing(self, agent_id: int, t: float) -> Array | None:
-        """Own bearing to ``agent_id`` rotated to time ``t`` with the gyro, or None (none, or
-        older than ``sensor_timeout``)."""
+    def body_bearing(self, agent_id: int, t: float, at: float | None = None) -> Array | None:
+        """Own bearing to ``agent_id`` rotated to the body frame at ``t`` with the gyro, or
+        None (none, or older than ``sensor_timeout``): the newest sample the gyro can bridge
+        (static fleets: every sample sees the same world bearing), or, given ``at``, the
+        bearing measured at ``at`` (moving fleets): interpolated between the two samples around
+        it (rotated to t, then a normalised linear interpolation), the newest held after it."""
         hist = self._bearings.get(agent_id)
         if not hist:
             return None
+        if at is None:
+            for stamp, b in reversed(hist):
+                if t - stamp > self.limits.sensor_timeout:
+                    return None
+                if self.gyro.covers(stamp, t):
+                    return self.gyro.increment(t, stamp) @ b   # R(t)ᵀ R(t_b) b(t_b)
+            return None
+        later: tuple[float, Array] | None = None
         for stamp, b in reversed(hist):  # newest sample the gyro can bridge
             if t - stamp > self.limits.sensor_timeout:
                 return None
-            if self.gyro.covers(stamp, t):
-                return self.gyro.increment(t, stamp) @ b   # R(t)ᵀ R(t_b) b(t_b)
-        return None
+            if not self.gyro.covers(stamp, t):
+                continue
+            b_t = self.gyro.increment(t, stamp) @ b   # R(t)ᵀ R(t_b) b(t_b)
+            if stamp > at + 1e-9:
+                later = (stamp, b_t)
+                continue
+            if later is None or stamp >= at - 1e-9:
+                return b_t
+            w = (at - stamp) / (later[0] - stamp)
+            mixed = (1.0 - w) * b_t + w * later[1]
+            return mixed / np.linalg.norm(mixed)
+        return later[1] if later is not None else None
 
     def stale_neighbours(self, t: float) -> list[str]:
         """Neighbours missing a channel, or whose latest value of one is older than
@@ -326,40 +427,75 @@ class AgentEstimator:
         return [nb.name for nb in self.neighbours
                 if any(nb.stamps.get(c, -np.inf) < limit for c in self.channels)]
 
-    def step_inputs(self, t: float, delta_R: Array, stale: list[str]) -> StepInputs:
-        """What the step at ``t`` uses: the fresh neighbours to which an own bearing exists."""
-        used = []
+    def moved_back(self, t: float, t_s: float) -> Array | None:
+        """``p̂_i`` moved back from ``t`` to ``t_s <= t`` by the own odometry,
+        ``p̂_i(t) - R̂_i(t) R(t)ᵀ R(t_s) δ(t_s → t)`` (:attr:`base.StepInputs.p_own`); None
+        without odometry over that span."""
+        if not (self.odometry_live() and self.odometry.covers(t_s, t)
+                and self.gyro.covers(t_s, t)):
+            return None
+        delta = self.odometry.displacement(t_s, t)
+        return self.x.p_hat[0] - self.x.R_hat[0] @ (self.gyro.increment(t, t_s) @ delta)
+
+    def step_inputs(self, t: float, delta_R: Array, stale: list[str],
+                    displacement: Array | None = None) -> StepInputs:
+        """What the step at ``t`` uses: the fresh neighbours to which an own bearing exists,
+        each paired with the own bearing (and, with odometry, ``p̂_i``) at the stamp of what
+        it sent."""
+        used, p_own, values = [], [], []
+        moving = displacement is not None  # static fleets: what was sent does not change
+        names = list(self.channels)
         for nb in self.neighbours:
-            b = self.body_bearing(nb.agent_id, t)
-            if b is not None and nb.name not in stale:
+            if nb.name in stale:
+                continue
+            t_s, sent = t, nb.values
+            if moving:  # j's values of one instant, paired with our own at that instant
+                own = self._bearings.get(nb.agent_id)
+                newest = own[-1][0] if own else t   # our bearing at t_s must be here too
+                same = nb.at_one_instant(names, not_after=min(t, newest))
+                t_s, sent = same if same is not None else (max(nb.stamps.values()), sent)
+                t_s = min(t_s, t)
+            b = self.body_bearing(nb.agent_id, t, at=t_s if moving else None)
+            if b is not None:
                 used.append((nb, b))
-        received = {name: (np.array([nb.values[name] for nb, _ in used]) if used
+                values.append(sent)
+                back = self.moved_back(t, t_s) if t_s < t else None
+                p_own.append(self.x.p_hat[0] if back is None else back)
+        received = {name: (np.array([v[name] for v in values]) if used
                            else np.zeros((0,) + c.shape)) for name, c in self.channels.items()}
         return StepInputs(
             delta_R=delta_R,
             edges=Edges(agent=np.zeros(len(used), dtype=np.intp),
                         k=np.array([nb.k for nb, _ in used]), n_agents=1),
             bearings=np.array([b for _, b in used]) if used else np.zeros((0, 3)),
-            received=received)
+            received=received, displacement=displacement,
+            p_own=np.array(p_own) if used and moving else None)
 
     def _step(self) -> None:
         t = self.t
         est = self.estimator
         delta_R = self.gyro.increment(t, t + self.h)[None]
+        displacement = None
+        if self.odometry_live():
+            if self.odometry.covers(t, t + self.h):
+                displacement = self.odometry.displacement(t, t + self.h)[None]
+            else:
+                self.odometry_missing_steps += 1
         if self.leader:
             self._apply_known_pose(t)
-            self.x = est.propagate(self.x, delta_R)
-            self.last = StepInfo(t=t)
+            self.x = est.propagate(self.x, delta_R, displacement)
+            self.last = StepInfo(t=t, odometry=displacement is not None)
         else:
             stale = self.stale_neighbours(t)
-            inputs = self.step_inputs(t, delta_R, stale)
+            inputs = self.step_inputs(t, delta_R, stale, displacement)
             x, diagnostics = est.step(self.x, self.h, inputs)
             if x.is_finite():
                 self.x = x
             else:  # cannot happen with validated inputs; never let it reach the estimate
                 self.non_finite_steps += 1
-                self.x = est.propagate(self.x, delta_R)
+                self.x = est.propagate(self.x, delta_R, displacement)
             self.last = StepInfo(t=t, edges_used=len(inputs.edges), stale=tuple(stale),
+                                 odometry=displacement is not None,
                                  diagnostics={k: v[0] for k, v in diagnostics.items()})
         self.k += 1
 
@@ -368,22 +504,31 @@ class AgentEstimator:
             return
         stamp, R, p = self._known_pose
         if self.gyro.covers(stamp, t):
-            self.x = self.estimator.with_known_pose(
-                self.x, np.zeros(1, dtype=np.intp), (R @ self.gyro.increment(stamp, t))[None],
-                p[None])
+            R_t = R @ self.gyro.increment(stamp, t)
+            if self.odometry_live() and self.odometry.covers(stamp, t):   # a moving leader
+                p = (p + R @ self.odometry.displacement(stamp, t) if stamp <= t
+                     else p - R_t @ self.odometry.displacement(t, stamp))
+            self.x = self.estimator.with_known_pose(self.x, np.zeros(1, dtype=np.intp),
+                                                    R_t[None], p[None])
             self._known_pose = None
 
     # ------------------------------------------------------------------------------ outputs
     def own_bearings(self, t: float) -> tuple[list[int], Array]:
         """Ids of the agents this agent has a bearing to, and those bearings rotated to ``t``
-        ``(M, 3)``."""
+        ``(M, 3)`` (measured at t when the agent moves, :meth:`body_bearing`)."""
         ids, bearings = [], []
+        at = t if self.odometry_live() else None
         for agent_id in self._bearings:
-            b = self.body_bearing(agent_id, t)
+            b = self.body_bearing(agent_id, t, at=at)
             if b is not None:
                 ids.append(agent_id)
                 bearings.append(b)
         return ids, np.array(bearings).reshape(-1, 3)
+
+    def bearings_at(self, t: float) -> bool:
+        """A bearing measured at ``t`` (or later) has arrived from every agent this agent
+        sees: what it sends at ``t`` is then exact for a moving fleet."""
+        return all(hist[-1][0] >= t - 1e-9 for hist in self._bearings.values() if hist)
 
     def outbox(self) -> dict[str, object]:
         """What this agent sends its listeners, formed at the state time (the time-consistent

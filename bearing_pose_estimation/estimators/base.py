@@ -7,7 +7,8 @@ A method is a subclass of :class:`Estimator`, registered under the scenario's ``
   node's parameter names, each with a default, a help text and a range (:func:`gain`);
 - ``roles``: the special agents it needs (:class:`Roles`: two leaders today; later one anchor,
   or none);
-- ``sensors``: what it consumes (:class:`Sensor`);
+- ``sensors``: what it consumes (:class:`Sensor`), and ``optional_sensors`` what it uses when
+  available (odometry for the feed-forward of the leader-follower methods);
 - ``sends``: what each agent sends the agents that listen to it (:class:`Channel`: per agent
   or per sensing edge, with its frame);
 - ``frame``: how its estimates are expressed (:class:`EstimateFrame`), so that errors are
@@ -96,10 +97,12 @@ class Channel:
 
 
 # ----------------------------------------------------------------------------- gains
-def gain(default: float, help: str, minimum: float = 0.0) -> Any:
+def gain(default: float, help: str, minimum: float = 0.0, zero_allowed: bool = False) -> Any:
     """A field of a method's gains dataclass: ``default``, a one-line ``help`` (shown by the
-    node's parameter descriptions) and the exclusive lower bound ``minimum`` (gains are > 0)."""
-    return field(default=default, metadata={'help': help, 'minimum': minimum})
+    node's parameter descriptions) and the exclusive lower bound ``minimum`` (gains are > 0;
+    ``zero_allowed``: >= 0, for a term that 0 switches off)."""
+    return field(default=default, metadata={'help': help, 'minimum': minimum,
+                                            'zero_allowed': zero_allowed})
 
 
 def gain_fields(gains_cls: type) -> tuple[dataclasses.Field, ...]:
@@ -129,9 +132,12 @@ def parse_gains(gains_cls: type, values: Mapping[str, Any], where: str = 'gains'
         x = float(value)
         if not math.isfinite(x):
             raise ScenarioError(f'{here}: {value!r} is not finite. Fix: use a finite number')
-        if x <= f.metadata['minimum']:
-            raise ScenarioError(f'{here}: must be > {f.metadata["minimum"]:g}, got {x:g}. Fix: '
-                                'use a positive value')
+        low = f.metadata['minimum']
+        if x < low or (x == low and not f.metadata.get('zero_allowed', False)):
+            relation = '>=' if f.metadata.get('zero_allowed', False) else '>'
+            raise ScenarioError(f'{here}: must be {relation} {low:g}, got {x:g}. Fix: '
+                                f'use a {"non-negative" if relation == ">=" else "positive"} '
+                                'value')
         out[f.name] = x
     return gains_cls(**out)
 
@@ -219,12 +225,28 @@ class StepInputs:
 
     ``received[c]`` holds, for every channel ``c`` the method's ``sends`` declares, what the
     neighbour j of edge ``e`` sent agent i: ``(E, ...)`` (per-agent channels repeated on every
-    edge from j)."""
+    edge from j).
+
+    Moving fleets add:
+
+    - ``displacement``: ``(N, 3)`` odometry displacement over the step, ``R(t)ᵀ (p(t+h) -
+      p(t))`` (body frame at t) [m], integrated from the samples, never velocity × h; None
+      without odometry.
+    - ``p_own``: ``(E, 3)`` the position estimate of each edge's owner to pair with what it
+      received. Over DDS j's values were formed at its stamp ``t_s < t``, and in a moving fleet
+      they change meanwhile: agent i pairs them with its own bearing measured at ``t_s``
+      (``bearings``, still rotated to the body frame at t) and with ``p̂_i`` moved back to
+      ``t_s`` by its own odometry, ``p̂_i(t) - R̂_i(t) R_i(t)ᵀ R_i(t_s) δ_i(t_s → t)``, so that
+      the pairing is exact at the true poses whatever the motion, while the corrections
+      themselves are not delayed. None: no transport delay (the batch simulator), ``p̂_i``.
+    """
 
     delta_R: Array                 # (N, 3, 3) gyro increments R(t)ᵀ R(t + h) (body)
     edges: Edges
     bearings: Array                # (E, 3) own unit bearings b^i_ij (body frame of i)
     received: Mapping[str, Array]
+    displacement: Array | None = None   # (N, 3) odometry δ over the step [m]
+    p_own: Array | None = None          # (E, 3) the owner's p̂_i at the received stamp [m]
 
     def agent(self, i: int) -> StepInputs:
         """The inputs of agent ``i`` alone (``n_agents = 1``): what its node would pass."""
@@ -232,7 +254,10 @@ class StepInputs:
         edges = Edges(agent=np.zeros(sel.size, dtype=np.intp), k=self.edges.k[sel], n_agents=1)
         return StepInputs(delta_R=self.delta_R[i:i + 1], edges=edges,
                           bearings=self.bearings[sel],
-                          received={c: v[sel] for c, v in self.received.items()})
+                          received={c: v[sel] for c, v in self.received.items()},
+                          displacement=(None if self.displacement is None
+                                        else self.displacement[i:i + 1]),
+                          p_own=None if self.p_own is None else self.p_own[sel])
 
 
 # ----------------------------------------------------------------------------- findings
@@ -295,6 +320,7 @@ class Estimator(ABC, Generic[G, S]):
     Gains: ClassVar[type]                  # frozen dataclass of `gain` fields
     roles: ClassVar[Roles]
     sensors: ClassVar[frozenset[Sensor]]
+    optional_sensors: ClassVar[frozenset[Sensor]] = frozenset()  # used when available
     sends: ClassVar[tuple[Channel, ...]]
     frame: ClassVar[EstimateFrame]
     edge_gains: ClassVar[bool] = True      # per-edge k_ij (`gains.k_ij`, a neighbour's `k`)
@@ -302,6 +328,11 @@ class Estimator(ABC, Generic[G, S]):
 
     def __init__(self, gains: G) -> None:
         self.gains = gains
+
+    @classmethod
+    def uses(cls, sensor: Sensor) -> bool:
+        """The method consumes ``sensor``, always or when available."""
+        return sensor in cls.sensors or sensor in cls.optional_sensors
 
     # --- state
     @abstractmethod
@@ -316,9 +347,12 @@ class Estimator(ABC, Generic[G, S]):
         x.set_rows(rows, pinned)
         return x
 
-    def propagate(self, x: S, delta_R: Array) -> S:
-        """``x`` carried over a step by the gyro alone (no correction): ``R̂ ← R̂ ΔR``."""
+    def propagate(self, x: S, delta_R: Array, displacement: Array | None = None) -> S:
+        """``x`` carried over a step by the gyro (and odometry) alone, no correction:
+        ``R̂ ← R̂ ΔR``, ``p̂ ← p̂ + R̂ δ``."""
         out = x.rows(slice(None))
+        if displacement is not None:
+            out.p_hat = x.p_hat + np.einsum('nab,nb->na', x.R_hat, displacement)
         out.R_hat = so3.reorthonormalize(so3.matmul(x.R_hat, delta_R))
         return out
 
@@ -353,6 +387,15 @@ class Estimator(ABC, Generic[G, S]):
     def conditioning_problem(self, eig: Array) -> str | None:
         """Why the spectrum ``eig`` (ascending) breaks the method's hypothesis, or None."""
         return None
+
+    def check_motion(self, scenario: Scenario, times: Array,
+                     positions: Array) -> list[Finding]:
+        """The method's assumptions that the motion of a moving ``scenario`` breaks, from its
+        sampled truth: ``times`` ``(K,)`` [s] from 0 to its duration and ``positions``
+        ``(K, N, 3)`` [m] (agents in scenario order; ``positions[0]`` is where :meth:`check`
+        looked). Each finding names the time; what :meth:`check` already reports at t = 0 is
+        not repeated. Default: none (nothing of the method depends on the geometry)."""
+        return []
 
 
 def route(outbox: Mapping[str, Array], sends: Sequence[Channel],

@@ -17,13 +17,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..core import graph, so3
 from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, G,
                    Index, Roles, S, Sensor, StepInputs)
 
 if TYPE_CHECKING:
-    from ..scenario.model import Scenario
+    from ..scenario.model import Agent, Scenario
 
 P_HAT = Channel('p_hat', per='agent', frame='world', doc='p̂_j, the position estimate [m]')
 WORLD_BEARING = Channel('world_bearing', per='edge', frame='world', unit=True,
@@ -35,13 +36,28 @@ COLLINEAR_ERROR_RAD = 1e-6
 COLLINEAR_WARN_DEG = 5.0
 # Eigenvalues closer than this (relative to the largest) count as repeated.
 EIGEN_GAP_REL = 1e-6
+# check_motion works on (samples × followers) blocks of about this many bearing sets.
+MOTION_BLOCK = 200_000
+# The local matrix depends on the bearings only: along the motion its spectrum is evaluated at
+# the samples where one of the follower's bearings has turned by this much [deg] since the
+# last evaluation (at most every sample; a formation that keeps its shape costs nothing).
+SPECTRUM_STEP_DEG = 0.5
 
 
-def bearing_pull(p_hat: Array, edges: Edges, y: Array, p_hat_nbr: Array) -> Array:
+def bearing_pull(p_own: Array, edges: Edges, y: Array, p_hat_nbr: Array) -> Array:
     """``Σ_j P_{y_ij} (p̂_i - p̂_j)`` per agent, ``(N, 3)``, with ``P_y e = e - y (y·e)/‖y‖²``:
-    the position correction of both observers (``y_ij = R̂_i b^i_ij``, ``(E, 3)``)."""
-    e = np.take(p_hat, edges.agent, axis=0) - p_hat_nbr
+    the position correction of both observers (``y_ij = R̂_i b^i_ij``, ``(E, 3)``; ``p_own``
+    ``(E, 3)``: the owner's ``p̂_i`` paired with ``p̂_j``, :attr:`StepInputs.p_own`)."""
+    e = p_own - p_hat_nbr
     return edges.sum_by_agent(e - y * (so3.dot(y, e) / so3.dot(y, y))[:, None])
+
+
+def after_start(flags: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """``flags`` ``(K, ...)`` along the samples without the stretch that holds from sample 0
+    (what the check at t = 0 reports): a later onset only."""
+    cleared = np.where(flags.all(axis=0), flags.shape[0], np.argmin(flags, axis=0))
+    k = np.arange(flags.shape[0]).reshape((-1,) + (1,) * (flags.ndim - 1))
+    return flags & (k >= cleared)
 
 
 def repeated(eig: Array) -> bool:
@@ -56,6 +72,7 @@ class BearingLeaderEstimator(Estimator[G, S]):
     roles: ClassVar[Roles] = Roles(leaders=2)
     sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.BEARINGS,
                                                      Sensor.KNOWN_POSE})
+    optional_sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.ODOMETRY})
     sends: ClassVar[tuple[Channel, ...]] = (P_HAT, WORLD_BEARING)
     frame: ClassVar[EstimateFrame] = EstimateFrame.WORLD
     conditioning_label: ClassVar[str]      # the local matrix, e.g. 'M_i = Σ_j k_ij b_ij b_ijᵀ'
@@ -134,6 +151,116 @@ class BearingLeaderEstimator(Estimator[G, S]):
                 add(Finding('warning', a.name, 'neighbours', problem,
                             self.conditioning_fix(eig, a.neighbours[0].name, len(idx))))
         return report
+
+    # ------------------------------------------------------------------ along the motion
+    def check_motion(self, scenario: Scenario, times: Array,
+                     positions: Array) -> list[Finding]:
+        """Assumption 2d's geometry at every sample of a moving fleet, and the lemma's
+        spectrum. Per follower, at most one finding for its bearings becoming collinear (error)
+        or nearly collinear (warning; the thresholds of :meth:`check`), with the first time
+        and the narrowest widest angle, and one for its local matrix's spectrum
+        (:meth:`conditioning_problem`, evaluated every :data:`SPECTRUM_STEP_DEG` of bearing
+        turn), with the first time and the worst sample (:meth:`conditioning_margin`). A
+        condition that holds at t = 0 is :meth:`check`'s until it first clears; only a later
+        onset is reported. Samples where a neighbour is collocated (a collision, reported by
+        ``check_scenario``) are skipped."""
+        order = scenario.index
+        by_size: dict[int, list[Agent]] = {}
+        for a in scenario.followers:
+            if len(a.neighbours) >= 2:
+                by_size.setdefault(len(a.neighbours), []).append(a)
+        found: list[tuple[int, int, Finding]] = []   # (agent index, kind, finding)
+        n_samples = len(times)
+        block = max(1, MOTION_BLOCK // max(n_samples, 1))
+        for group in by_size.values():
+            for start in range(0, len(group), block):
+                part = group[start:start + block]
+                own = np.array([order[a.name] for a in part], dtype=np.intp)
+                nbr = np.array([[order[n.name] for n in a.neighbours] for a in part],
+                               dtype=np.intp)
+                d = positions[:, nbr, :] - positions[:, own, None, :]     # (K, F, M, 3)
+                dist = np.linalg.norm(d, axis=-1)
+                valid = np.all(dist >= graph.COLLOCATED_M, axis=-1)        # (K, F)
+                b = d / np.where(valid[..., None], dist, 1.0)[..., None]
+                widest = graph.widest_angles(b)                           # (K, F)
+                # Evaluate the spectrum at each SPECTRUM_STEP_DEG of cumulative bearing turn
+                # (chords: the angles for small steps) and where a valid stretch starts.
+                turned = np.zeros(valid.shape)
+                turned[1:] = np.cumsum(np.linalg.norm(np.diff(b, axis=0), axis=-1).max(axis=-1),
+                                       axis=0)
+                bucket = np.floor(turned / np.radians(SPECTRUM_STEP_DEG))
+                spectrum_at = np.ones(valid.shape, dtype=bool)
+                spectrum_at[1:] = (bucket[1:] != bucket[:-1]) | ~valid[:-1]
+                spectrum_at &= valid
+                for f, a in enumerate(part):
+                    finding = self._collinear_along(a, times, widest[:, f], valid[:, f])
+                    if finding is not None:
+                        found.append((order[a.name], 0, finding))
+                    finding = self._conditioning_along(a, times, b[:, f], spectrum_at[:, f])
+                    if finding is not None:
+                        found.append((order[a.name], 1, finding))
+        return [f for _, _, f in sorted(found, key=lambda x: x[:2])]
+
+    def _collinear_along(self, a: Agent, times: Array, widest: Array,
+                         valid: NDArray[np.bool_]) -> Finding | None:
+        """The collinearity finding of follower ``a`` from its widest angle ``(K,)``."""
+        deg = np.degrees(widest)
+        collinear = after_start(valid & (widest < COLLINEAR_ERROR_RAD))
+        nearly = after_start(valid & (deg < COLLINEAR_WARN_DEG))
+        if not nearly.any():
+            return None
+        nbrs = ', '.join(n.name for n in a.neighbours)
+        if collinear.any():
+            k = int(np.argmax(collinear))
+            return Finding('error', a.name, 'velocity', f'at t = {times[k]:.2f} s its bearings '
+                           f'to its neighbours become collinear (widest angle {deg[k]:.2g} deg),'
+                           ' so its position is unobservable then (Assumption 2d)',
+                           f'change the velocities of {a.name} or of its neighbours ({nbrs}), '
+                           'or add a neighbour off the line through the current ones')
+        k = int(np.argmax(nearly))
+        when = np.flatnonzero(nearly)
+        w = int(when[np.argmin(widest[when])])
+        worst = (f'widest angle {deg[k]:.2f} deg' if w == k else
+                 f'widest angle {deg[k]:.2f} deg, down to {deg[w]:.2f} deg at '
+                 f't = {times[w]:.2f} s')
+        return Finding('warning', a.name, 'velocity', f'at t = {times[k]:.2f} s its bearings '
+                       f'become nearly collinear ({worst}): slow, noise-sensitive position '
+                       'estimate', f'change the velocities of {a.name} or of its neighbours '
+                       f'({nbrs}), or add a neighbour in another direction')
+
+    def _conditioning_along(self, a: Agent, times: Array, b: Array,
+                            at: NDArray[np.bool_]) -> Finding | None:
+        """The spectrum finding of follower ``a`` from its bearings ``(K, M, 3)`` at the
+        samples ``at`` ``(K,)``."""
+        k_ij = np.array([n.k for n in a.neighbours])
+        samples = np.flatnonzero(at)
+        if samples.size == 0:
+            return None
+        mats = []
+        for k in samples:
+            matrix = self.conditioning(b[k], k_ij)
+            assert matrix is not None  # both methods have one
+            mats.append(matrix)
+        eig = np.linalg.eigvalsh(np.stack(mats)).astype(np.float64)
+        problem = [self.conditioning_problem(e) for e in eig]
+        bad = after_start(np.array([p is not None for p in problem]))
+        if not bad.any():
+            return None
+        first = int(np.argmax(bad))
+        when = np.flatnonzero(bad)
+        w = int(when[np.argmin([self.conditioning_margin(eig[j]) for j in when])])
+        worst = '' if w == first else f' (the worst at t = {times[samples[w]]:.2f} s)'
+        return Finding('warning', a.name, 'velocity', f'at t = {times[samples[first]]:.2f} s'
+                       f'{worst} {problem[w]}',
+                       self.conditioning_fix(eig[w], a.neighbours[0].name, len(a.neighbours))
+                       + f', or change the velocities of {a.name} or of its neighbours')
+
+    def conditioning_margin(self, eig: Array) -> float:
+        """How far the spectrum ``eig`` (ascending) is from what :meth:`conditioning_problem`
+        objects to, relative to the largest eigenvalue (smaller: worse); ranks the samples of
+        a moving fleet. Here the smallest gap between eigenvalues: both lemmas need distinct
+        ones."""
+        return float(np.min(np.diff(eig)) / max(eig[-1], 1e-300))
 
     def conditioning_fix(self, eig: Array, first_neighbour: str, n_neighbours: int) -> str:
         """How to mend the spectrum ``eig`` that :meth:`conditioning_problem` objects to."""

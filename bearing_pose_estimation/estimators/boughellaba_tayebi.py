@@ -35,6 +35,27 @@ exactly ``R̃⁺ = R̃ exp(h k_R [σ]x)`` (Lie-Euler of the error dynamics) and 
 (24): the gyro cancels out of the error dynamics and the true pose is an exact fixed point.
 The scheme is first order in ``h`` for the transient (``test_boughellaba_tayebi.py`` checks it
 against a tight-tolerance solution of (3) and (23)).
+
+Moving agents (an extension: the paper's positions are static). Agent i's odometry gives its
+body velocity ``v_i`` (``dp_i/dt = R_i v_i``), fed forward with the gain ``k_v`` (1: on, the
+default; 0: off, the paper's observer)::
+
+    dp̂_i/dt = k_v R̂_i v_i - k_R [σ_i]x p̂_i - k_p Σ_j P_{R̂_i b^i_ij} (p̂_i - p̂_j)      (23')
+
+With ``k_v = 1`` the velocity cancels out of the error: ``d(R̃_i p̂_i)/dt = R̃_i R̂_i v_i +
+(the paper's terms) = R_i v_i + ...``, so ``p̃_i = p_i - R̃_i p̂_i`` obeys the paper's (24)
+exactly and the true trajectory stays an exact solution. Without it, ``ṗ_i = R_i v_i`` drives
+``p̃_i`` and the position estimate lags (a floor of order ``|v| / k_p``). The bearings now
+change with time; the analysis needs them to stay non-collinear along the motion
+(``bearing-pose check`` samples the trajectory).
+
+Discretised with the odometry displacement over the step, ``δ_i = R_i(t)ᵀ (p_i(t+h) -
+p_i(t))`` (integrated from the odometry samples, not ``v_i h``)::
+
+    p̂_i ← Q (p̂_i + k_v R̂_i δ_i - h k_p Σ_j P_{R̂_i b^i_ij} (p̂_i - p̂_j))
+
+With ``p⁺ = p + R δ`` and ``R̃⁺ = R̃ Qᵀ``: ``p̃⁺ = p + R δ - R̃ (p̂ + R̂ δ - h k_p Σ) =
+p̃ + h k_p R̃ Σ``, the static recursion exactly, whatever the motion over the step.
 """
 from __future__ import annotations
 
@@ -54,6 +75,8 @@ class CascadeGains:
 
     k_R: float = gain(1.0, 'attitude gain k_R of (3)')
     k_p: float = gain(1.0, 'position gain k_p of (23)')
+    k_v: float = gain(1.0, 'odometry feed-forward of moving agents (1: on, 0: off)',
+                      zero_allowed=True)
 
 
 def innovation(R_hat: Array, edges: Edges, b_body: Array, d_world: Array) -> tuple[Array, Array]:
@@ -77,7 +100,8 @@ def innovation(R_hat: Array, edges: Edges, b_body: Array, d_world: Array) -> tup
 
 def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Edges,
                  b_body: Array, d_world: Array, p_hat_nbr: Array, gains: CascadeGains,
-                 reorthonormalize: bool = True) -> tuple[Array, Array, Array]:
+                 reorthonormalize: bool = True, displacement: Array | None = None,
+                 p_own: Array | None = None) -> tuple[Array, Array, Array]:
     """Advance the observers of all agents by one step ``h`` (see the module docstring).
 
     Args:
@@ -93,17 +117,26 @@ def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Ed
         reorthonormalize: pull R̂ back onto SO(3) after the step. ``Q`` and ``ΔR`` are
             rotations to rounding error, so a caller stepping many agents may do it every few
             steps only.
+        displacement: ``(N, 3)`` odometry displacements ``δ_i`` over the step (body frame
+            at t) [m], fed forward with ``k_v``; None: none (static agents).
+        p_own: ``(E, 3)`` the owner's ``p̂_i`` to pair with ``p̂_j`` (late messages,
+            :attr:`StepInputs.p_own`); None: ``p_hat``.
 
     Returns:
         ``(R̂, p̂)`` at ``t + h`` and the innovation ``σ`` used (world frame).
     """
     sigma, y = innovation(R_hat, edges, b_body, d_world)
-    pull = bearing_pull(p_hat, edges, y, p_hat_nbr)
+    if p_own is None:
+        p_own = np.take(p_hat, edges.agent, axis=0)
+    pull = bearing_pull(p_own, edges, y, p_hat_nbr)
     Q = so3.exp(-h * gains.k_R * sigma)
+    p_pred = p_hat - h * gains.k_p * pull
+    if displacement is not None and gains.k_v != 0.0:
+        p_pred = p_pred + gains.k_v * np.einsum('nab,nb->na', R_hat, displacement)
     R_next = so3.matmul(Q, R_hat, delta_R)
     if reorthonormalize:
         R_next = so3.reorthonormalize(R_next)
-    p_next = np.einsum('nab,nb->na', Q, p_hat - h * gains.k_p * pull)
+    p_next = np.einsum('nab,nb->na', Q, p_pred)
     return R_next, p_next, sigma
 
 
@@ -120,9 +153,10 @@ class BoughellabaTayebi(BearingLeaderEstimator[CascadeGains, State]):
     def step(self, x: State, h: float, inputs: StepInputs,
              reorthonormalize: bool = True) -> tuple[State, dict[str, Array]]:
         d_world, p_nbr = self.neighbour_terms(inputs)
-        R_hat, p_hat, sigma = cascade_step(x.R_hat, x.p_hat, inputs.delta_R, h, inputs.edges,
-                                           inputs.bearings, d_world, p_nbr, self.gains,
-                                           reorthonormalize)
+        R_hat, p_hat, sigma = cascade_step(
+            x.R_hat, x.p_hat, inputs.delta_R, h, inputs.edges, inputs.bearings, d_world, p_nbr,
+            self.gains, reorthonormalize, displacement=inputs.displacement,
+            p_own=inputs.p_own)
         return State(R_hat=R_hat, p_hat=p_hat), {'innovation': sigma}
 
     def conditioning(self, bearings: Array, k: Array) -> Array:

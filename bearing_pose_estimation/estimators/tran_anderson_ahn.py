@@ -27,6 +27,25 @@ Why ``exp(-h Ω̃) ΔR`` in that order: with the truth propagated by the same ``
 ``R̃ = R R̂ᵀ`` then obeys exactly ``R̃⁺ = R̃ exp(h [R̂ Ω̃]x)``, the Lie-Euler step of
 ``dR̃/dt = R̃ [R̂ Ω̃]x``: the gyro cancels out of the error dynamics and the truth (with
 ``Ω̃ = 0``) is an exact fixed point.
+
+Moving agents (an extension: the paper's positions are static). With the body velocity
+``v_i`` from odometry (``dp_i/dt = R_i v_i``) fed forward with the gain ``k_v`` (1: on, the
+default; 0: off)::
+
+    dp̂_i/dt = k_v R̂_i v_i - k_p Σ_j P_{y_ij} (p̂_i - p̂_j)
+
+Here the error is ``p̃_i = p_i - p̂_i`` (no ``R̃`` in it), so with ``k_v = 1``
+``dp̃_i/dt = (R_i - R̂_i) v_i + k_p Σ_j P_{y_ij} (p̂_i - p̂_j)``: the velocity does not cancel
+exactly, but its term ``(I - R̂_i R_iᵀ) ṗ_i = (I - R̃_iᵀ) ṗ_i`` vanishes as fast as the
+attitude error, which converges on its own (the attitude observer does not depend on
+positions): the cascade keeps the paper's position dynamics in the limit, and the true
+trajectory (``R̂ = R``, ``p̂ = p``) is an exact solution. Without it, ``ṗ_i`` drives ``p̃_i``
+and the estimate lags (a floor of order ``|v| / k_p``). Discretised with the odometry
+displacement over the step, ``δ_i = R_i(t)ᵀ (p_i(t+h) - p_i(t))``, not ``v_i h``::
+
+    p̂_i ← p̂_i + k_v R̂_i δ_i - h k_p Σ_j P_{y_ij} (p̂_i - p̂_j)
+
+so that at ``R̂ = R`` the prediction moves ``p̂`` exactly as ``p`` moves, ``p⁺ = p + R δ``.
 """
 from __future__ import annotations
 
@@ -49,6 +68,8 @@ class TranGains:
     k_omega: float = gain(2.0, 'damping k_omega of the gyro correction')
     k_p: float = gain(1.0, 'position gain k_p')
     k_c: float = gain(1.0, 'gain k_c of the third direction of two-neighbour followers')
+    k_v: float = gain(1.0, 'odometry feed-forward of moving agents (1: on, 0: off)',
+                      zero_allowed=True)
 
 
 @dataclass
@@ -85,12 +106,14 @@ def _unit(v: Array) -> Array:
 
 def tran_step(R_hat: Array, Omega_tilde: Array, p_hat: Array, delta_R: Array, h: float,
               edges: Edges, pairs: TwoNeighbourPairs, b_body: Array, d_world: Array,
-              p_hat_nbr: Array, gains: TranGains, reorthonormalize: bool = True
+              p_hat_nbr: Array, gains: TranGains, reorthonormalize: bool = True,
+              displacement: Array | None = None, p_own: Array | None = None
               ) -> tuple[Array, Array, Array, Array]:
     """Advance the Tran-Anderson-Ahn observers of all agents by one step ``h``.
 
-    Arguments as in :func:`.boughellaba_tayebi.cascade_step`, plus ``Omega_tilde`` ``(N, 3)``
-    and the two-neighbour ``pairs`` (:meth:`TwoNeighbourPairs.of`).
+    Arguments as in :func:`.boughellaba_tayebi.cascade_step` (``displacement`` and ``p_own``
+    too), plus ``Omega_tilde`` ``(N, 3)`` and the two-neighbour ``pairs``
+    (:meth:`TwoNeighbourPairs.of`).
 
     Returns:
         ``(R̂, Ω̃, p̂)`` at ``t + h`` and the torque driving Ω̃ at t (body frame).
@@ -104,13 +127,17 @@ def tran_step(R_hat: Array, Omega_tilde: Array, p_hat: Array, delta_R: Array, h:
         c_world = _unit(so3.cross(d_world[pairs.first], d_world[pairs.second]))
         c_est = np.einsum('nba,nb->na', np.take(R_hat, pairs.agent, axis=0), c_world)
         torque[pairs.agent] += gains.k_c * so3.cross(c_est, c_body)
-    pull = bearing_pull(p_hat, edges, np.einsum('eab,eb->ea', R_i, b_body), p_hat_nbr)
+    if p_own is None:
+        p_own = np.take(p_hat, edges.agent, axis=0)
+    pull = bearing_pull(p_own, edges, np.einsum('eab,eb->ea', R_i, b_body), p_hat_nbr)
+    p_next = p_hat - h * gains.k_p * pull
+    if displacement is not None and gains.k_v != 0.0:
+        p_next = p_next + gains.k_v * np.einsum('nab,nb->na', R_hat, displacement)
 
     R_next = so3.matmul(R_hat, so3.exp(-h * Omega_tilde), delta_R)
     if reorthonormalize:
         R_next = so3.reorthonormalize(R_next)
-    return (R_next, Omega_tilde + h * (torque - gains.k_omega * Omega_tilde),
-            p_hat - h * gains.k_p * pull, torque)
+    return (R_next, Omega_tilde + h * (torque - gains.k_omega * Omega_tilde), p_next, torque)
 
 
 class TranAndersonAhn(BearingLeaderEstimator[TranGains, TranState]):
@@ -140,7 +167,8 @@ class TranAndersonAhn(BearingLeaderEstimator[TranGains, TranState]):
         R_hat, Omega, p_hat, torque = tran_step(
             x.R_hat, x.Omega_tilde, x.p_hat, inputs.delta_R, h, inputs.edges,
             self.pairs(inputs.edges), inputs.bearings, d_world, p_nbr, self.gains,
-            reorthonormalize)
+            reorthonormalize, displacement=inputs.displacement,
+            p_own=inputs.p_own)
         return TranState(R_hat=R_hat, p_hat=p_hat, Omega_tilde=Omega), {'innovation': torque}
 
     def conditioning(self, bearings: Array, k: Array) -> Array:

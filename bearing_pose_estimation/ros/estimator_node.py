@@ -5,7 +5,8 @@ A thin adapter: it decodes messages (``msg_defs``), feeds
 :class:`estimators.agent.AgentEstimator`, runs its fixed steps ``h = 1/frequency`` as soon as
 the gyro data covers them (checked on every gyro sample and on a timer at ``frequency``) and
 publishes. Subscribes (relative names, remappable): ``imu`` (sensor_msgs/Imu), ``bearings``
-(sensor_msgs/PointCloud2), ``known_pose`` (leaders), and, for each neighbour j, the topics of
+(sensor_msgs/PointCloud2), ``known_pose`` (leaders), ``odom`` (nav_msgs/Odometry, for methods
+that use odometry: the feed-forward of moving agents), and, for each neighbour j, the topics of
 the channels the method sends (``msg_defs.CHANNELS``; both leader-follower methods:
 ``/<j>/estimate`` and ``/<j>/world_bearings``). Publishes ``estimate``
 (geometry_msgs/PoseStamped in ``world``) and its other channels (``world_bearings``: what its
@@ -25,7 +26,8 @@ scenario's value, or 100 Hz / 50 Hz / the method's default gains in explicit mod
 another method is an error.
 ``start_time`` [s] (the scenario's t = 0 on the node's clock; negative: the first gyro stamp);
 the input limits ``sensor_timeout``, ``neighbour_timeout``, ``max_rate``; the expected frames
-``imu_frame``, ``bearings_frame`` (empty: accept any); ``diagnostics_period`` [s]; and the fault
+``imu_frame``, ``bearings_frame``, ``odom_child_frame`` (empty: accept any);
+``diagnostics_period`` [s]; and the fault
 injection for tests and studies: ``inject_drop_rate`` (probability of dropping each neighbour
 message), ``inject_delay`` [s] (extra delay of each neighbour message), ``inject_seed``.
 Integers are accepted for numbers; a wrong type or range stops the node with a one-line error,
@@ -51,7 +53,7 @@ from .. import msg_defs as wire
 from ..core import so3
 from ..core.errors import ScenarioError
 from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits, estimator_for
-from ..estimators.base import Estimator, format_gains, gain_fields
+from ..estimators.base import Estimator, Sensor, format_gains, gain_fields
 from ..scenario.parse import load_scenario
 from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
 
@@ -114,6 +116,9 @@ class EstimatorNode(Node):
                            'expected Imu frame_id; empty: any')
         self.bearings_frame = p('bearings_frame', wire.body_frame(self.agent),
                                 'expected bearings frame_id; empty: any')
+        self.odom_child_frame = p('odom_child_frame', wire.body_frame(self.agent),
+                                  'expected Odometry child_frame_id (the twist\'s frame); '
+                                  'empty: any')
         diagnostics_period = p('diagnostics_period', 1.0, '/diagnostics period [s]',
                                0.01, 3600.0)
         self.drop_rate = p('inject_drop_rate', 0.0, 'fault injection: probability of dropping '
@@ -150,11 +155,13 @@ class EstimatorNode(Node):
                 self.get_logger().warning(f'{", ".join(ignored)} ignored: they are for running '
                                           'without a scenario_file, which is set')
             template = estimator_for(scenario, self.agent, limits)
+            self.expect_odometry = scenario.simulates('odometry')
             publish_rate = publish_rate or scenario.publish_rate
             method = scenario.method
             where, fix = "the scenario's method", 'the scenario file sets the method'
         else:
             method = method or estimators.DEFAULT_METHOD
+            self.expect_odometry = False   # used whenever it arrives
             template = self._explicit_estimator(
                 explicit, limits, estimators.build(method, estimators.get(method).Gains()))
             publish_rate = publish_rate or 50.0
@@ -174,6 +181,7 @@ class EstimatorNode(Node):
         self.rejected: Counter[str] = Counter()
         self.events: Counter[str] = Counter()
         self._published_k = -1
+        self._deferred = -1   # the step whose publication waits for its bearings
         self._wall_first_step: float | None = None
         self._delayed: list[tuple[float, int, Callable[[], None]]] = []  # (release, seq, fn)
         self._seq = 0
@@ -189,6 +197,11 @@ class EstimatorNode(Node):
         subs = [self.create_subscription(wire.Imu, wire.IMU, self.on_imu, qos_in),
                 self.create_subscription(wire.PointCloud2, wire.BEARINGS, self.on_bearings,
                                          qos_in)]
+        if self.method.uses(Sensor.ODOMETRY):
+            odom = self.create_subscription(wire.Odometry, wire.ODOM, self.on_odometry, qos_in)
+            if self.expect_odometry:  # the t0 announcement waits for its publisher too
+                subs.append(odom)
+            self._odom_sub = odom
         if template.leader:
             # Best effort matches both a reliable publisher (the simulator) and a best-effort
             # one (many mocap and GNSS drivers); a reliable reader would miss the latter. A lost
@@ -305,6 +318,22 @@ class EstimatorNode(Node):
             self._reject(cause, f'{n} bearing(s) at {t:.6f}', n)
         if self.est.k == 0 and self.est.gyro.end <= self.est.t0:
             self._publish(world=True)  # the t0 world bearings, before the first step
+        elif self._deferred == self.est.k and self.est.bearings_at(self.est.t):
+            self._publish(world=True)
+
+    def on_odometry(self, msg: wire.Odometry) -> None:
+        try:
+            t, v, omega = wire.decode_odometry(msg, self.odom_child_frame or None)
+        except wire.WireError as exc:
+            return self._reject('malformed', f'odom ({exc})')
+        if self.est is None:
+            return
+        cause = self.est.add_odometry(t, v, omega, now=self._now())
+        if cause == 'odometry_gap':
+            self.events[cause] += 1
+        elif cause is not None:
+            return self._reject(cause, f'odom sample at {t:.6f}')
+        self.on_timer()  # steps wait for live odometry as for the gyro
 
     def on_known_pose(self, msg: wire.PoseStamped) -> None:
         decoded = self._decoded(msg, wire.decode_pose, wire.WORLD_FRAME, 'known_pose')
@@ -358,16 +387,29 @@ class EstimatorNode(Node):
         while self.est.steps_ready() > 0:
             if self._wall_first_step is None:
                 self._wall_first_step = time.monotonic()
+            if self._deferred == self.est.k:
+                # Its bearings never came: send no world bearings for this instant rather than
+                # ones measured at another (listeners pair values of one instant).
+                self.events['world_bearings_skipped'] += 1
+                self._deferred = -1
             self.est.advance(1)
             # On the absolute grid origin + n h (k restarts after a time jump or gap).
             if round((self.est.t - self.est.origin) / self.h) % self.publish_every == 0:
-                self._publish(world=True)
+                # Moving: what listeners pair with their own past must be measured at the stamp;
+                # the bearings of this instant may still be on their way (the simulator sends
+                # them with the gyro sample that released this step): the estimate goes now,
+                # the world bearings once they are here.
+                wait = self.est.odometry_live() and not self.est.bearings_at(self.est.t)
+                self._publish(world=not wait)
+                if wait:
+                    self._deferred = self.est.k
 
     def _publish(self, world: bool, force: bool = False) -> None:
         """The estimate (unless already sent for this step or ``force``) and, with ``world``,
         the channels that have messages of their own."""
         est = self.est
         assert est is not None  # called once the estimator exists
+        self._deferred = -1
         t = est.t
         if force or self._published_k != est.k:
             self.pub_estimate.publish(
@@ -408,6 +450,9 @@ class EstimatorNode(Node):
                         level = max(level, DiagnosticStatus.WARN)
                         problems.append(problem)
             values['non_finite_steps'] = str(est.non_finite_steps)
+            if est.uses_odometry:
+                values['odometry_live'] = str(est.odometry_live())
+                values['odometry_missing_steps'] = str(est.odometry_missing_steps)
         for cause, n in sorted(self.rejected.items()):
             values[f'rejected_{cause}'] = str(n)
         for cause, n in sorted(self.events.items()):

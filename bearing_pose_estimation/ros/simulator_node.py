@@ -2,7 +2,10 @@
 
 Publishes, per agent, ``/<agent>/imu`` (interval-average gyro), ``/<agent>/bearings`` (body
 frame) and ``/<agent>/ground_truth``, plus ``/clock``, from :class:`sim.world.World` (truth on a
-1 ms grid). It is the only clock publisher; every other node runs with ``use_sim_time``.
+1 ms grid); and the moving-robot sensors the scenario simulates (``/<agent>/odom``,
+``relative_positions``, ``bearing_rates``, ``ranges``), each at its own rate. It is the only
+clock publisher; every other node runs with ``use_sim_time``. Within one instant the other
+sensors go out before the gyro sample, whose arrival is what lets an estimator step.
 
 Start: it waits until every estimator and the monitor are matched (subscriptions to its
 topics, and the estimators' own topics to each other) and every estimator has announced its
@@ -31,6 +34,7 @@ from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from .. import msg_defs as wire
+from ..estimators.base import Sensor
 from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
 from ..sim.world import World
 
@@ -77,6 +81,14 @@ class SimulatorNode(Node):
                 self.create_publisher(wire.PointCloud2, topic(wire.BEARINGS), qos))
             self.pub_truth.append(
                 self.create_publisher(wire.PoseStamped, topic(wire.GROUND_TRUTH), qos))
+        # The moving-robot sensors the scenario simulates, and those the estimators read (the
+        # start waits for their subscriptions).
+        method = s.estimator()
+        self.pub_sensors = {
+            name: [self.create_publisher(_SENSOR_TYPES[name], wire.topic(a, _SENSOR_TOPICS[name]),
+                                         wire.SIM_PUB_QOS) for a in self.names]
+            for name in self.world.sensor_every}
+        self.sensors_read = {name for name in self.pub_sensors if method.uses(Sensor(name))}
         self.pub_clock = (self.create_publisher(ClockMsg, wire.CLOCK, wire.CLOCK_QOS)
                           if self.publish_clock else None)
         # Estimators' progress: the stamp of each agent's latest estimate (lockstep pacing).
@@ -117,6 +129,9 @@ class SimulatorNode(Node):
                 missing.append(wire.topic(name, wire.IMU))
             if self.pub_bearings[k].get_subscription_count() < 1:
                 missing.append(wire.topic(name, wire.BEARINGS))
+            for sensor in self.sensors_read:
+                if self.pub_sensors[sensor][k].get_subscription_count() < 1:
+                    missing.append(wire.topic(name, _SENSOR_TOPICS[sensor]))
             if self.pub_truth[k].get_subscription_count() < need_truth:
                 missing.append(wire.topic(name, wire.GROUND_TRUTH))
             # Every listener subscribes to each channel topic of the agent; the simulator and
@@ -186,19 +201,46 @@ class SimulatorNode(Node):
 
     def _publish(self, clock: bool) -> None:
         w, t = self.world, self.world.t
-        if w.due(w.imu_every) and w.tick > 0:  # a sample covers the period ending now
-            for i, omega in enumerate(w.imu()):
-                self.pub_imu[i].publish(wire.encode_imu(t, self.names[i], omega))
         if w.due(w.bearing_every):
             for i, name in enumerate(self.names):
                 j, b = w.bearings(i)
                 self.pub_bearings[i].publish(
                     wire.encode_vectors(t, wire.body_frame(name), j + 1, b))
+        for sensor, pubs in self.pub_sensors.items():
+            if w.due(w.sensor_every[sensor]) and (sensor != 'odometry' or w.tick > 0):
+                self._publish_sensor(sensor, pubs, t)
+        if w.due(w.imu_every) and w.tick > 0:  # a sample covers the period ending now
+            for i, omega in enumerate(w.imu()):
+                self.pub_imu[i].publish(wire.encode_imu(t, self.names[i], omega))
         if w.due(w.truth_every):
             for i, pub in enumerate(self.pub_truth):
                 pub.publish(wire.encode_pose(t, wire.WORLD_FRAME, w.R[i], w.p[i]))
         if clock and self.pub_clock is not None:
             self.pub_clock.publish(ClockMsg(clock=wire.to_stamp(t)))
+
+
+    def _publish_sensor(self, sensor: str, pubs: list, t: float) -> None:
+        w, spec = self.world, self.scenario.sensors.spec(sensor)
+        if sensor == 'odometry':  # interval averages over the period ending now
+            v, omega = w.odometry()
+            for i, name in enumerate(self.names):
+                pubs[i].publish(wire.encode_odometry(t, name, v[i], omega[i], w.odom_R[i],
+                                                     w.odom_p[i], spec.std, spec.angular_std))
+            return
+        for i, name in enumerate(self.names):
+            j, values = w.sensed(sensor, i)
+            if sensor == 'ranges':
+                msg = wire.encode_scalars(t, wire.body_frame(name), j + 1, values)
+            else:
+                msg = wire.encode_vectors(t, wire.body_frame(name), j + 1, values)
+            pubs[i].publish(msg)
+
+
+# Moving-robot sensor (scenario.Sensors name) -> its topic and message type.
+_SENSOR_TOPICS = {'odometry': wire.ODOM, 'relative_positions': wire.RELATIVE_POSITIONS,
+                  'bearing_rates': wire.BEARING_RATES, 'ranges': wire.RANGES}
+_SENSOR_TYPES = {'odometry': wire.Odometry, 'relative_positions': wire.PointCloud2,
+                 'bearing_rates': wire.PointCloud2, 'ranges': wire.PointCloud2}
 
 
 def main(args: list[str] | None = None) -> None:

@@ -7,6 +7,20 @@ follower is reachable from both leaders (it sees both leaders or at least one fo
 follower's bearings is at least ``MIN_SPREAD_DEG`` from collinear, which keeps ``M_i`` well
 conditioned (with 15 deg its smallest non-zero eigenvalue is only 0.03, and convergence crawls).
 An agent with no valid set yet is deferred until more agents are placed.
+
+Moving fleets (``speed > 0``): every agent gets the world-frame velocity of the moving paper
+scenario (``config/paper_8_agents_moving.yaml``),
+``v_a(t) = V (cos(w t + φ_a), sin(w t + φ_a), 0.3 cos(0.6 w t + 2 φ_a))``: a drift at speed V
+that turns at w rad/s (a circle of radius ``R = V / w``) with a slow vertical oscillation. All
+agents share the turning pattern and their phases ``φ_a`` differ little: a common random
+phase plus one uniform in ``±δ`` per agent. Two agents then move relative to each other by at
+most ``2√2 R |φ_a - φ_b| <= 4√2 R δ`` (both the horizontal and the vertical part of
+``∫ (v_a - v_b) dt`` are at most ``2 R |φ_a - φ_b|``), so ``δ`` keeps that below
+:data:`MAX_RELATIVE_DRIFT_M` (0.15 m): no two
+agents, at least ``MIN_SPACING_M`` apart at t = 0, ever come within
+``graph.CLOSE_APPROACH_M`` (by construction, no re-draw), and the fleet drifts without
+dispersing. The static part (positions, graph, rates, attitudes) is the static fleet of the same
+seed; the phases are drawn after it, so ``speed = 0`` writes exactly the static file.
 """
 from __future__ import annotations
 
@@ -16,10 +30,15 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..core import graph
+
 MIN_SPACING_M = 0.5
 MIN_SPREAD_DEG = 35.0
 LEADER_SEPARATION_M = 1.5
 _CANDIDATES = 8
+# Moving fleets: the most two agents move relative to each other [m], half the room between
+# the minimum spacing and a close approach (so the geometry stays near the checked one too).
+MAX_RELATIVE_DRIFT_M = 0.5 * (MIN_SPACING_M - graph.CLOSE_APPROACH_M)
 
 
 def _positions(n: int, rng: np.random.Generator) -> np.ndarray:
@@ -114,18 +133,45 @@ def _omega(rng: np.random.Generator) -> list[Any]:
     return comps
 
 
+def _velocities(n: int, speed: float, turn_rate: float,
+                rng: np.random.Generator) -> list[dict[str, Any]]:
+    """The ``velocity:`` of each of ``n`` agents (module docstring)."""
+    radius = speed / turn_rate
+    # Phases are rounded to 1e-4 rad: keep the bound with that slack.
+    spread = float(np.clip(MAX_RELATIVE_DRIFT_M / (4.0 * np.sqrt(2.0) * radius) - 1e-4,
+                           0.0, np.pi))
+    common = float(rng.uniform(0.0, 2.0 * np.pi))
+    phases = common + rng.uniform(-spread, spread, size=n)
+    v, w = float(speed), float(turn_rate)
+    out = []
+    for phi in phases:
+        phi = round(float(phi), 4)
+        out.append({'world': [{'cos': w, 'amplitude': v, 'phase': phi},
+                              {'sin': w, 'amplitude': v, 'phase': phi},
+                              {'cos': round(0.6 * w, 12), 'amplitude': round(0.3 * v, 12),
+                               'phase': round(2.0 * phi, 4)}]})
+    return out
+
+
 def generate_scenario(n_agents: int, seed: int = 0, max_angle_deg: float = 90.0,
-                      position_std: float = 1.0) -> dict[str, Any]:
+                      position_std: float = 1.0, speed: float = 0.0,
+                      turn_rate: float = 0.5) -> dict[str, Any]:
     """A scenario as a YAML-ready dict (see :func:`scenario.parse_scenario`).
 
     Args:
         n_agents: number of agents, >= 3 (two leaders).
-        seed: seeds positions, graph, rates, true attitudes and initial estimates.
+        seed: seeds positions, graph, rates, true attitudes, initial estimates and phases.
         max_angle_deg: initial attitude errors are uniform in ``[0, max_angle_deg]``.
         position_std: initial position errors are ``N(0, position_std²)`` per axis [m].
+        speed: V [m/s]; 0: a static fleet, else every agent drifts at V and turns at
+            ``turn_rate`` [rad/s], > 0 (module docstring).
     """
     if n_agents < 3:
         raise ValueError('n_agents must be at least 3 (two leaders and one follower)')
+    if not (np.isfinite(speed) and speed >= 0):
+        raise ValueError('speed must be a number >= 0 [m/s]')
+    if speed > 0 and not (np.isfinite(turn_rate) and turn_rate > 0):
+        raise ValueError('turn_rate must be a positive number [rad/s]')
     rng = np.random.default_rng(seed)
     for _ in range(100):  # tiny fleets can come out nearly collinear: draw again
         p = _positions(n_agents, rng)
@@ -151,9 +197,16 @@ def generate_scenario(n_agents: int, seed: int = 0, max_angle_deg: float = 90.0,
         if i in nbrs:
             a['neighbours'] = [names[rank[j]] for j in nbrs[i]]
         agents.append(a)
+    name = f'random_{n_agents}_agents_seed_{seed}'
+    command = f'bearing-pose generate --agents {n_agents} --seed {seed}'
+    if speed > 0:
+        name += f'_moving_{speed:g}_m_s'
+        command += f' --speed {speed:g} --turn-rate {turn_rate:g}'
+        for a, velocity in zip(agents, _velocities(n_agents, speed, turn_rate, rng)):
+            a['velocity'] = velocity
     return {
-        'name': f'random_{n_agents}_agents_seed_{seed}',
-        'description': f'generated by `bearing-pose generate --agents {n_agents} --seed {seed}`',
+        'name': name,
+        'description': f'generated by `{command}`',
         'method': 'boughellaba_tayebi',
         'world_frame': 'world',
         'gains': {'k_R': 1.0, 'k_p': 1.0, 'k_ij': 1.0},

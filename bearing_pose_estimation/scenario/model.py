@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from .. import estimators
 from ..core import so3
-from ..core.motion import AngularVelocity
+from ..core.motion import AngularVelocity, LinearVelocity
 from ..estimators.base import Estimator
 
 
@@ -25,13 +25,15 @@ class Neighbour:
 
 @dataclass(frozen=True)
 class Agent:
-    """One agent. Units SI; frames: ``position`` and ``attitude`` (body → world) in ``world``."""
+    """One agent. Units SI; frames: ``position`` and ``attitude`` (body → world) in ``world``,
+    at t = 0; ``velocity``: its translation (None: static)."""
 
     name: str
     position: NDArray[np.float64]
     attitude: NDArray[np.float64]
     angular_velocity: AngularVelocity
     neighbours: tuple[Neighbour, ...] = ()
+    velocity: LinearVelocity | None = None
     initial_position: NDArray[np.float64] | None = None   # p̂_i(0), followers only
     initial_attitude: NDArray[np.float64] | None = None   # R̂_i(0), followers only
 
@@ -88,6 +90,35 @@ class Noise:
 
 
 @dataclass(frozen=True)
+class SensorSpec:
+    """One simulated moving-robot sensor: its rate [Hz] and the standard deviation of the
+    white noise on each component of every sample (0: noise-free). Odometry: ``std`` on the
+    linear velocity [m/s], ``angular_std`` on the angular rate [rad/s]; relative positions and
+    ranges [m]; bearing rates [1/s]."""
+
+    rate: float
+    std: float = 0.0
+    angular_std: float = 0.0
+
+
+@dataclass(frozen=True)
+class Sensors:
+    """The sensors beyond gyro and bearings (``sensors:`` in the file). Each is simulated when
+    the file lists it or the method needs it; odometry also whenever the fleet moves."""
+
+    odometry: SensorSpec = SensorSpec(100.0)
+    relative_positions: SensorSpec = SensorSpec(50.0)
+    bearing_rates: SensorSpec = SensorSpec(50.0)
+    ranges: SensorSpec = SensorSpec(50.0)
+    listed: frozenset[str] = frozenset()
+
+    NAMES = ('odometry', 'relative_positions', 'bearing_rates', 'ranges')
+
+    def spec(self, name: str) -> SensorSpec:
+        return getattr(self, name)
+
+
+@dataclass(frozen=True)
 class SimulationRates:
     """How the simulator node samples the world. Truth is integrated with ``internal_step``
     [s]; every sensor period must be a whole number of internal steps."""
@@ -107,6 +138,7 @@ class Scenario:
     name: str
     agents: tuple[Agent, ...]
     leaders: tuple[str, ...]
+    anchor: str | None = None   # the agent whose body frame the estimates use (anchor methods)
     method: str = estimators.DEFAULT_METHOD   # the registry key (`estimators.methods()`)
     gains: Any = None          # the method's own Gains dataclass; None: its defaults
     description: str = ''
@@ -117,6 +149,7 @@ class Scenario:
     noise: Noise = Noise()
     random_init: RandomInit | None = None
     simulation: SimulationRates = SimulationRates()
+    sensors: Sensors = Sensors()
     source: str = '<memory>'
     index: dict[str, int] = field(default_factory=dict, compare=False, repr=False)
 
@@ -146,7 +179,13 @@ class Scenario:
 
     @property
     def followers(self) -> tuple[Agent, ...]:
-        return tuple(a for a in self.agents if a.name not in self.leaders)
+        """The agents that estimate their pose: all but the leaders and the anchor."""
+        return tuple(a for a in self.agents
+                     if a.name not in self.leaders and a.name != self.anchor)
+
+    @property
+    def anchor_index(self) -> int | None:
+        return None if self.anchor is None else self.index[self.anchor]
 
     @property
     def step(self) -> float:
@@ -156,6 +195,18 @@ class Scenario:
     def publish_every(self) -> int:
         """Estimator steps between two publications."""
         return int(round(self.frequency / self.publish_rate))
+
+    @property
+    def moves(self) -> bool:
+        """Some agent translates (static positions are the papers' setting)."""
+        return any(a.velocity is not None and not a.velocity.value.is_zero for a in self.agents)
+
+    def simulates(self, sensor: str) -> bool:
+        """The simulators produce ``sensor`` (a :data:`Sensors.NAMES` entry): listed in
+        ``sensors:``, needed by the method, or odometry of a moving fleet."""
+        needs = {s.value for s in estimators.get(self.method).sensors}
+        return (sensor in self.sensors.listed or sensor in needs
+                or (sensor == 'odometry' and self.moves))
 
     def agent(self, name: str) -> Agent:
         return self.agents[self.index[name]]
@@ -184,7 +235,8 @@ def initial_estimates(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[
     ri = scenario.random_init
     rng = np.random.default_rng(ri.seed if ri else 0)
     for i, a in enumerate(scenario.agents):
-        if a.name in scenario.leaders:
+        if a.name in scenario.leaders or (a.name == scenario.anchor
+                                          and a.initial_position is None):
             continue
         if a.initial_position is not None:
             p0[i], R0[i] = a.initial_position, a.initial_attitude

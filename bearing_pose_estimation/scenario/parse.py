@@ -22,10 +22,10 @@ from numpy.typing import NDArray
 from .. import estimators
 from ..core import so3
 from ..core.errors import ScenarioError
-from ..core.motion import AngularVelocity, Component, Sinusoid
+from ..core.motion import AngularVelocity, Component, LinearVelocity, Sinusoid, VectorProfile
 from ..estimators.base import parse_gains
 from .model import (Agent, BearingPerturbation, Neighbour, Noise, RandomInit, Scenario,
-                    SimulationRates)
+                    SensorSpec, Sensors, SimulationRates)
 
 # Agent names become ROS namespaces and frame prefixes (`agent_3/base_link`).
 _NAME_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
@@ -152,12 +152,28 @@ def _component(ctx: _Ctx, value: Any, where: str) -> Component:
     return Component(constant=constant, terms=tuple(terms))
 
 
-def _angular_velocity(ctx: _Ctx, value: Any, where: str) -> AngularVelocity:
+def _profile(ctx: _Ctx, value: Any, where: str) -> VectorProfile:
     if not isinstance(value, list) or len(value) != 3:
         raise ctx.fail(where, f'expected 3 components [x, y, z], got {value!r}',
                        'write e.g. [1, -2, 1] or [{cos: 3, amplitude: -1}, 1, {sin: 2}]')
     x, y, z = (_component(ctx, v, f'{where}[{i}]') for i, v in enumerate(value))
-    return AngularVelocity(x=x, y=y, z=z)
+    return VectorProfile(x=x, y=y, z=z)
+
+
+def _angular_velocity(ctx: _Ctx, value: Any, where: str) -> AngularVelocity:
+    return _profile(ctx, value, where)
+
+
+def _velocity(ctx: _Ctx, value: Any, where: str) -> LinearVelocity:
+    """``{world: [x, y, z]}`` (dp/dt = v) or ``{body: [x, y, z]}`` (dp/dt = R v) [m/s]."""
+    m = _mapping(ctx, value, where, {'world', 'body'})
+    if len(m) != 1:
+        raise ctx.fail(where, 'give the velocity in exactly one frame, `world` or `body`',
+                       'write e.g. {world: [0.3, 0, {sin: 0.5, amplitude: 0.1}]} or '
+                       '{body: [1, 0, 0]}')
+    if 'world' in m:
+        return LinearVelocity(frame='world', value=_profile(ctx, m['world'], f'{where}.world'))
+    return LinearVelocity(frame='body', value=_profile(ctx, m['body'], f'{where}.body'))
 
 
 def _neighbours(ctx: _Ctx, value: Any, where: str, default_k: float) -> tuple[Neighbour, ...]:
@@ -177,6 +193,36 @@ def _neighbours(ctx: _Ctx, value: Any, where: str, default_k: float) -> tuple[Ne
     return tuple(out)
 
 
+def _check_period(ctx: _Ctx, rate: float, dt: float, where: str) -> None:
+    ticks = 1.0 / (rate * dt)
+    if ticks < 1.0 - 1e-9 or abs(ticks - round(ticks)) > 1e-6:
+        raise ctx.fail(where, f'a period of 1/{rate:g} s is not a whole number '
+                       f'of internal steps ({dt:g} s)',
+                       'choose a rate that divides 1/internal_step (e.g. 200, 100, 50 Hz '
+                       'with a 1 ms step)')
+
+
+def _sensors(ctx: _Ctx, value: Any, dt: float) -> Sensors:
+    """``sensors: {odometry: {rate: 100, std: 0.01, angular_std: 0.0}, relative_positions:
+    {rate: 30, std: 0.01}, bearing_rates: {...}, ranges: {...}}``; ``{}`` lists a sensor with
+    its defaults."""
+    m = _mapping(ctx, value, 'sensors', set(Sensors.NAMES))
+    d = Sensors()
+    specs = {}
+    for name, raw in m.items():
+        where = f'sensors.{name}'
+        keys = {'rate', 'std'} | ({'angular_std'} if name == 'odometry' else set())
+        raw = _mapping(ctx, {} if raw is None else raw, where, keys)
+        default = d.spec(name)
+        rate = _number(ctx, raw.get('rate', default.rate), f'{where}.rate', positive=True)
+        _check_period(ctx, rate, dt, f'{where}.rate')
+        specs[name] = SensorSpec(
+            rate=rate, std=_number(ctx, raw.get('std', 0.0), f'{where}.std', non_negative=True),
+            angular_std=_number(ctx, raw.get('angular_std', 0.0), f'{where}.angular_std',
+                                non_negative=True))
+    return Sensors(**specs, listed=frozenset(m))
+
+
 def _simulation(ctx: _Ctx, value: Any) -> SimulationRates:
     m = _mapping(ctx, value, 'simulation',
                  {'internal_step', 'imu_rate', 'bearing_rate', 'ground_truth_rate'})
@@ -186,12 +232,7 @@ def _simulation(ctx: _Ctx, value: Any) -> SimulationRates:
     rates = {}
     for key in ('imu_rate', 'bearing_rate', 'ground_truth_rate'):
         rate = _number(ctx, m.get(key, getattr(d, key)), f'simulation.{key}', positive=True)
-        ticks = 1.0 / (rate * dt)
-        if ticks < 1.0 - 1e-9 or abs(ticks - round(ticks)) > 1e-6:
-            raise ctx.fail(f'simulation.{key}', f'a period of 1/{rate:g} s is not a whole number '
-                           f'of internal steps ({dt:g} s)',
-                           'choose a rate that divides 1/internal_step (e.g. 200, 100, 50 Hz '
-                           'with a 1 ms step)')
+        _check_period(ctx, rate, dt, f'simulation.{key}')
         rates[key] = rate
     return SimulationRates(internal_step=dt, **rates)
 
@@ -235,8 +276,9 @@ def _noise(ctx: _Ctx, value: Any) -> Noise:
 
 _TOP_KEYS = {'name', 'description', 'method', 'world_frame', 'gains', 'frequency',
              'publish_rate', 'duration',
-             'noise', 'leaders', 'agents', 'initial_estimates', 'simulation'}
-_AGENT_KEYS = {'name', 'position', 'attitude', 'angular_velocity', 'neighbours',
+             'noise', 'leaders', 'anchor', 'agents', 'initial_estimates', 'simulation',
+             'sensors'}
+_AGENT_KEYS = {'name', 'position', 'attitude', 'angular_velocity', 'velocity', 'neighbours',
                'initial_estimate'}
 
 
@@ -275,6 +317,7 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     noise = _noise(ctx, top.get('noise', {}))
 
     simulation = _simulation(ctx, top.get('simulation', {}))
+    sensors = _sensors(ctx, top.get('sensors', {}), simulation.internal_step)
 
     random_init = None
     if 'initial_estimates' in top:
@@ -298,6 +341,15 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
                        + (f' ({n_leaders} leaders, 1 follower)' if n_leaders else ''),
                        'list the agents under `agents:`, each starting with `- name: ...`')
     leaders = top.get('leaders', [])
+    if not n_leaders and leaders:
+        raise ctx.fail('leaders', f'{cls.title} has no leaders (no agent knows its pose)',
+                       'remove `leaders`')
+    if cls.roles.anchor != ('anchor' in top):
+        raise (ctx.fail('anchor', f'{cls.title} needs one anchor, the agent whose body frame '
+                        'the estimates are expressed in', 'add e.g. `anchor: agent_1`')
+               if cls.roles.anchor else
+               ctx.fail('anchor', f'{cls.title} has no anchor', 'remove `anchor`'))
+    anchor = _string(ctx, top['anchor'], 'anchor') if cls.roles.anchor else None
     if (not isinstance(leaders, list) or len(leaders) != n_leaders
             or not all(isinstance(x, str) for x in leaders) or len(set(leaders)) != n_leaders):
         example = ', '.join(f'agent_{k + 1}' for k in range(n_leaders))
@@ -326,6 +378,8 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
         attitude = _attitude(ctx, m.get('attitude', 'identity'), f'{where}.attitude')
         omega = _angular_velocity(ctx, m.get('angular_velocity', [0, 0, 0]),
                                   f'{where}.angular_velocity')
+        velocity = (_velocity(ctx, m['velocity'], f'{where}.velocity') if 'velocity' in m
+                    else None)
         neighbours: tuple[Neighbour, ...] = ()
         p0 = R0 = None
         if is_leader:
@@ -347,15 +401,18 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
                               {'position', 'attitude'}, {'position', 'attitude'})
                 p0 = _vector(ctx, ie['position'], f'{where}.initial_estimate.position')
                 R0 = _attitude(ctx, ie['attitude'], f'{where}.initial_estimate.attitude')
-            elif random_init is None:
+            elif random_init is None and aname != anchor:  # the anchor is the reference
                 raise ctx.fail(f'{where}.initial_estimate', 'missing, and there is no '
                                'top-level `initial_estimates: {random: ...}` to draw it from',
                                'add `initial_estimate: {position: [...], attitude: ...}` or '
                                '`initial_estimates: {random: {seed: 0}}` at the top level')
         agents.append(Agent(name=aname, position=position, attitude=attitude,
-                            angular_velocity=omega, neighbours=neighbours,
+                            angular_velocity=omega, neighbours=neighbours, velocity=velocity,
                             initial_position=p0, initial_attitude=R0))
 
+    if anchor is not None and anchor not in seen:
+        raise ctx.fail('anchor', f'{anchor!r} is not an agent',
+                       f'use a name from `agents` ({", ".join(list(seen)[:5])}, ...)')
     for lname in leaders:
         if lname not in seen:
             raise ctx.fail('leaders', f'{lname!r} is not an agent',
@@ -371,11 +428,13 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
             if names.count(nb.name) > 1:
                 raise ctx.fail(w, f'{nb.name!r} is listed twice', 'list each neighbour once')
 
-    return Scenario(name=name, agents=tuple(agents), leaders=tuple(leaders), method=method,
+    return Scenario(name=name, agents=tuple(agents), leaders=tuple(leaders), anchor=anchor,
+                    method=method,
                     gains=gains, description=str(top.get('description', '')),
                     frequency=frequency, publish_rate=publish_rate, duration=duration,
                     world_frame=world_frame,
-                    noise=noise, random_init=random_init, simulation=simulation, source=source)
+                    noise=noise, random_init=random_init, simulation=simulation,
+                    sensors=sensors, source=source)
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -8,7 +8,9 @@ start:
 - own bearings ``b^i_ij = R_iᵀ b_ij`` (+ bearing noise);
 - what each neighbour j sends i (:meth:`Estimator.outbox`), formed from j's state and its own
   measurement ``b^j_ji = R_jᵀ b_ji`` (+ noise) at the same instant;
-- the gyro increment ``ΔR exp(h (bias + noise))`` over the step.
+- the gyro increment ``ΔR exp(h (bias + noise))`` over the step;
+- for moving fleets (when the scenario simulates odometry), the odometry displacement over the
+  step ``δ = R(t)ᵀ (p(t+h) - p(t))`` (+ noise), the exact integral of what the samples report.
 
 Noise (all off by default) comes from :class:`.noise.NoiseModel`, the same models the
 simulator node's world uses; a scenario and its ``noise.seed`` give the same run.
@@ -24,7 +26,7 @@ from numpy.typing import NDArray
 
 from ..estimators.base import Edges, State, StepInputs, route
 from ..scenario.model import Scenario, initial_estimates
-from ..studies.results import PoseErrors, Recording, pose_errors
+from ..studies.results import PoseErrors, Recording, pose_errors, to_world
 from .noise import NoiseModel
 from .truth import OnTruth, Truth
 
@@ -58,11 +60,13 @@ class BatchSimulator(OnTruth):
                 k.append(nb.k)
         self.edge_nbr = np.array(nbr, dtype=np.intp)
         self.edges = Edges(agent=np.array(owner, dtype=np.intp), k=np.array(k), n_agents=self.n)
-        # Both ends of every edge measure: i its b^i_ij, j its b^j_ji (static positions).
+        # Both ends of every edge measure: i its b^i_ij, j its b^j_ji.
         self._ends = np.concatenate([self.edges.agent, self.edge_nbr])
-        self._ends_b_world = self.truth.world_bearings(self._ends,
-                                                       np.concatenate([self.edge_nbr,
-                                                                       self.edges.agent]))
+        self._other_ends = np.concatenate([self.edge_nbr, self.edges.agent])
+        # Static positions: the world bearings never change.
+        self._ends_b_world = (None if self.truth.moves
+                              else self.truth.world_bearings(self._ends, self._other_ends))
+        self.odometry = scenario.simulates('odometry')
         self.reset()
 
     @property
@@ -86,20 +90,28 @@ class BatchSimulator(OnTruth):
     def reset(self) -> None:
         """Back to t = 0: true attitudes, the scenario's initial estimates, and the noise
         generators (and gyro biases) re-seeded, so a run after reset repeats exactly."""
-        self.noise = NoiseModel(self.scenario.noise, self.n)
+        self.noise = NoiseModel(self.scenario.noise, self.n, self.scenario.sensors)
         self.truth.reset()
         self.x: State = self.estimator.initial_state(*initial_estimates(self.scenario))
 
     def inputs(self) -> StepInputs:
         """What every agent's next step consumes, measured now (noise drawn)."""
-        both = self.truth.body_bearings(self._ends, self._ends_b_world)
+        b_world = (self._ends_b_world if self._ends_b_world is not None
+                   else self.truth.world_bearings(self._ends, self._other_ends))
+        both = self.truth.body_bearings(self._ends, b_world)
         n_edges = len(self.edges)
         b_own = self.noise.bearings(both[:n_edges], self.t)
         b_theirs = self.noise.bearings(both[n_edges:], self.t)
         sent = self.estimator.outbox(self.x, self.edge_nbr, b_theirs)
+        displacement = None
+        if self.odometry:
+            samples = self.h * self.scenario.sensors.odometry.rate
+            displacement = self.noise.odometry_displacement(self.truth.displacement(), self.h,
+                                                            samples)
         return StepInputs(delta_R=self.gyro_increment(self.truth.increment()), edges=self.edges,
                           bearings=b_own,
-                          received=route(sent, self.estimator.sends, self.edge_nbr))
+                          received=route(sent, self.estimator.sends, self.edge_nbr),
+                          displacement=displacement)
 
     def gyro_increment(self, delta_R: Array) -> Array:
         """What the gyros report over the step: ``ΔR exp(h (bias + noise))`` (body frame),
@@ -121,7 +133,7 @@ class BatchSimulator(OnTruth):
     def errors(self) -> PoseErrors:
         """Errors of the estimating agents now (:func:`studies.results.pose_errors`)."""
         return pose_errors(self.estimator.frame, self.R, self.p, self.x.R_hat, self.x.p_hat,
-                           self.follower_idx)
+                           self.follower_idx, anchor=self.scenario.anchor_index)
 
     def run(self, duration: float, record_every: float = 0.1,
             progress: Callable[[float, Array, Array], None] | None = None,
@@ -133,17 +145,32 @@ class BatchSimulator(OnTruth):
             record_every: record interval [s], rounded to a whole number of steps.
             progress: called as ``progress(t, att_err, pos_err)`` every ``progress_every``
                 simulated seconds.
+
+        When the fleet moves, the recording also holds every agent's true and estimated
+        positions at the record times (:class:`studies.results.Trajectories`; the estimates in
+        the world frame, aligned as for the errors).
         """
         n_steps = int(round(duration / self.h))
         every = max(1, int(round(record_every / self.h)))
         prog_every = max(1, int(round(progress_every / self.h)))
+        tracks = self.truth.moves
         t, rows = [], []
+        p: list[Array] = []
+        p_hat: list[Array] = []
         for s in range(n_steps + 1):
             if s % every == 0 or s == n_steps:
                 t.append(self.t)
                 rows.append(self.errors())
+                if tracks:
+                    p.append(self.p.copy())
+                    p_hat.append(to_world(self.estimator.frame, self.R, self.p, self.x.R_hat,
+                                          self.x.p_hat, self.scenario.anchor_index)[1].copy())
             if progress is not None and s % prog_every == 0 and s:
                 progress(self.t, rows[-1].att_err, rows[-1].pos_err)
             if s < n_steps:
                 self.step()
-        return Recording.of(t, [a.name for a in self.scenario.followers], rows)
+        followers = [a.name for a in self.scenario.followers]
+        if not tracks:
+            return Recording.of(t, followers, rows)
+        return Recording.of(t, followers, rows, agents=[a.name for a in self.scenario.agents],
+                            leaders=list(self.scenario.leaders), p=p, p_hat=p_hat)

@@ -340,8 +340,14 @@ class _Network:
                 self.tally.count([self.agents[name].add_gyro(stamp, rate, now=world.t)], bad)
 
     def sense(self, now: float) -> None:
-        """Bearings and the leaders' known pose, when due."""
+        """Bearings, odometry (moving fleets) and the leaders' known pose, when due."""
         world, scenario = self.world, self.scenario
+        every = world.sensor_every.get('odometry')
+        if every is not None and world.due(every) and world.tick > 0:
+            for name, v, w in zip(self.names, *world.odometry()):
+                if not self.stopped(name, now):
+                    self.tally.count([self.agents[name].add_odometry(world.t, v, w,
+                                                                     now=world.t)], 0)
         if world.due(world.bearing_every):
             for i, name in enumerate(self.names):
                 if self.stopped(name, now):
@@ -426,7 +432,8 @@ class _Network:
                 R[i], p[i] = self.truth[k][0][i], self.truth[k][1][i]
         R_hat = np.concatenate([self.agents[name].R_hat for name in self.names])
         p_hat = np.concatenate([self.agents[name].p_hat for name in self.names])
-        return pose_errors(self.frame, R, p, R_hat, p_hat, followers)
+        return pose_errors(self.frame, R, p, R_hat, p_hat, followers,
+                           anchor=self.scenario.anchor_index)
 
 
 def simulate_network(scenario: Scenario, duration: float, record_every: float = 0.1,

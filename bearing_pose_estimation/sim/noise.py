@@ -11,9 +11,14 @@ scenario's ``noise:`` block (:class:`scenario.Noise`) switches them on.
   deviation ``bearing_std`` (:func:`perturb_bearings`), and, with probability
   ``outlier_probability``, replacement by a uniformly random unit vector.
 
+- Moving-robot sensors (``sensors:``, :class:`scenario.Sensors`): white noise of the sensor's
+  ``std`` on each component of odometry velocities (``angular_std`` on its rates), relative
+  positions, bearing rates and ranges. In the batch simulator a step's odometry displacement
+  gets ``h`` times the noise averaged over the samples the step spans.
+
 Reproducible: every draw comes from generators seeded by ``noise.seed``, with separate streams
-for the bias, the gyro white noise and the bearings, so the same scenario, seed and sequence of
-calls give the same measurements. No rclpy here.
+for the bias, the gyro white noise, the bearings and each moving-robot sensor, so the same
+scenario, seed and sequence of calls give the same measurements. No rclpy here.
 """
 from __future__ import annotations
 
@@ -23,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core import so3
-from ..scenario.model import Noise
+from ..scenario.model import Noise, Sensors
 
 Array = NDArray[np.float64]
 
@@ -69,11 +74,16 @@ class NoiseModel:
         bias: ``(n_agents, 3)`` constant body-frame gyro bias [rad/s].
     """
 
-    def __init__(self, noise: Noise, n_agents: int) -> None:
+    def __init__(self, noise: Noise, n_agents: int, sensors: Sensors = Sensors()) -> None:
         self.noise = noise
-        bias_ss, gyro_ss, bearing_ss = np.random.SeedSequence(noise.seed).spawn(3)
+        self.sensors = sensors
+        # Children are keyed by index: the first three streams stay those of a static scenario.
+        bias_ss, gyro_ss, bearing_ss, *rest = np.random.SeedSequence(noise.seed).spawn(
+            3 + len(Sensors.NAMES))
         self.gyro_rng = np.random.default_rng(gyro_ss)
         self.bearing_rng = np.random.default_rng(bearing_ss)
+        self.sensor_rng = {name: np.random.default_rng(ss)
+                           for name, ss in zip(Sensors.NAMES, rest)}
         self.bias = np.tile(np.asarray(noise.gyro_bias, dtype=float), (n_agents, 1))
         if noise.gyro_bias_std > 0.0:
             self.bias += noise.gyro_bias_std * np.random.default_rng(bias_ss).normal(
@@ -109,3 +119,23 @@ class NoiseModel:
             b = b @ so3.axis_angle(bp.axis, angle).T
         b = perturb_bearings(b, nz.bearing_std, self.bearing_rng)
         return replace_outliers(b, nz.outlier_probability, self.bearing_rng)
+
+    def _white(self, sensor: str, x: Array, std: float) -> Array:
+        return x if std == 0.0 else x + std * self.sensor_rng[sensor].normal(size=x.shape)
+
+    def sensor(self, name: str, x: Array) -> Array:
+        """Measured relative positions, bearing rates or ranges (``name``) from true ``x``:
+        white noise of the sensor's ``std`` on each component."""
+        return self._white(name, x, self.sensors.spec(name).std)
+
+    def odometry_twist(self, v: Array, omega: Array) -> tuple[Array, Array]:
+        """Measured interval-average body velocity ``v`` [m/s] and rate ``omega`` [rad/s]."""
+        spec = self.sensors.odometry
+        return (self._white('odometry', v, spec.std),
+                self._white('odometry', omega, spec.angular_std))
+
+    def odometry_displacement(self, delta: Array, h: float, samples: float = 1.0) -> Array:
+        """What odometry reports of the displacements ``delta`` ``(N, 3)`` over a step ``h``
+        spanning ``samples`` odometry samples: ``h`` times the averaged velocity noise."""
+        std = self.sensors.odometry.std / math.sqrt(max(samples, 1.0))
+        return self._white('odometry', delta, h * std)

@@ -1,9 +1,16 @@
 """The truth of a scenario, the one model behind the batch simulator and the simulator node.
 
-Positions are static; every attitude follows ``dR_i/dt = R_i [ω_i(t)]x``, advanced by the
-4th-order Magnus increment (:func:`core.motion.magnus_increment`) over steps of ``dt``: the
-estimator step in the batch simulator, ``simulation.internal_step`` (1 ms) in the simulator
-node. Bearings are measured from it: ``b^i_ij = R_iᵀ (p_j - p_i)/‖p_j - p_i‖``.
+Every attitude follows ``dR_i/dt = R_i [ω_i(t)]x`` and every position
+``dp_i/dt = v_i(t)`` (world-frame velocity) or ``R_i(t) v_i(t)`` (body-frame), both advanced
+together over steps of ``dt`` (the estimator step in the batch simulator,
+``simulation.internal_step`` (1 ms) in the simulator node): the 4th-order Magnus increment for
+the rotation, the closed-form integral or 3-point Gauss-Legendre quadrature for the
+translation (:mod:`core.motion`). Static agents (the default) never move.
+
+The sensors are defined from it (:meth:`Truth.body_bearings` and the methods below):
+bearings ``b^i_ij = R_iᵀ (p_j - p_i)/‖p_j - p_i‖``, relative positions
+``ⁱp_ij = R_iᵀ (p_j - p_i)``, ranges ``‖p_j - p_i‖``, bearing rates ``d b^i_ij/dt``, and
+odometry increments (body-frame rotation and displacement over a step).
 """
 from __future__ import annotations
 
@@ -11,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core import so3
-from ..core.motion import OmegaProfile, magnus_increment
+from ..core.motion import ZERO, ProfileSet, body_displacement, magnus_increment
 from ..scenario.model import Scenario
 
 Array = NDArray[np.float64]
@@ -28,18 +35,27 @@ class Truth:
     def __init__(self, scenario: Scenario, dt: float) -> None:
         self.scenario = scenario
         self.dt = float(dt)
-        self.omega = OmegaProfile([a.angular_velocity for a in scenario.agents])
-        self.p = np.stack([a.position for a in scenario.agents])
+        agents = scenario.agents
+        self.omega = ProfileSet([a.angular_velocity for a in agents])
+
+        def velocities(frame: str) -> ProfileSet:
+            return ProfileSet([a.velocity.value if a.velocity is not None
+                               and a.velocity.frame == frame else ZERO for a in agents])
+
+        self.v_world, self.v_body = velocities('world'), velocities('body')
+        self.moves = not (self.v_world.is_zero and self.v_body.is_zero)
         # Constant rates (common in generated fleets): the increment never changes.
         self._constant = (magnus_increment(self.omega, 0.0, self.dt)
                           if self.omega.is_constant else None)
         self.reset()
 
     def reset(self) -> None:
-        """Back to t = 0 and the scenario's attitudes."""
+        """Back to t = 0 and the scenario's poses."""
         self.k = 0
         self.R = np.stack([a.attitude for a in self.scenario.agents])
+        self.p = np.stack([a.position for a in self.scenario.agents])
         self._next: tuple[int, Array] | None = None  # the increment from step k, once computed
+        self._next_delta: tuple[int, Array] | None = None  # the displacement from step k
 
     @property
     def t(self) -> float:
@@ -59,14 +75,58 @@ class Truth:
             self._next = (self.k, magnus_increment(self.omega, self.t, self.dt))
         return self._next[1]
 
+    def displacement(self) -> Array:
+        """``δ_i = R_i(t)ᵀ (p_i(t + dt) - p_i(t))`` of every agent, ``(N, 3)`` [m]: the
+        translation over the step in the body frame at its start (what odometry integrates).
+        Zero for static fleets."""
+        if not self.moves:
+            return np.zeros_like(self.p)
+        if self._next_delta is None or self._next_delta[0] != self.k:
+            delta = np.einsum('nba,nb->na', self.R, self.v_world.integral(self.t, self.dt))
+            if not self.v_body.is_zero:
+                delta += body_displacement(self.omega, self.v_body, self.t, self.dt)
+            self._next_delta = (self.k, delta)
+        return self._next_delta[1]
+
     def advance(self) -> Array:
-        """Advance by ``dt``; return the increment used."""
+        """Advance by ``dt``; return the rotation increment used."""
         delta_R = self.increment()
+        if self.moves:
+            self.p = self.p + np.einsum('nab,nb->na', self.R, self.displacement())
         self.R = so3.matmul(self.R, delta_R)
         self.k += 1
         if self.reorthonormalizes:
             self.R = so3.reorthonormalize(self.R)
         return delta_R
+
+    def velocity(self) -> Array:
+        """World-frame velocities ``dp_i/dt`` now, ``(N, 3)`` [m/s]."""
+        v = self.v_world(self.t)
+        if not self.v_body.is_zero:
+            v = v + np.einsum('nab,nb->na', self.R, self.v_body(self.t))
+        return v
+
+    def relative_positions(self, owner: Index, target: Index) -> Array:
+        """``ⁱp_ij = R_iᵀ (p_j - p_i)`` from ``owner[m]`` to ``target[m]``, ``(M, 3)`` [m]
+        (body frame of the owner)."""
+        return self.body_bearings(owner, self.p[target] - self.p[owner])
+
+    def ranges(self, owner: Index, target: Index) -> Array:
+        """``‖p_j - p_i‖``, ``(M,)`` [m]."""
+        return np.linalg.norm(self.p[target] - self.p[owner], axis=1)
+
+    def bearing_rates(self, owner: Index, target: Index) -> Array:
+        """``d b^i_ij/dt`` of the body bearings ``b^i_ij = R_iᵀ d/‖d‖``, ``d = p_j - p_i``,
+        ``(M, 3)`` [1/s]: ``-ω_i × b^i_ij + R_iᵀ P_{d} ḋ/‖d‖`` (``P_d = I - d dᵀ/‖d‖²``)."""
+        d = self.p[target] - self.p[owner]
+        rho = np.linalg.norm(d, axis=1, keepdims=True)
+        u = d / rho
+        v = self.velocity()
+        d_dot = v[target] - v[owner]
+        u_dot = (d_dot - u * so3.dot(u, d_dot)[:, None]) / rho
+        b = self.body_bearings(owner, u)
+        w = self.omega(self.t)[owner]
+        return self.body_bearings(owner, u_dot) - so3.cross(w, b)
 
     def world_bearings(self, owner: Index, target: Index) -> Array:
         """Unit world bearings ``b_ij = (p_j - p_i)/‖p_j - p_i‖`` from ``owner[m]`` to

@@ -58,7 +58,8 @@ def parse_gain_overrides(texts: list[str]) -> dict[str, dict[str, float]]:
         if not sep or method not in estimators.methods():
             raise ValueError(f'--gains {text!r}: expected METHOD:GAIN=VALUE[,GAIN=VALUE...] with '
                              f'METHOD one of {", ".join(estimators.methods())}')
-        allowed = sorted(f.name for f in gain_fields(estimators.get(method).Gains))
+        fields = {f.name: f for f in gain_fields(estimators.get(method).Gains)}
+        allowed = sorted(fields)
         for item in assignments.split(','):
             key, eq, value = item.partition('=')
             key = key.strip()
@@ -70,8 +71,10 @@ def parse_gain_overrides(texts: list[str]) -> dict[str, dict[str, float]]:
                 number = float(value)
             except ValueError:
                 number = math.nan
-            if not (math.isfinite(number) and number > 0):
-                raise ValueError(f'--gains {text!r}: {key} must be a positive number, '
+            zero_ok = fields[key].metadata.get('zero_allowed', False)  # 0 switches it off
+            if not (math.isfinite(number) and (number > 0 or (zero_ok and number == 0))):
+                raise ValueError(f'--gains {text!r}: {key} must be a '
+                                 f'{"non-negative" if zero_ok else "positive"} number, '
                                  f'got {value!r}')
             out.setdefault(method, {})[key] = number
     return out

@@ -3,6 +3,9 @@
 Fig. 2 is the average attitude error norm ``(1/n_f) Σ |R̃_i|_I``; Fig. 3 the average position
 error norm ``(1/n_f) Σ ‖p̃_i‖`` with ``p̃_i = p_i − R̃_i p̂_i``. Each figure has the paper's linear
 view and a log view showing the convergence rate, with per-follower curves.
+
+For moving fleets, :func:`plot_trajectories` draws the true and estimated (world-frame)
+trajectories in 3D next to each agent's position error, the distance between the two.
 """
 from __future__ import annotations
 
@@ -87,3 +90,137 @@ def log_axes(ax: Any, title: str, xlabel: str, ylabel: str, log_x: bool = False,
     ax.set_ylabel(ylabel)
     ax.grid(True, which='both', alpha=0.3)
     ax.legend(fontsize=legend_size)
+
+
+TRAJECTORY_PLOT = 'trajectories.png'
+MAX_TRAJECTORIES = 20  # beyond this many agents the picture is a tangle: draw a sample
+
+
+def _shown_agents(is_leader: np.ndarray, limit: int) -> np.ndarray:
+    """Rows to draw: every agent if at most ``limit``, else the leaders (up to ``limit``) and
+    followers evenly spread over the rest."""
+    n = len(is_leader)
+    if n <= limit:
+        return np.arange(n)
+    leaders = np.flatnonzero(is_leader)[:limit]
+    others = np.flatnonzero(~is_leader)
+    room = limit - len(leaders)
+    if room <= 0 or not len(others):
+        return leaders
+    spread = np.unique(np.linspace(0, len(others) - 1, room).round().astype(int))
+    return np.sort(np.concatenate([leaders, others[spread]]))
+
+
+def _agent_colours(n: int) -> list[Any]:
+    """``n`` (at most 20) distinct colours: the default cycle, then tab20's dark shades before
+    its light ones (so neighbouring agents do not get two shades of one hue)."""
+    if n <= 10:
+        return [f'C{k}' for k in range(n)]
+    import matplotlib
+
+    cmap = matplotlib.colormaps['tab20']
+    return [cmap(k) for k in [*range(0, 20, 2), *range(1, 20, 2)][:n]]
+
+
+def _equal_box(ax: Any, points: np.ndarray) -> None:
+    """Limits around the (finite) ``points`` ``(M, 3)`` with a small margin and a box aspect
+    equal to their ranges: one metre is as long on every axis."""
+    finite = points[np.isfinite(points).all(axis=1)]
+    if not len(finite):
+        return
+    lo, hi = finite.min(axis=0), finite.max(axis=0)
+    span = hi - lo
+    # A flat (or point-like) set still gets a visible box: at least 15 % of the largest range.
+    span = np.maximum(span, 0.15 * max(float(span.max()), 1e-3))
+    mid = (lo + hi) / 2
+    half = 0.52 * span
+    ax.set_xlim(mid[0] - half[0], mid[0] + half[0])
+    ax.set_ylim(mid[1] - half[1], mid[1] + half[1])
+    ax.set_zlim(mid[2] - half[2], mid[2] + half[2])
+    ax.set_box_aspect(tuple(span), zoom=1.0)
+
+
+def plot_trajectories(rec: Recording, path: Path, title: str | None = None) -> Path:
+    """Write ``path``: the true (solid) and estimated (dashed, world frame) trajectories of the
+    recording's fleet in 3D, one colour per agent (at most :data:`MAX_TRAJECTORIES` of them),
+    with start markers (leaders as stars), next to each drawn follower's position error
+    ``‖p_i - p̂_i‖`` in the same colours. Raises ValueError if ``rec`` has no trajectories."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import MaxNLocator
+
+    tr = rec.trajectories
+    if tr is None:
+        raise ValueError('the recording has no trajectories (only moving fleets record them)')
+    n = len(tr.agents)
+    is_leader = tr.is_leader
+    shown = _shown_agents(is_leader, MAX_TRAJECTORIES)
+    colours = dict(zip(shown.tolist(), _agent_colours(len(shown))))
+    per_agent_legend = len(shown) <= 12
+
+    fig = plt.figure(figsize=(14, 6.2), constrained_layout=True)
+    # The legend gets its own column: next to the 3D box it would cover the z tick labels.
+    grid = fig.add_gridspec(1, 3, width_ratios=[1.5, 0.24, 1.0])
+    ax = fig.add_subplot(grid[0], projection='3d')
+    legend_ax = fig.add_subplot(grid[1])
+    legend_ax.axis('off')
+    err = fig.add_subplot(grid[2])
+    for i in shown.tolist():
+        c, lead = colours[i], bool(is_leader[i])
+        p, q = tr.p[:, i], tr.p_hat[:, i]
+        ax.plot(p[:, 0], p[:, 1], p[:, 2], color=c, lw=2.4 if lead else 1.6, alpha=0.9)
+        if not lead:  # a leader's estimate is its truth: the dashed line would hide under it
+            ax.plot(q[:, 0], q[:, 1], q[:, 2], color=c, lw=0.9, ls='--', alpha=0.9)
+            ax.scatter(*q[0], color=c, marker='o', s=22, facecolors='none', linewidths=1.0,
+                       depthshade=False)
+        ax.scatter(*p[0], color=c, marker='*' if lead else 'o', s=110 if lead else 26,
+                   edgecolors='k', linewidths=0.5, depthshade=False, zorder=5)
+    drawn = np.concatenate([tr.p[:, shown].reshape(-1, 3),
+                            tr.p_hat[:, shown[~is_leader[shown]]].reshape(-1, 3)])
+    _equal_box(ax, drawn)
+    ax.set_xlabel('x [m]')
+    ax.set_ylabel('y [m]')
+    ax.set_zlabel('z [m]')
+    ax.tick_params(labelsize=8)
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+        axis.set_major_locator(MaxNLocator(6, steps=[1, 2, 5, 10]))
+    ax.view_init(elev=24, azim=-58)
+    some = f'{len(shown)} of {n} agents shown' if len(shown) < n else f'{n} agents'
+    ax.set_title(f'Trajectories in the world frame ({some})', fontsize=11)
+
+    key = [Line2D([], [], color='0.25', lw=1.6, label='true'),
+           Line2D([], [], color='0.25', lw=0.9, ls='--', label='estimate'),
+           Line2D([], [], color='0.25', marker='o', ls='', ms=5, mec='k', mew=0.5,
+                  label='start (true)'),
+           Line2D([], [], color='0.25', marker='o', ls='', ms=5, mfc='none',
+                  label='start (estimate)'),
+           Line2D([], [], color='0.25', marker='*', ls='', ms=10, mec='k', mew=0.5,
+                  label='leader (knows its pose)')]
+    if per_agent_legend:
+        key += [Line2D([], [], color=colours[i], lw=2.4 if is_leader[i] else 1.6,
+                       label=tr.agents[i] + (' (leader)' if is_leader[i] else ''))
+                for i in shown.tolist()]
+    legend_ax.legend(handles=key, loc='center', fontsize=8, frameon=False)
+
+    column = {name: k for k, name in enumerate(rec.followers)}
+    for i in shown.tolist():
+        k = column.get(tr.agents[i])
+        if k is not None:
+            err.plot(rec.t, np.maximum(rec.pos_err[:, k], 1e-17), color=colours[i], lw=1.0,
+                     alpha=0.85, label=tr.agents[i])
+    if rec.pos_err.shape[1]:
+        err.plot(rec.t, np.maximum(rec.pos_err.mean(axis=1), 1e-17), 'k', lw=2.0,
+                 label=f'average ({rec.pos_err.shape[1]} followers)')
+        err.legend(handles=err.get_lines()[-1:], fontsize=8)  # agents' colours: centre key
+    err.set_yscale('log')
+    err.set_xlabel('time [s]')
+    err.set_ylabel(r'$\|p_i - \hat p_i\|$ [m] (world frame)')
+    err.set_title('Position error: the gap between dashed and solid', fontsize=11)
+    err.grid(True, which='major', alpha=0.35)
+    err.grid(True, which='minor', alpha=0.12)
+    fig.suptitle(title or 'True and estimated trajectories', fontsize=12)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

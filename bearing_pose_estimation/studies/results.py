@@ -85,9 +85,28 @@ def pose_errors(frame: EstimateFrame, R: Array, p: Array, R_hat: Array, p_hat: A
 
 
 @dataclass
+class Trajectories:
+    """Positions of the whole fleet at a recording's times: the truth ``p`` and the estimates
+    ``p_hat`` in the world frame (after :func:`to_world` with the method's frame), both
+    ``(K, N, 3)`` [m], rows in the order of ``agents``; ``leaders``: the agents that know their
+    pose (the others estimate theirs)."""
+
+    agents: list[str]
+    leaders: list[str]
+    p: Array
+    p_hat: Array
+
+    @property
+    def is_leader(self) -> NDArray[np.bool_]:
+        """``(N,)``: which rows are leaders."""
+        return np.array([name in self.leaders for name in self.agents], dtype=bool)
+
+
+@dataclass
 class Recording:
     """Errors of every estimating agent (``followers``) at the recorded times: arrays ``(K, F)``
-    for K records and F agents, as in :class:`PoseErrors`."""
+    for K records and F agents, as in :class:`PoseErrors`; for moving fleets, optionally the
+    :class:`Trajectories` of every agent at the same times (``None`` otherwise)."""
 
     t: Array
     followers: list[str]
@@ -95,12 +114,38 @@ class Recording:
     pos_err: Array
     att_dist_I: Array
     pos_err_paper: Array
+    trajectories: Trajectories | None = None
 
     @staticmethod
-    def of(t: Sequence[float], followers: list[str], rows: Sequence[PoseErrors]) -> Recording:
-        """A recording from the errors at each time (the one place one is assembled)."""
-        cols = [np.array([r[c] for r in rows]) for c in range(len(PoseErrors._fields))]
-        return Recording(np.array(t, dtype=float), followers, *cols)
+    def of(t: Sequence[float], followers: list[str], rows: Sequence[PoseErrors], *,
+           agents: list[str] | None = None, leaders: Sequence[str] = (),
+           p: Sequence[Array] | None = None, p_hat: Sequence[Array] | None = None
+           ) -> Recording:
+        """A recording from the errors at each time (the one place one is assembled); with
+        ``agents`` (all N names, in row order), ``leaders`` and the true and world-frame
+        estimated positions ``p``, ``p_hat`` ``(N, 3)`` at each time, also their
+        :class:`Trajectories`."""
+        att_err, pos_err, att_dist_I, pos_err_paper = (
+            np.array([r[c] for r in rows]) for c in range(len(PoseErrors._fields)))
+        times = np.array(t, dtype=float)
+        if p is None and p_hat is None and agents is None:
+            return Recording(times, followers, att_err, pos_err, att_dist_I, pos_err_paper)
+        if p is None or p_hat is None or agents is None:
+            raise ValueError('trajectories need agents, p and p_hat together')
+        shape = (len(times), len(agents), 3)
+
+        def stacked(x: Sequence[Array]) -> Array:
+            return np.array(x, dtype=float) if len(x) else np.empty(shape)
+
+        P, P_hat = stacked(p), stacked(p_hat)
+        if P.shape != shape or P_hat.shape != shape:
+            raise ValueError(f'trajectories must be {shape}, got p {P.shape}, '
+                             f'p_hat {P_hat.shape}')
+        unknown = sorted((set(leaders) | set(followers)) - set(agents))
+        if unknown:
+            raise ValueError(f'not among the agents: {", ".join(unknown)}')
+        return Recording(times, followers, att_err, pos_err, att_dist_I, pos_err_paper,
+                         Trajectories(list(agents), list(leaders), P, P_hat))
 
     def mean_errors(self) -> tuple[Array, Array]:
         """Mean attitude [rad] and position [m] error over the agents, per record."""

@@ -168,4 +168,7 @@ def format_summary(summary: dict[str, Any]) -> str:
         f'{when(s["attitude_below_1e-3_rad_from_s"])}',
         f'mean position error stays below 1e-2 m after: '
         f'{when(s["position_below_1e-2_m_from_s"])}',
+        f'steady state (last {STEADY_FRACTION:.0%} of the run, the floor if the errors stop '
+        f'falling): mean attitude error {s["steady_attitude_error_mean_rad"]:.3e} rad, mean '
+        f'position error {s["steady_position_error_mean_m"]:.3e} m',
     ])
