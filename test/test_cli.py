@@ -173,3 +173,18 @@ def test_bad_command_lines_exit_2(argv):
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2
+
+
+def test_simulate_gains_turn_the_feed_forward_off_and_report_the_floor(tmp_path, capsys):
+    """`--gains k_v=0` on the moving scenario: the paper's observer lags, and the summary's
+    steady-state line reports the position floor (about 0.5 m); a bad gain is refused."""
+    moving = PAPER.replace('paper_8_agents.yaml', 'paper_8_agents_moving.yaml')
+    assert main(['simulate', moving, '--duration', '20', '--gains', 'k_v=0', '--quiet',
+                 '--no-plots', '--out', str(tmp_path / 'off')]) == 0
+    out = capsys.readouterr()
+    assert 'gains: k_R=1, k_p=1, k_v=0' in out.err
+    summary = json.loads((tmp_path / 'off' / 'summary.json').read_text())
+    assert summary['steady_position_error_mean_m'] > 0.2
+    assert f'position error {summary["steady_position_error_mean_m"]:.3e} m' in out.out
+    assert main(['simulate', moving, '--gains', 'k_v=-1', '--out', str(tmp_path / 'bad')]) == 2
+    assert "k_v must be a non-negative number, got '-1'" in capsys.readouterr().err

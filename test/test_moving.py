@@ -4,6 +4,7 @@ solutions."""
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 
 import numpy as np
 import pytest
@@ -276,3 +277,42 @@ def test_bad_odometry_is_rejected_with_a_cause_and_live_odometry_paces_the_steps
     est.advance()
     assert est.last.odometry and est.odometry_missing_steps == 0
     assert np.all(np.isfinite(est.p_hat))
+
+
+def test_neighbour_values_are_paired_at_one_instant():
+    """j's channels travel in separate messages: a step pairs the newest instant at which all
+    of them (and our own bearing) exist, never values of two instants; with none yet, the
+    edge sits the step out."""
+    from bearing_pose_estimation.estimators.agent import NeighbourState
+
+    nb = NeighbourState('agent_1', 1, 1.0)
+    a, b, c = (np.full(3, x) for x in (1.0, 2.0, 3.0))
+    nb.history = {'p_hat': deque([(0.02, a), (0.04, b), (0.06, c)]),
+                  'world_bearing': deque([(0.02, -a), (0.04, -b)])}
+    t_s, values = nb.at_one_instant(['p_hat', 'world_bearing'], not_after=1.0)
+    assert t_s == 0.04 and values['p_hat'] is b and values['world_bearing'] is not None
+    assert nb.at_one_instant(['p_hat', 'world_bearing'], not_after=0.03)[0] == 0.02
+    assert nb.at_one_instant(['p_hat', 'world_bearing'], not_after=0.01) is None
+
+
+def test_a_leaders_known_pose_waits_for_the_odometry_that_carries_it():
+    """A known pose stamped ahead of the odometry cannot be carried back to the step time
+    yet: it is applied once odometry covers the way, and the leader's estimate is then its
+    true pose (here: constant body velocity, so p(t) = p(t_k) + R (t - t_k) v)."""
+    from bearing_pose_estimation.estimators.agent import estimator_for
+
+    s = load_scenario(MOVING)
+    est = estimator_for(s, 'agent_1')
+    v = np.array([0.3, 0.0, 0.0])
+    for k in range(1, 9):
+        est.add_gyro(0.005 * k, np.zeros(3))
+    for k in range(1, 3):
+        est.add_odometry(0.01 * k, v, np.zeros(3))
+    R, p = np.eye(3), np.array([1.0, 2.0, 3.0])
+    assert est.set_known_pose(0.04, R, p) is None     # 20 ms ahead of the odometry
+    est.advance()                                     # steps 0 -> 0.02: pose not applied
+    assert est._known_pose is not None
+    for k in range(3, 5):
+        est.add_odometry(0.01 * k, v, np.zeros(3))
+    est.advance()                                     # 0.02 -> 0.04: applied, carried
+    np.testing.assert_allclose(est.p_hat[0], p, atol=1e-12)

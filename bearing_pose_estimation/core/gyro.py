@@ -47,6 +47,7 @@ class IntervalBuffer:
         self._t: list[float] = [start]     # interval boundaries: sample k covers (t[k], t[k+1]]
         self._w: list[NDArray[np.float64]] = []
         self._period: float | None = None  # the sampling period, from the last regular interval
+        self.bridged = 0                   # gaps of lost samples bridged so far
         # Increments over covered intervals never change (samples are only appended), and the
         # node asks for the same ones repeatedly (all bearings of one message share a stamp).
         self._cache: dict[tuple[float, float], NDArray[np.float64]] = {}
@@ -72,6 +73,7 @@ class IntervalBuffer:
             # Samples were lost: bridge the gap with the mean of the rates on either side.
             self._t.append(float(stamp) - self._period)
             self._w.append(0.5 * (self._w[-1] + omega))
+            self.bridged += 1
         elif self._w:  # a regular interval (the first one may start before the IMU did)
             self._period = interval
         self._t.append(float(stamp))

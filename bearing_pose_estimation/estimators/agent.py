@@ -46,7 +46,7 @@ Array = NDArray[np.float64]
 # Keep this many bearing samples per target: a bearing newer than the gyro data must wait.
 _BEARING_HISTORY = 8
 # Keep this many values of each neighbour channel, to pair them at one instant.
-_NEIGHBOUR_HISTORY = 4
+_NEIGHBOUR_HISTORY = 8
 # What the agent logic can feed a method today; others come with their sensors' models.
 SUPPORTED_SENSORS = frozenset({Sensor.GYRO, Sensor.BEARINGS, Sensor.KNOWN_POSE,
                                Sensor.ODOMETRY})
@@ -195,6 +195,11 @@ class AgentEstimator:
         self.uses_odometry = estimator.uses(Sensor.ODOMETRY)
         self.odometry = OdometryBuffer(t0, gyro_horizon)
         self.odometry_missing_steps = 0   # steps run without odometry while it was expected
+        # Moving: neighbour values that could not be paired at one instant (none of their
+        # instants has an own bearing yet: the edge sits the step out; or the sender never
+        # sends its channels at one instant, or no odometry covers the delay: used as they
+        # are).
+        self.unpaired = 0
         self._bearings: dict[int, deque[tuple[float, Array]]] = {}
         self._known_pose: tuple[float, Array, Array] | None = None
         self.last = StepInfo(t=self.t0)
@@ -453,6 +458,10 @@ class AgentEstimator:
                 own = self._bearings.get(nb.agent_id)
                 newest = own[-1][0] if own else t   # our bearing at t_s must be here too
                 same = nb.at_one_instant(names, not_after=min(t, newest))
+                if same is None:
+                    self.unpaired += 1
+                    if nb.at_one_instant(names, not_after=np.inf) is not None:
+                        continue  # this step without j: exact, unlike values of two instants
                 t_s, sent = same if same is not None else (max(nb.stamps.values()), sent)
                 t_s = min(t_s, t)
             b = self.body_bearing(nb.agent_id, t, at=t_s if moving else None)
@@ -460,6 +469,8 @@ class AgentEstimator:
                 used.append((nb, b))
                 values.append(sent)
                 back = self.moved_back(t, t_s) if t_s < t else None
+                if back is None and t_s < t:
+                    self.unpaired += 1
                 p_own.append(self.x.p_hat[0] if back is None else back)
         received = {name: (np.array([v[name] for v in values]) if used
                            else np.zeros((0,) + c.shape)) for name, c in self.channels.items()}
@@ -503,9 +514,12 @@ class AgentEstimator:
         if self._known_pose is None:
             return
         stamp, R, p = self._known_pose
-        if self.gyro.covers(stamp, t):
+        moving = self.odometry_live()
+        # A pose from another instant is carried to t by the gyro and, moving, the odometry:
+        # wait until both cover the way (a pose ahead of the odometry would be misplaced).
+        if self.gyro.covers(stamp, t) and (not moving or self.odometry.covers(stamp, t)):
             R_t = R @ self.gyro.increment(stamp, t)
-            if self.odometry_live() and self.odometry.covers(stamp, t):   # a moving leader
+            if moving:
                 p = (p + R @ self.odometry.displacement(stamp, t) if stamp <= t
                      else p - R_t @ self.odometry.displacement(t, stamp))
             self.x = self.estimator.with_known_pose(self.x, np.zeros(1, dtype=np.intp),

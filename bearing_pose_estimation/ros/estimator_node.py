@@ -11,7 +11,9 @@ the channels the method sends (``msg_defs.CHANNELS``; both leader-follower metho
 ``/<j>/estimate`` and ``/<j>/world_bearings``). Publishes ``estimate``
 (geometry_msgs/PoseStamped in ``world``) and its other channels (``world_bearings``: what its
 listeners need) every ``publish_rate`` period, on exact multiples of it, and its health on
-``/diagnostics``.
+``/diagnostics``. When the agent moves (odometry is live), the world bearings of an instant
+wait for the own bearings measured at it (listeners pair values of one instant,
+``msg_defs/README.md``), and are skipped if the next step comes first.
 
 Bad input is rejected, counted by cause, warned about (throttled) and reported in the
 diagnostics; it never stops the node and never reaches the estimate.
@@ -450,7 +452,9 @@ class EstimatorNode(Node):
                         level = max(level, DiagnosticStatus.WARN)
                         problems.append(problem)
             values['non_finite_steps'] = str(est.non_finite_steps)
+            values['gyro_gaps_bridged'] = str(est.gyro.bridged)
             if est.uses_odometry:
+                values['odometry_gaps_bridged'] = str(est.odometry.bridged)
                 values['odometry_live'] = str(est.odometry_live())
                 values['odometry_missing_steps'] = str(est.odometry_missing_steps)
         for cause, n in sorted(self.rejected.items()):
@@ -474,7 +478,9 @@ class EstimatorNode(Node):
             self.get_logger().info(
                 f'{self.est.k} steps ({self.est.k * self.h:.2f} s of state time) in {wall:.1f} s '
                 f'wall: {self.est.k / wall:.1f} steps/s; rejected: {dict(self.rejected) or 0}; '
-                f'events: {dict(self.events) or 0}')
+                f'events: {dict(self.events) or 0}; lost-sample gaps bridged: gyro '
+                f'{self.est.gyro.bridged}, odometry {self.est.odometry.bridged}; unpaired '
+                f'neighbour values: {self.est.unpaired}')
         super().destroy_node()
 
 
