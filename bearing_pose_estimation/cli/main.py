@@ -303,7 +303,9 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
 def cmd_run(args: argparse.Namespace) -> int:
     scenario = _load_checked(args.scenario)
     processes = [a.name for a in scenario.agents] + ['simulator', 'monitor']
-    outputs = (['metrics.csv', 'summary.json'] + ([] if args.no_plots else PLOT_FILES)
+    plots = [] if args.no_plots else PLOT_FILES + (['trajectories.png'] if scenario.moves
+                                                   else [])
+    outputs = (['metrics.csv', 'summary.json'] + plots
                + [f'params/{p}.yaml' for p in processes] + [f'logs/{p}.log' for p in processes])
     out = _out_dir(args.out or f'results/{scenario.name}_dds', outputs, args.force)
     duration = args.duration if args.duration is not None else scenario.duration

@@ -4,7 +4,11 @@ Subscribes to every follower's ``/<agent>/estimate`` and ``/<agent>/ground_truth
 at identical stamps on a ``record_every`` grid (estimates come every estimator step, truth every
 ground-truth period, so the grid instants carry both), and writes ``metrics.csv``,
 ``summary.json`` and the plots to ``out_dir`` once ``t = duration`` is recorded, then exits.
-Interrupted, it writes what it has. Progress goes to stdout.
+Interrupted, it writes what it has. Progress goes to stdout. Errors come from
+:func:`studies.results.pose_errors`, as in the batch simulator. A moving fleet, or a method whose
+estimates are not world poses, needs the whole fleet's truth (:func:`watched`): the trajectories
+then go to ``trajectories.png``, and the alignment covers every agent, as in the batch
+simulator.
 
 Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``out_dir``,
 ``record_every`` [s], ``progress_every`` [s of sim time], ``plots``.
@@ -21,9 +25,18 @@ from rclpy.node import Node
 from rclpy.task import Future
 
 from .. import msg_defs as wire
-from ..studies.results import PoseErrors, Recording, pose_errors
+from ..estimators.base import EstimateFrame
+from ..scenario.model import Scenario
+from ..studies.results import PoseErrors, Recording, pose_errors, to_world
 from ..studies.summary import format_summary, summarize, write_metrics_csv, write_summary_json
 from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
+
+
+def watched(scenario: Scenario) -> list[str]:
+    """The agents whose ground truth the monitor reads: the followers, or the whole fleet when
+    it moves (trajectories) or its method's estimates need aligning (not world poses)."""
+    whole = scenario.moves or scenario.estimator().frame is not EstimateFrame.WORLD
+    return [a.name for a in (scenario.agents if whole else scenario.followers)]
 
 
 class MonitorNode(Node):
@@ -44,17 +57,21 @@ class MonitorNode(Node):
         # Errors as the method's estimates require (the followers are every agent that
         # estimates; for methods without leaders, the whole fleet).
         self.frame = s.estimator().frame
-        self._truth: dict[int, dict[int, tuple]] = {}   # ns -> follower index -> (R, p)
+        self.watched = watched(s)
+        self.whole = len(self.watched) == len(s.agents) and len(self.followers) < len(s.agents)
+        self._truth: dict[int, dict[int, tuple]] = {}   # ns -> watched index -> (R, p)
         self._est: dict[int, dict[int, tuple]] = {}     # ns -> follower index -> (R̂, p̂)
+        self.tracks: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t, p, p̂ in world)
         self._recorded: set[int] = set()
         self.rows: list[tuple[float, PoseErrors]] = []
         self._last_progress = -np.inf
         self.done = False
         self.finished = Future()  # completes once the outputs are written
         self.wall_start = time.monotonic()
-        for k, name in enumerate(self.followers):
+        for k, name in enumerate(self.watched):
             self.create_subscription(wire.PoseStamped, wire.topic(name, wire.GROUND_TRUTH),
                                      partial(self._on_pose, self._truth, k), wire.SIM_PUB_QOS)
+        for k, name in enumerate(self.followers):
             self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE),
                                      partial(self._on_pose, self._est, k), wire.ESTIMATE_QOS)
 
@@ -73,14 +90,27 @@ class MonitorNode(Node):
     def _complete(self, ns: int) -> None:
         n = len(self.followers)
         truth, est = self._truth.get(ns, {}), self._est.get(ns, {})
-        if len(truth) < n or len(est) < n:
+        if len(truth) < len(self.watched) or len(est) < n:
             return
-        R = np.stack([truth[k][0] for k in range(n)])
-        p = np.stack([truth[k][1] for k in range(n)])
-        R_hat = np.stack([est[k][0] for k in range(n)])
-        p_hat = np.stack([est[k][1] for k in range(n)])
+        R = np.stack([truth[k][0] for k in range(len(self.watched))])
+        p = np.stack([truth[k][1] for k in range(len(self.watched))])
         t = ns * 1e-9
-        errors = pose_errors(self.frame, R, p, R_hat, p_hat)
+        s = self.scenario
+        if self.whole:  # every agent: the leaders know their pose, the anchor is its frame
+            R_hat, p_hat = R.copy(), p.copy()
+            if s.anchor_index is not None:
+                R_hat[s.anchor_index], p_hat[s.anchor_index] = np.eye(3), np.zeros(3)
+            rows = [s.index[name] for name in self.followers]
+            for k, i in enumerate(rows):
+                R_hat[i], p_hat[i] = est[k]
+            errors = pose_errors(self.frame, R, p, R_hat, p_hat, rows, anchor=s.anchor_index)
+            if s.moves:
+                self.tracks.append((t, p, to_world(self.frame, R, p, R_hat, p_hat,
+                                                   s.anchor_index)[1]))
+        else:
+            R_hat = np.stack([est[k][0] for k in range(n)])
+            p_hat = np.stack([est[k][1] for k in range(n)])
+            errors = pose_errors(self.frame, R, p, R_hat, p_hat)
         self.rows.append((t, errors))
         del self._truth[ns], self._est[ns]
         self._recorded.add(ns)
@@ -96,7 +126,14 @@ class MonitorNode(Node):
         if not self.rows:
             return None
         rows = sorted(self.rows, key=lambda r: r[0])
-        return Recording.of([t for t, _ in rows], self.followers, [e for _, e in rows])
+        times, errors = [t for t, _ in rows], [e for _, e in rows]
+        if not self.tracks:
+            return Recording.of(times, self.followers, errors)
+        tracks = sorted(self.tracks, key=lambda r: r[0])
+        return Recording.of(times, self.followers, errors,
+                            agents=[a.name for a in self.scenario.agents],
+                            leaders=list(self.scenario.leaders),
+                            p=[x[1] for x in tracks], p_hat=[x[2] for x in tracks])
 
     def finish(self) -> None:
         """Write the outputs (once), from whatever has been recorded."""
@@ -116,8 +153,12 @@ class MonitorNode(Node):
         write_metrics_csv(rec, self.out_dir / 'metrics.csv')
         write_summary_json(summary, self.out_dir / 'summary.json')
         if self.plots:
-            from ..studies.plots import write_plots
+            from ..studies.plots import TRAJECTORY_PLOT, plot_trajectories, write_plots
             write_plots(rec, self.out_dir)
+            if rec.trajectories is not None:
+                plot_trajectories(rec, self.out_dir / TRAJECTORY_PLOT,
+                                  title=f'{self.scenario.name} over DDS: true and estimated '
+                                  'trajectories')
         print(format_summary(summary), flush=True)
         self.finished.set_result(True)
 

@@ -35,6 +35,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 
 from .. import msg_defs as wire
 from ..estimators.base import Sensor
+from .monitor_node import watched
 from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
 from ..sim.world import World
 
@@ -68,6 +69,7 @@ class SimulatorNode(Node):
         self.publish_clock = p('publish_clock', True, 'publish /clock (the simulated time)')
 
         self.world = World(s)
+        self.monitor_watches = set(watched(s))   # the agents whose truth the monitor reads
         self.names = [a.name for a in s.agents]
         # The topics the estimators exchange, from what the scenario's method sends.
         self.channel_topics = list(dict.fromkeys(wire.channel(c.name).topic
@@ -124,7 +126,8 @@ class SimulatorNode(Node):
         s, missing = self.scenario, []
         for k, name in enumerate(self.names):
             monitored = 1 if self.wait_for_monitor and name not in s.leaders else 0
-            need_truth = monitored + (1 if name in s.leaders else 0)
+            need_truth = ((1 if self.wait_for_monitor and name in self.monitor_watches else 0)
+                          + (1 if name in s.leaders else 0))
             if self.pub_imu[k].get_subscription_count() < 1:
                 missing.append(wire.topic(name, wire.IMU))
             if self.pub_bearings[k].get_subscription_count() < 1:
