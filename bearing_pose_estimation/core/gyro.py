@@ -58,6 +58,11 @@ class IntervalBuffer:
         return self._t[0]
 
     @property
+    def empty(self) -> bool:
+        """No sample yet."""
+        return not self._w
+
+    @property
     def end(self) -> float:
         """Latest time covered by samples (the newest stamp)."""
         return self._t[-1]

@@ -292,7 +292,7 @@ class AgentEstimator:
     def odometry_live(self) -> bool:
         """Odometry samples keep up with the gyro (within ``sensor_timeout``): steps wait for
         them and feed them forward."""
-        return (self.uses_odometry and bool(self.odometry._w)
+        return (self.uses_odometry and not self.odometry.empty
                 and self.odometry.end >= self.gyro.end - self.limits.sensor_timeout)
 
     def add_bearings(self, stamp: float, ids: NDArray[np.integer],
