@@ -399,8 +399,8 @@ class EstimatorNode(Node):
             if round((self.est.t - self.est.origin) / self.h) % self.publish_every == 0:
                 # Moving: what listeners pair with their own past must be measured at the stamp;
                 # the bearings of this instant may still be on their way (the simulator sends
-                # them with the gyro sample that released this step): the estimate goes now,
-                # the world bearings once they are here.
+                # them just after the gyro sample that completed this step): the estimate goes
+                # now, the world bearings once they are here.
                 wait = self.est.odometry_live() and not self.est.bearings_at(self.est.t)
                 self._publish(world=not wait)
                 if wait:

@@ -4,8 +4,9 @@ Publishes, per agent, ``/<agent>/imu`` (interval-average gyro), ``/<agent>/beari
 frame) and ``/<agent>/ground_truth``, plus ``/clock``, from :class:`sim.world.World` (truth on a
 1 ms grid); and the moving-robot sensors the scenario simulates (``/<agent>/odom``,
 ``relative_positions``, ``bearing_rates``, ``ranges``), each at its own rate. It is the only
-clock publisher; every other node runs with ``use_sim_time``. Within one instant the other
-sensors go out before the gyro sample, whose arrival is what lets an estimator step.
+clock publisher; every other node runs with ``use_sim_time``. Within one instant the gyro
+sample goes out first (it completes the step that ends there), then the other sensors (the
+next step uses them).
 
 Start: it waits until every estimator and the monitor are matched (subscriptions to its
 topics, and the estimators' own topics to each other) and every estimator has announced its
@@ -204,6 +205,9 @@ class SimulatorNode(Node):
 
     def _publish(self, clock: bool) -> None:
         w, t = self.world, self.world.t
+        if w.due(w.imu_every) and w.tick > 0:  # a sample covers the period ending now
+            for i, omega in enumerate(w.imu()):
+                self.pub_imu[i].publish(wire.encode_imu(t, self.names[i], omega))
         if w.due(w.bearing_every):
             for i, name in enumerate(self.names):
                 j, b = w.bearings(i)
@@ -212,9 +216,6 @@ class SimulatorNode(Node):
         for sensor, pubs in self.pub_sensors.items():
             if w.due(w.sensor_every[sensor]) and (sensor != 'odometry' or w.tick > 0):
                 self._publish_sensor(sensor, pubs, t)
-        if w.due(w.imu_every) and w.tick > 0:  # a sample covers the period ending now
-            for i, omega in enumerate(w.imu()):
-                self.pub_imu[i].publish(wire.encode_imu(t, self.names[i], omega))
         if w.due(w.truth_every):
             for i, pub in enumerate(self.pub_truth):
                 pub.publish(wire.encode_pose(t, wire.WORLD_FRAME, w.R[i], w.p[i]))
