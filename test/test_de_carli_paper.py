@@ -16,8 +16,8 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.interpolate import CubicSpline
 
-from bearing_pose_estimation.estimators.de_carli import (Pairs, dead_reckoning,
-                                                          position_correction,
+from bearing_pose_estimation.estimators.de_carli import (ExcitationMonitor, Pairs,
+                                                          dead_reckoning, position_correction,
                                                           relative_yaw_step, rot_z, unit,
                                                           yaw_consensus_step)
 
@@ -29,8 +29,9 @@ SCENARIO = Path(__file__).resolve().parent / 'data' / 'de-carli-2024-scenario.js
 class Paper:
     """The scenario's numbers, its yaw splines and the exogenous formation controller."""
 
-    def __init__(self) -> None:
+    def __init__(self, hovering: tuple[int, ...] = ()) -> None:
         d = json.loads(SCENARIO.read_text())
+        self.hovering = list(hovering)   # robots that never translate (no excitation)
         self.d = d
         self.n = d['n_robots']
         edges = np.array(d['sensing_edges'], dtype=np.intp)
@@ -62,7 +63,9 @@ class Paper:
         np.add.at(mu, self.head, -r)
         u = self.k_c * mu
         norm = np.linalg.norm(u, axis=1, keepdims=True)
-        return u * np.minimum(1.0, self.nu_max / np.maximum(norm, 1e-300))
+        u = u * np.minimum(1.0, self.nu_max / np.maximum(norm, 1e-300))
+        u[self.hovering] = 0.0
+        return u
 
     def measure(self, psi: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         d = np.einsum('kba,kb->ka', rot_z(psi[self.tail]), p[self.head] - p[self.tail])
@@ -83,15 +86,18 @@ def rel_yaw_error(paper: Paper, psi, z_pair) -> float:
     return float(np.abs(z_pair - np.exp(1j * (psi[paper.pairs.b] - psi[paper.pairs.a]))).mean())
 
 
-def discrete(paper: Paper, T: float, h: float = 0.005, every: float = 0.1):
+def discrete(paper: Paper, T: float, h: float = 0.005, every: float = 0.1,
+             monitor: bool = False) -> tuple[np.ndarray, ExcitationMonitor]:
     """The multirate discrete observer on a sampled-data plant (the controller evaluated at
     each 5 ms tick and held in the body frame; yaw exact; displacement by 3-point
-    Gauss-Legendre, §7)."""
+    Gauss-Legendre, §7): the records ``(t, yaw error, position error, relative-yaw error)``
+    and the excitation monitor. ``monitor``: stage 2 uses only the pairs excited so far."""
     gl = (0.5 - np.sqrt(0.15), 0.5, 0.5 + np.sqrt(0.15)), (5 / 18, 8 / 18, 5 / 18)
     p, P, Pz = paper.p0.copy(), paper.P0.copy(), paper.Pz0.copy()
     z_pair, z_hat, p_hat = paper.z_pair0.copy(), paper.z_hat0.copy(), paper.p_hat0.copy()
     prev = np.zeros(paper.n, dtype=complex)
     active = np.ones(len(paper.pairs), dtype=bool)
+    excitation = ExcitationMonitor(paper.pairs, h)
     rec, per_record = [], int(round(every / h))
     for k in range(int(round(T / h)) + 1):
         t = k * h
@@ -108,6 +114,8 @@ def discrete(paper: Paper, T: float, h: float = 0.005, every: float = 0.1):
             delta += weight * h * np.einsum('nba,nbc,nc->na', rot_z(psi),
                                             rot_z(paper.yaw(t + node * h)), v)
         dpsi = paper.yaw(t + h) - psi
+        if monitor:   # the consensus uses the pairs excited so far
+            active = excitation.active
         if k % 2 == 0:   # stage 2 at 100 Hz
             z_hat = yaw_consensus_step(z_hat, unit(z_pair), paper.pairs, active,
                                        0.01 * paper.k_z)
@@ -117,6 +125,7 @@ def discrete(paper: Paper, T: float, h: float = 0.005, every: float = 0.1):
                                         np.stack([y.real, y.imag, y_z], axis=1), 0.02,
                                         paper.k_p)
         dc = delta[:, 0] + 1j * delta[:, 1]
+        excitation.add(dc)
         P, Pz, z_pair, _ = relative_yaw_step(P, Pz, z_pair, paper.pairs, paper.tail,
                                              paper.head, y, y_z, dc, delta[:, 2], dpsi, prev,
                                              h, paper.k_pe, paper.k_psi)
@@ -124,7 +133,7 @@ def discrete(paper: Paper, T: float, h: float = 0.005, every: float = 0.1):
         p_hat = dead_reckoning(p_hat, psi_hat, delta)
         z_hat = np.exp(1j * dpsi) * z_hat
         p = p + np.einsum('nab,nb->na', rot_z(psi), delta)
-    return np.array(rec)
+    return np.array(rec), excitation
 
 
 def continuous(paper: Paper, T: float, every: float = 0.1):
@@ -204,7 +213,7 @@ def settle(rec: np.ndarray, column: int, threshold: float) -> float:
 def runs():
     paper = Paper()
     T = 10.0
-    return discrete(paper, T), continuous(paper, T)
+    return discrete(paper, T)[0], continuous(paper, T)
 
 
 def test_the_multirate_observer_matches_the_continuous_equations(runs):
@@ -226,3 +235,18 @@ def test_the_cascade_order_holds(runs):
         t_rel, t_yaw, t_pos = (settle(rec, c, 1e-3 * rec[0, c]) for c in (3, 1, 2))
         assert abs(t_rel - t_yaw) <= 0.1 + 1e-9, (t_rel, t_yaw)
         assert t_pos >= max(t_rel, t_yaw) + 1.5, (t_rel, t_yaw, t_pos)
+
+
+def test_a_hovering_robot_s_pairs_are_detected_and_left_out():
+    """Robot 7 hovers: the pairs that only its motion could excite ({4, 7} and {6, 7}: their
+    edges sense robot 7) are never excited. Left out of the consensus, the rest of the fleet,
+    robot 7 included (through pair {3, 7}, whose edge senses robot 3), converges; kept in,
+    their initial relative yaws bias the common yaw, whose error stops far above."""
+    paper = Paper(hovering=(7,))
+    out, monitor = discrete(paper, 10.0, monitor=True)
+    never = {(int(a), int(b)) for a, b, on in zip(paper.pairs.a, paper.pairs.b, monitor.active)
+             if not on}
+    assert never == {(4, 7), (6, 7)}
+    assert out[-1, 1] < 1e-6 and out[-1, 2] < 1e-2, out[-1]
+    biased, _ = discrete(paper, 10.0, monitor=False)
+    assert biased[-1, 1] > 1e-2, biased[-1]

@@ -158,3 +158,24 @@ def test_the_common_yaw_and_translation_solve_the_position_observer():
 
 def test_unit_guards_a_vanishing_modulus():
     np.testing.assert_allclose(unit(np.array([2j, 0.0, 1e-300])), [1j, 1.0, 1.0])
+
+
+def test_the_excitation_monitor_admits_a_pair_once_and_reports_the_present():
+    """Pair {0, 1} (robot 0 senses robot 1, which moves at 0.3 m/s for 1 s, then stops) and
+    pair {1, 2} (robot 1 senses robot 2, which hovers): the first joins the consensus after
+    0.05/0.09 = 0.56 s and stays in; it is no longer "excited now" a window after the stop."""
+    from bearing_pose_estimation.estimators.de_carli import ExcitationMonitor
+
+    pairs = Pairs.of(np.array([0, 1]), np.array([1, 2]))
+    monitor = ExcitationMonitor(pairs, H)
+    moving = np.array([0.0, 0.3 * H, 0.0], dtype=complex)
+    for k in range(200):
+        monitor.add(moving)
+        if k == 109:
+            assert not monitor.active[0]
+        if k == 112:
+            assert monitor.active[0]
+    assert list(monitor.excited_now) == [True, False]
+    for _ in range(200):
+        monitor.add(np.zeros(3, dtype=complex))
+    assert list(monitor.active) == [True, False] and not monitor.excited_now.any()

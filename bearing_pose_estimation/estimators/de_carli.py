@@ -173,3 +173,51 @@ def position_correction(p_hat: Array, psi_hat: Array, tail: Index, head: Index,
 def dead_reckoning(p_hat: Array, psi_hat: Array, delta: Array) -> Array:
     """``p̂_i + R̂_i δ_i`` (every tick of stage 3; ``delta`` ``(N, 3)`` in each robot's frame)."""
     return p_hat + np.einsum('nab,nb->na', rot_z(psi_hat), delta)
+
+
+# Persistent excitation (Theorem 1, §5): a pair is excited by the horizontal motion of the
+# robots its edges sense; it joins the consensus once ∫ |v_xy|² dt over its sensed robots
+# reaches EXCITATION_M2_S (0.05 m²/s: e.g. 0.5 s at 0.3 m/s; the slow rate of stage 1 is
+# ≈ k_ψ |v_xy|²/k_pe, §2), and it stays in: the paper's own fleet stops once in formation.
+EXCITATION_M2_S = 0.05
+# The window of the "excited now" diagnostic [s].
+EXCITATION_WINDOW_S = 1.0
+
+
+class ExcitationMonitor:
+    """Per pair: the excitation its sensed robots give it (§5), the pairs the consensus may
+    use (:attr:`active`) and those excited within the last window (:attr:`excited_now`).
+
+    Args:
+        pairs: the pairs of the sensing edges.
+        h: the tick [s] (the excitation of a tick is ``|δ_xy|²/h``).
+    """
+
+    def __init__(self, pairs: Pairs, h: float, threshold: float = EXCITATION_M2_S,
+                 window: float = EXCITATION_WINDOW_S) -> None:
+        self.pairs, self.h, self.threshold = pairs, h, threshold
+        m = len(pairs)
+        # The robot each edge senses: its motion excites the edge's pair.
+        self._sensed = np.where(pairs.reversed_, pairs.a[pairs.edge_pair],
+                                pairs.b[pairs.edge_pair])
+        self.total = np.zeros(m)          # ∫ Σ |v_xy|² dt since the start [m²/s]
+        self._recent = np.zeros((max(1, int(round(window / h))), m))
+        self._k = 0
+
+    def add(self, delta: Complex) -> None:
+        """One tick's horizontal displacements ``δ`` ``(N,)`` (complex) of every robot."""
+        per_edge = np.abs(delta[self._sensed]) ** 2 / self.h
+        tick = np.bincount(self.pairs.edge_pair, weights=per_edge, minlength=len(self.pairs))
+        self.total += tick
+        self._recent[self._k % self._recent.shape[0]] = tick
+        self._k += 1
+
+    @property
+    def active(self) -> NDArray[np.bool_]:
+        """Pairs excited enough to have converged: the ones stage 2 uses."""
+        return self.total >= self.threshold
+
+    @property
+    def excited_now(self) -> NDArray[np.bool_]:
+        """Pairs excited within the last window (a diagnostic: the fleet may have stopped)."""
+        return self._recent.sum(axis=0) >= self.threshold
