@@ -416,8 +416,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser('simulate', help='run the batch simulator; write metrics, summary, plots',
                        description='Run all agents in one process (no ROS). Writes '
                        'DIR/metrics.csv, DIR/summary.json, DIR/fig2_attitude_error.png and '
-                       'DIR/fig3_position_error.png; refuses to overwrite any of them without '
-                       '--force.')
+                       'DIR/fig3_position_error.png (and DIR/trajectories.png for moving '
+                       'scenarios); refuses to overwrite any of them without --force.')
     p.add_argument('scenario', help='scenario YAML file')
     _add_output_options(p, '')
     p.add_argument('--step', type=float, help='step [s] (default: 1 / scenario frequency)')
