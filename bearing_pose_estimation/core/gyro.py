@@ -20,6 +20,7 @@ were held over the gap (20 times smaller over 1 s of ``sin 9t`` rates at 200 Hz 
 from __future__ import annotations
 
 import bisect
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -100,6 +101,29 @@ class IntervalBuffer:
         return (self.start - STAMP_TOLERANCE <= min(t0, t1)
                 and max(t0, t1) <= self.end + STAMP_TOLERANCE)
 
+    def integrated(self, t0: float, t1: float,
+                   compose: Callable[[list[tuple[NDArray[np.float64], float]]],
+                                     NDArray[np.float64]],
+                   what: str) -> NDArray[np.float64]:
+        """``compose(segments(t0, t1))`` for a covered ``[t0, t1]`` (``t0 <= t1``), cached:
+        increments over covered intervals never change (samples are only appended).
+
+        Raises:
+            ValueError: the buffer does not cover ``[t0, t1]`` (``what`` names the buffer).
+        """
+        if not self.covers(t0, t1):
+            raise ValueError(f'{what} buffer covers [{self.start:.6f}, {self.end:.6f}], '
+                             f'not [{t0:.6f}, {t1:.6f}]')
+        key = (t0, t1)
+        cached = self._cache.get(key)
+        if cached is not None:
+            return cached
+        value = compose(self.segments(t0, t1))
+        if len(self._cache) > 64:
+            self._cache.clear()
+        self._cache[key] = value
+        return value
+
     def segments(self, t0: float, t1: float) -> list[tuple[NDArray[np.float64], float]]:
         """The samples over ``[t0, t1]`` (``t0 <= t1``, covered) as ``(value, duration)``, in
         time order, the first and last cut at ``t0`` and ``t1``."""
@@ -124,17 +148,12 @@ class GyroBuffer(IntervalBuffer):
         """
         if t1 < t0:
             return self.increment(t1, t0).T
-        if not self.covers(t0, t1):
-            raise ValueError(f'gyro buffer covers [{self.start:.6f}, {self.end:.6f}], '
-                             f'not [{t0:.6f}, {t1:.6f}]')
-        key = (t0, t1)
-        cached = self._cache.get(key)
-        if cached is not None:
-            return cached
-        R = np.eye(3)
-        for omega, duration in self.segments(t0, t1):
-            R = R @ so3.exp(omega * duration)
-        if len(self._cache) > 64:
-            self._cache.clear()
-        self._cache[key] = R
-        return R
+        return self.integrated(t0, t1, _rotation, 'gyro')
+
+
+def _rotation(segments: list[tuple[NDArray[np.float64], float]]) -> NDArray[np.float64]:
+    """The product of ``exp(ω Δ)`` over the segments."""
+    R = np.eye(3)
+    for omega, duration in segments:
+        R = R @ so3.exp(omega * duration)
+    return R

@@ -44,19 +44,15 @@ class OdometryBuffer(IntervalBuffer):
         Raises:
             ValueError: the buffer does not cover ``[t0, t1]``.
         """
-        if not self.covers(t0, t1):
-            raise ValueError(f'odometry buffer covers [{self.start:.6f}, {self.end:.6f}], '
-                             f'not [{t0:.6f}, {t1:.6f}]')
-        key = (t0, t1)
-        cached = self._cache.get(key)
-        if cached is not None:
-            return cached
-        R, p = np.eye(3), np.zeros(3)
-        for sample, duration in self.segments(t0, t1):
-            omega, v = sample[:3] * duration, sample[3:] * duration
-            p = p + R @ so3.jacobian_apply(omega, v)
-            R = R @ so3.exp(omega)
-        if len(self._cache) > 64:
-            self._cache.clear()
-        self._cache[key] = p
-        return p
+        return self.integrated(t0, t1, _displacement, 'odometry')
+
+
+def _displacement(segments: list[tuple[Array, float]]) -> Array:
+    """The translation of the product of the segments' SE(3) exponentials (samples
+    ``(ω, v)``)."""
+    R, p = np.eye(3), np.zeros(3)
+    for sample, duration in segments:
+        omega, v = sample[:3] * duration, sample[3:] * duration
+        p = p + R @ so3.jacobian_apply(omega, v)
+        R = R @ so3.exp(omega)
+    return p
