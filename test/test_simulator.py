@@ -8,7 +8,7 @@ from bearing_pose_estimation.core import so3
 from bearing_pose_estimation.scenario.generate import generate_scenario
 from bearing_pose_estimation.scenario import check_scenario
 from bearing_pose_estimation.studies.summary import settling_time
-from bearing_pose_estimation.core.motion import OmegaProfile, magnus_increment
+from bearing_pose_estimation.core.motion import ProfileSet, magnus_increment
 from bearing_pose_estimation.sim.noise import perturb_bearings
 from bearing_pose_estimation.scenario import load_scenario, parse_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
@@ -44,7 +44,7 @@ def test_estimates_stay_on_so3(paper_run):
 def test_magnus_increment_matches_fine_integration():
     """ΔR from the 4th-order Magnus step agrees with 1000 tiny exponential sub-steps."""
     sim = BatchSimulator(load_scenario(PAPER))
-    omega: OmegaProfile = sim.truth.omega
+    omega: ProfileSet = sim.truth.omega
     t0, h = 0.73, 0.01
     dR = magnus_increment(omega, t0, h)
     fine = np.tile(np.eye(3), (sim.n, 1, 1))

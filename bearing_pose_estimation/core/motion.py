@@ -134,15 +134,12 @@ class ProfileSet:
         return out
 
 
-# Kept for the name the rotation code grew up with.
-OmegaProfile = ProfileSet
-
 # 3-point Gauss-Legendre nodes on [0, 1] and weights (exact for polynomials of degree 5).
 _GL3_NODES = (0.5 - np.sqrt(0.15), 0.5, 0.5 + np.sqrt(0.15))
 _GL3_WEIGHTS = (5.0 / 18.0, 8.0 / 18.0, 5.0 / 18.0)
 
 
-def magnus_increment(omega: OmegaProfile, t: float, h: float) -> NDArray[np.float64]:
+def magnus_increment(omega: ProfileSet, t: float, h: float) -> NDArray[np.float64]:
     """Body-frame increment ``ΔR`` over ``[t, t+h]`` for every agent, shape ``(N, 3, 3)``.
 
     4th-order Magnus expansion for right-multiplied dynamics ``dR/dt = R [ω]x``:

@@ -28,6 +28,14 @@ def twist_of(delta_R: Array, delta_p: Array, duration: float) -> tuple[Array, Ar
     return so3.jacobian_inv_apply(phi, delta_p) / duration, phi / duration
 
 
+def se3_step(R: Array, p: Array, omega: Array, v: Array,
+             duration: float) -> tuple[Array, Array]:
+    """The pose ``(R, p)`` (``(..., 3, 3)``, ``(..., 3)``) carried over ``duration`` by the
+    constant body twist ``(v, ω)``: ``p + R J(ω Δ) v Δ``, ``R exp(ω Δ)``."""
+    p = p + np.einsum('...ab,...b->...a', R, so3.jacobian_apply(omega * duration, v * duration))
+    return so3.matmul(R, so3.exp(omega * duration)), p
+
+
 class OdometryBuffer(IntervalBuffer):
     """Interval-average odometry twists of one agent (each sample ``(ω, v)`` stacked as a
     6-vector; lost samples are bridged as :class:`core.gyro.IntervalBuffer` does)."""
@@ -52,7 +60,5 @@ def _displacement(segments: list[tuple[Array, float]]) -> Array:
     ``(ω, v)``)."""
     R, p = np.eye(3), np.zeros(3)
     for sample, duration in segments:
-        omega, v = sample[:3] * duration, sample[3:] * duration
-        p = p + R @ so3.jacobian_apply(omega, v)
-        R = R @ so3.exp(omega)
+        R, p = se3_step(R, p, sample[:3], sample[3:], duration)
     return p

@@ -203,7 +203,6 @@ class EstimatorNode(Node):
             odom = self.create_subscription(wire.Odometry, wire.ODOM, self.on_odometry, qos_in)
             if self.expect_odometry:  # the t0 announcement waits for its publisher too
                 subs.append(odom)
-            self._odom_sub = odom
         if template.leader:
             # Best effort matches both a reliable publisher (the simulator) and a best-effort
             # one (many mocap and GNSS drivers); a reliable reader would miss the latter. A lost

@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core import so3
-from ..core.odometry import twist_of
+from ..core.odometry import se3_step, twist_of
 from ..scenario.model import Scenario
 from .noise import NoiseModel
 from .truth import OnTruth, Truth
@@ -100,9 +100,8 @@ class World(OnTruth):
                             np.einsum('nba,nb->na', R0, self.p - p0), period)
         v, omega = self.noise.odometry_twist(v, omega)
         self._last_odometry = (self.R.copy(), self.p.copy())
-        self.odom_p = self.odom_p + np.einsum(
-            'nab,nb->na', self.odom_R, so3.jacobian_apply(omega * period, v * period))
-        self.odom_R = so3.reorthonormalize(so3.matmul(self.odom_R, so3.exp(omega * period)))
+        R, self.odom_p = se3_step(self.odom_R, self.odom_p, omega, v, period)
+        self.odom_R = so3.reorthonormalize(R)
         return v, omega
 
     def sensed(self, name: str, i: int) -> tuple[NDArray[np.intp], Array]:
