@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bearing_pose_estimation.estimators.de_carli import (Pairs, dead_reckoning,
+from de_carli_reference import (Pairs, dead_reckoning,
                                                           position_correction,
                                                           relative_yaw_step, rot_z, unit,
                                                           yaw_consensus_step)
@@ -164,7 +164,7 @@ def test_the_excitation_monitor_admits_a_pair_once_and_reports_the_present():
     """Pair {0, 1} (robot 0 senses robot 1, which moves at 0.3 m/s for 1 s, then stops) and
     pair {1, 2} (robot 1 senses robot 2, which hovers): the first joins the consensus after
     0.05/0.09 = 0.56 s and stays in; it is no longer "excited now" a window after the stop."""
-    from bearing_pose_estimation.estimators.de_carli import ExcitationMonitor
+    from de_carli_reference import ExcitationMonitor
 
     pairs = Pairs.of(np.array([0, 1]), np.array([1, 2]))
     monitor = ExcitationMonitor(pairs, H)

@@ -52,7 +52,7 @@ class Toy(Estimator[ToyGains, State]):
     def initial_state(self, R_hat, p_hat):
         return State(R_hat=np.array(R_hat, dtype=float), p_hat=np.array(p_hat, dtype=float))
 
-    def outbox(self, x, sender, bearings):
+    def outbox(self, x, sender, bearings, slot=None):
         return {'position': x.p_hat,
                 'world_bearing': np.einsum('eab,eb->ea', x.R_hat[sender], bearings)}
 

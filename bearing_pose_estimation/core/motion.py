@@ -163,3 +163,63 @@ def body_displacement(omega: ProfileSet, v_body: ProfileSet, t: float,
         dR = magnus_increment(omega, t, tau)
         out += (weight * h) * np.einsum('nab,nb->na', dR, v_body(t + tau))
     return out
+
+
+# ----------------------------------------------------------------------------- yaw-only motion
+@dataclass(frozen=True)
+class YawSpline:
+    """A yaw trajectory ``ψ(t)``: the clamped cubic spline (``ψ̇ = 0`` at the first and last
+    knot) through ``values`` [rad] at ``knots`` [s] (De Carli et al., Sec. IV: "a spline with
+    random coefficients"). Before the first knot and after the last one ψ is held."""
+
+    knots: tuple[float, ...]
+    values: tuple[float, ...]
+
+
+class YawSplines:
+    """The yaw splines of N agents, evaluated in one call: ``ψ(t)``, ``ψ̇(t)`` ``(N,)``, the
+    exact rotation increment ``R_z(ψ(t+h) - ψ(t))`` and the displacement of a body-frame
+    velocity held over a step."""
+
+    def __init__(self, splines: Sequence[YawSpline]) -> None:
+        from scipy.interpolate import CubicSpline
+
+        self._splines = [CubicSpline(np.array(s.knots), np.array(s.values), bc_type='clamped')
+                         for s in splines]
+        self._ends = [(s.knots[0], s.knots[-1]) for s in splines]
+        self._rates = [s.derivative() for s in self._splines]
+
+    def __call__(self, t: float) -> NDArray[np.float64]:
+        """``ψ_i(t)`` [rad]."""
+        return np.array([float(s(min(max(t, lo), hi)))
+                         for s, (lo, hi) in zip(self._splines, self._ends)])
+
+    def rate(self, t: float) -> NDArray[np.float64]:
+        """``ψ̇_i(t)`` [rad/s] (0 outside the knots)."""
+        return np.array([float(d(t)) if lo <= t <= hi else 0.0
+                         for d, (lo, hi) in zip(self._rates, self._ends)])
+
+    def increment(self, t: float, h: float) -> NDArray[np.float64]:
+        """``R_z(ψ(t+h) - ψ(t))`` ``(N, 3, 3)``: exact, no integration."""
+        return rot_z(self(t + h) - self(t))
+
+    def held_displacement(self, t: float, h: float, v_body: NDArray[np.float64]
+                          ) -> NDArray[np.float64]:
+        """``∫_0^h R_z(ψ(t+τ) - ψ(t)) dτ · v`` ``(N, 3)``: the displacement over ``[t, t+h]``
+        of agents whose body-frame velocity ``v`` ``(N, 3)`` is held, in their body frame at
+        t; 3-point Gauss-Legendre (exact to rounding at millisecond steps)."""
+        psi0 = self(t)
+        out = np.zeros_like(v_body)
+        for node, weight in zip(_GL3_NODES, _GL3_WEIGHTS):
+            out += (weight * h) * np.einsum('nab,nb->na', rot_z(self(t + node * h) - psi0),
+                                            v_body)
+        return out
+
+
+def rot_z(psi: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``R_z(ψ)`` for each angle, ``(..., 3, 3)``."""
+    c, s = np.cos(psi), np.sin(psi)
+    out = np.zeros(np.shape(psi) + (3, 3))
+    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = c, -s, s, c
+    out[..., 2, 2] = 1.0
+    return out

@@ -11,9 +11,10 @@ from typing import Any
 from ..core.errors import ScenarioError
 from .base import Estimator
 from .boughellaba_tayebi import BoughellabaTayebi
+from .de_carli import DeCarli
 from .tran_anderson_ahn import TranAndersonAhn
 
-_BUILT_IN: tuple[type[Estimator], ...] = (BoughellabaTayebi, TranAndersonAhn)
+_BUILT_IN: tuple[type[Estimator], ...] = (BoughellabaTayebi, TranAndersonAhn, DeCarli)
 _REGISTRY: dict[str, type[Estimator]] = {}
 # The method of a scenario that names none, and of an estimator node without a scenario file.
 DEFAULT_METHOD = BoughellabaTayebi.method

@@ -25,6 +25,11 @@ Sensing edges: edge ``e`` is ``i → j``, agent i (row ``edges.agent[e]`` of the
 and listens to its neighbour j. A step consumes, per edge, i's own measurement and what j sent
 i (:class:`StepInputs`); what j sends is formed by j itself (:meth:`Estimator.outbox`), from
 its own state and measurements at one instant.
+
+Methods whose agents talk both ways over every sensing edge (``links = 'communication'``, De
+Carli et al.: the sensed robot needs what senses it) get one edge ``i → j`` per communication
+neighbour j of i instead (j senses i, i senses j, or both), with :class:`LinkInputs` saying
+which, and the other end's odometry over the step.
 """
 from __future__ import annotations
 
@@ -161,6 +166,9 @@ class Edges:
     agent: Index
     k: Array
     n_agents: int
+    # The edge's place in its agent's fixed list of neighbours, for methods that keep per-edge
+    # state (a node may leave a silent neighbour out of a step); default: its rank.
+    slot: Index | None = None
     _incidence: sparse.csr_matrix | None = field(init=False, repr=False)
     unit_k: bool = field(init=False, repr=False)  # every k_ij = 1: skip the product
 
@@ -170,6 +178,14 @@ class Edges:
         object.__setattr__(self, 'agent', agent)
         object.__setattr__(self, 'k', k)
         n_edges = agent.shape[0]
+        if self.slot is None:   # rank among the agent's edges (they come grouped by agent)
+            first = np.searchsorted(agent, agent) if np.all(np.diff(agent) >= 0) else None
+            rank = (np.arange(n_edges) - first if first is not None
+                    else np.array([np.count_nonzero(agent[:e] == agent[e])
+                                   for e in range(n_edges)]))
+            object.__setattr__(self, 'slot', rank.astype(np.intp))
+        else:
+            object.__setattr__(self, 'slot', np.asarray(self.slot, dtype=np.intp))
         inc = None
         if self.n_agents > 1:  # one agent (the node): a plain sum is cheaper
             inc = sparse.csr_matrix(
@@ -219,6 +235,26 @@ class State:
 
 
 @dataclass(frozen=True)
+class LinkInputs:
+    """What a ``links = 'communication'`` method's step knows of each edge ``i → j`` beyond
+    the channels, all ``(E, ...)``: whether i ``senses`` j (``relative_positions`` holds its
+    measurement ``ⁱp_ij`` at the step's start, body frame [m]; zeros otherwise), whether j
+    senses i (``sensed_by``: j's own measurement of i comes as a channel), whether i ``owns``
+    the pair's shared state, and the other end's gyro increment and odometry displacement over
+    the step (``other_delta_R``, ``other_displacement``, in j's body frame at the start)."""
+
+    senses: NDArray[np.bool_]
+    sensed_by: NDArray[np.bool_]
+    owns: NDArray[np.bool_]
+    relative_positions: Array
+    other_delta_R: Array
+    other_displacement: Array
+
+    def rows(self, sel: Index) -> LinkInputs:
+        return LinkInputs(*(getattr(self, f.name)[sel] for f in dataclasses.fields(self)))
+
+
+@dataclass(frozen=True)
 class StepInputs:
     """What one step consumes for N agents and their E sensing edges, all at the step's start
     time t (own bearings already rotated to t, neighbours' values as they sent them).
@@ -247,12 +283,17 @@ class StepInputs:
     received: Mapping[str, Array]
     displacement: Array | None = None   # (N, 3) odometry δ over the step [m]
     p_own: Array | None = None          # (E, 3) the owner's p̂_i at the received stamp [m]
+    links: LinkInputs | None = None     # links = 'communication' methods only
+    t: float = 0.0                      # the step's start time [s] (multirate methods)
 
     def agent(self, i: int) -> StepInputs:
         """The inputs of agent ``i`` alone (``n_agents = 1``): what its node would pass."""
         sel = np.flatnonzero(self.edges.agent == i)
-        edges = Edges(agent=np.zeros(sel.size, dtype=np.intp), k=self.edges.k[sel], n_agents=1)
-        return StepInputs(delta_R=self.delta_R[i:i + 1], edges=edges,
+        assert self.edges.slot is not None
+        edges = Edges(agent=np.zeros(sel.size, dtype=np.intp), k=self.edges.k[sel], n_agents=1,
+                      slot=self.edges.slot[sel])
+        return StepInputs(t=self.t, links=None if self.links is None else self.links.rows(sel),
+                          delta_R=self.delta_R[i:i + 1], edges=edges,
                           bearings=self.bearings[sel],
                           received={c: v[sel] for c, v in self.received.items()},
                           displacement=(None if self.displacement is None
@@ -324,6 +365,9 @@ class Estimator(ABC, Generic[G, S]):
     sends: ClassVar[tuple[Channel, ...]]
     frame: ClassVar[EstimateFrame]
     edge_gains: ClassVar[bool] = True      # per-edge k_ij (`gains.k_ij`, a neighbour's `k`)
+    # 'sensing': one edge per sensing edge i → j, j's channels flow to i; 'communication': one
+    # per communication neighbour, both ways (StepInputs.links).
+    links: ClassVar[Literal['sensing', 'communication']] = 'sensing'
     reference_scenario: ClassVar[str]      # the file in config/ with the paper's simulation
 
     def __init__(self, gains: G) -> None:
@@ -358,11 +402,14 @@ class Estimator(ABC, Generic[G, S]):
 
     # --- messages and the step
     @abstractmethod
-    def outbox(self, x: S, sender: Index, bearings: Array) -> dict[str, Array]:
+    def outbox(self, x: S, sender: Index, bearings: Array,
+               slot: Index | None = None) -> dict[str, Array]:
         """What agents send their listeners, formed from their state and own measurements at
         one instant: per-edge channels ``(M, ...)`` for sender rows ``sender`` ``(M,)`` whose
-        own body bearings to the listener are ``bearings`` ``(M, 3)``; per-agent channels
-        ``(N, ...)``, one row per agent of ``x``."""
+        own body bearings to the listener are ``bearings`` ``(M, 3)`` (``links =
+        'communication'``: their relative positions, zeros where they do not sense it) and
+        whose edge to the listener has the place ``slot`` ``(M,)`` in their own list
+        (:attr:`Edges.slot`); per-agent channels ``(N, ...)``, one row per agent of ``x``."""
 
     @abstractmethod
     def step(self, x: S, h: float, inputs: StepInputs,
@@ -388,6 +435,15 @@ class Estimator(ABC, Generic[G, S]):
         """Why the spectrum ``eig`` (ascending) breaks the method's hypothesis, or None."""
         return None
 
+    # --- what recordings show beyond the pose errors
+    edge_error_label: ClassVar[str] = ''   # e.g. 'rel_yaw_err': the column prefix per pair
+
+    def edge_errors(self, x: S, R: Array, edges: Edges, other: Index) -> Array | None:
+        """Per edge ``(E,)``, the error of a per-pair state the method keeps, against the true
+        attitudes ``R`` (NaN where the edge's agent keeps none; ``other``: each edge's other
+        end); None when the method has no such state."""
+        return None
+
     def check_motion(self, scenario: Scenario, times: Array,
                      positions: Array) -> list[Finding]:
         """The method's assumptions that the motion of a moving ``scenario`` breaks, from its
@@ -396,6 +452,28 @@ class Estimator(ABC, Generic[G, S]):
         looked). Each finding names the time; what :meth:`check` already reports at t = 0 is
         not repeated. Default: none (nothing of the method depends on the geometry)."""
         return []
+
+
+def communication_links(tail: Index, head: Index, n: int) -> dict[str, NDArray[Any]]:
+    """The links of ``links = 'communication'`` methods from the sensing edges ``tail → head``
+    of ``n`` agents: one per communication neighbour j of each agent i, grouped by agent, j
+    ascending: ``agent``, ``other``, ``senses`` (i senses j), ``sensed_by`` (j senses i),
+    ``owns`` (i keeps the pair's shared state: the sensing agent of a one-way pair, the lower
+    index of a two-way one) and ``reverse`` (the index of the link j → i)."""
+    sensed = set(zip(np.asarray(tail).tolist(), np.asarray(head).tolist()))
+    agent: list[int] = []
+    other: list[int] = []
+    for i in range(n):
+        for j in sorted({b for a, b in sensed if a == i} | {a for a, b in sensed if b == i}):
+            agent.append(i)
+            other.append(j)
+    agent_a, other_a = np.array(agent, dtype=np.intp), np.array(other, dtype=np.intp)
+    senses = np.array([(i, j) in sensed for i, j in zip(agent, other)], dtype=bool)
+    sensed_by = np.array([(j, i) in sensed for i, j in zip(agent, other)], dtype=bool)
+    where = {(i, j): e for e, (i, j) in enumerate(zip(agent, other))}
+    return {'agent': agent_a, 'other': other_a, 'senses': senses, 'sensed_by': sensed_by,
+            'owns': np.where(senses & sensed_by, agent_a < other_a, senses),
+            'reverse': np.array([where[(j, i)] for i, j in zip(agent, other)], dtype=np.intp)}
 
 
 def route(outbox: Mapping[str, Array], sends: Sequence[Channel],

@@ -77,7 +77,8 @@ class BearingLeaderEstimator(Estimator[G, S]):
     frame: ClassVar[EstimateFrame] = EstimateFrame.WORLD
     conditioning_label: ClassVar[str]      # the local matrix, e.g. 'M_i = Σ_j k_ij b_ij b_ijᵀ'
 
-    def outbox(self, x: S, sender: Index, bearings: Array) -> dict[str, Array]:
+    def outbox(self, x: S, sender: Index, bearings: Array,
+               slot: Index | None = None) -> dict[str, Array]:
         """``R̂_j b^j_jl`` for each sender row j and its own bearing to listener l, and
         ``p̂_j``."""
         R = np.take(x.R_hat, sender, axis=0)

@@ -1,62 +1,112 @@
-"""De Carli, Restrepo & Robuffo Giordano (2024): the three stages of their observer, in the
-complex form and with the discretisation of ``../shared/estimators/de-carli-2024.md`` (the
-paper's equation numbers; §n: sections of the note).
+"""De Carli, Restrepo & Robuffo Giordano (2024): moving robots localised from body-frame relative
+positions and their own odometry, with no anchor (``method: de_carli``).
 
-The first part of issue 12: the math, vectorised over robots, sensing edges and pairs, for the
-batch simulator and the node alike. The :class:`base.Estimator` around it (state, channels,
-multirate scheduling), the scenario and the node come next.
+Equations, corrections and discretisation: ``../shared/estimators/de-carli-2024.md`` (§n),
+the paper's numbers in parentheses; :mod:`.de_carli_stages` holds the same three stages over a
+whole fleet in the pairs' ``a < b`` orientation, the reference the stage tests check. Here they
+run per robot and per communication link, so that one step serves the batch simulator (all
+robots) and a node (one robot) alike.
 
-Setting (§1). Robots have yaw-only body frames ``R_i = R_z(ψ_i)`` (roll and pitch compensated
-by the IMU). Horizontal vectors are complex numbers ``x + ιy``; ``z_i = e^{ιψ_i}``. Robot i
-measures ``ⁱp_ij = R_iᵀ (p_j − p_i)`` (2) for each sensing edge ``(i, j)``. Over a tick of
-length h its odometry gives the yaw increment ``Δψ_i`` and the displacement ``δ_i`` in its
-frame at the tick's start; ``δ'_i = e^{−ιΔψ_i} δ_i`` is the same in the frame at the tick's
-end. The discrete kinematics are exact for any motion (§7):
-``ⁱp_ij(t_{k+1}) = R_z(−Δψ_i) (ⁱp_ij(t_k) − δ_i + ⁱR_j(t_k) δ_j)``.
+Robots have yaw-only body frames ``R_i = R_z(ψ_i)`` (roll and pitch compensated), horizontal
+vectors are complex numbers, ``ẑ_i ≈ e^{ι(ψ_i + a)}`` is the (unnormalised) yaw estimate and
+``R̂_i = R_z(∠ẑ_i)``. Robot i measures ``ⁱp_ij = R_iᵀ (p_j - p_i)`` (2) of the robots it senses.
 
-Pairs: each communication pair ``{a, b}`` with ``a < b`` has one relative-yaw state
-``ẑ_ab ≈ e^{ι(ψ_b − ψ_a)}`` (one copy only, §8); a sensing edge k = (i, j) of it uses
-``ẑ_k = ẑ_ab`` when ``(i, j) = (a, b)`` and ``conj(ẑ_ab)`` when reversed.
+Links (``links = 'communication'``): robot i has one link per communication neighbour j (i
+senses j, j senses i, or both). Every pair ``{i, j}`` has exactly one relative-yaw state (§8),
+kept by its owner: the sensing robot of a one-way pair, the lower id of a two-way one; the
+owner holds ``ẑ_ij ≈ e^{ι(ψ_j - ψ_i)}`` in its own orientation, its estimate ``ⁱp̂_ij`` and,
+for a two-way pair, ``ʲp̂_ji`` too (fed by j's measurement). Channels:
 
-- Stage 1, the relative-yaw observer (7)-(8), every tick, correct-then-predict (§7): with the
-  measurement ``y_k`` and ``E_k = P̂_k − y_k``::
+- ``z_hat`` (per robot): ``ẑ_j`` as a complex number, never an angle (§8: exchanging angles
+  turns (13) into another, nonlinear algorithm);
+- ``p_hat`` (per robot): ``p̂_j``;
+- ``meas`` (per link): ``ʲp_ji``, j's measurement of the listener i (zeros where j does not
+  sense i). With ``z_hat`` of the same instant it gives ``R̂_j ʲp_ji``, the in-neighbour term of
+  (21), and the owner of a two-way pair gets the measurement its ``ʲp̂_ji`` needs;
+- ``relyaw`` (per link): the owner's ``unit(ẑ_ji)`` for the other robot's (13) (Remark 4).
 
-      ẑ_ab⁺  = ẑ_ab − k_ψ Σ_k g_k,   g_k = conj(δ'_b) E_k   (k = (a, b))
-                                     g_k = δ'_a conj(E_k)   (k = (b, a))
-      P̂_k   ← e^{−ιΔψ_i} (P̂_k − δ_i + δ_j ẑ_k⁺ − h k_pe E_k)     (horizontal part)
-      p̂_kz  ← p̂_kz − δ_iz + δ_jz − h k_pe e_kz                   (vertical part)
-      ẑ_ab  ← e^{ι(Δψ_b − Δψ_a)} ẑ_ab⁺
+The other end's odometry over the step (``δ_j``, ``Δψ_j``; :class:`base.LinkInputs`) feeds the
+owner's prediction of ``ⁱp̂_ij``.
 
-  with the δ' of the previous tick in the correction (``δ'_{j,−1} = 0``). Its error
-  recursion has no forcing term: at the true values it is an exact fixed point.
-- Stage 2, the common-yaw consensus (13), every second tick, Jacobi step (implicit in the
-  robot's own state; stable and row-stochastic for any ``c = h₂ k_z`` and any graph, §7)::
+One step ``h`` (the estimator frequency, the relative-yaw observer's 200 Hz), everything on the
+right from the step's start ``t`` (the state and what the neighbours sent at t):
 
-      ẑ_i ← (ẑ_i + c Σ_{j ∈ N_i} conj(ẑ_ij) ẑ_j) / (1 + c |N_i|)
+1. Stage 3's correction, every ``1/position_rate`` (``h₃``), (21) in edge form::
 
-  with ``ẑ_ij`` the *unit* relative yaw, then, every tick, ``ẑ_i ← e^{ιΔψ_i} ẑ_i``. Plain
-  forward Euler diverges when ``h₂ k_z λ_max(L_c) > 2`` (the paper's cube: λ_max = 6).
-- Stage 3, the position observer (21) in edge form: dead reckoning ``p̂_i ← p̂_i + R̂_i δ_i``
-  every tick, and every fourth tick ``p̂_i ← p̂_i − h₃ k_p Σ_k E_ik r_k``, with the residual
-  ``r_k = p̂_a − p̂_b + R̂_a ᵃp_ab`` of edge k = (a, b) and ``E_ik = +1`` for its tail a, −1
-  for its head b. ``R̂_i = R_z(∠ẑ_i)``.
+       p̂_i ← p̂_i - h₃ k_p Σ_j [senses (p̂_i - p̂_j + R̂_i ⁱp_ij)
+                                + sensed_by (p̂_i - p̂_j - R̂_j ʲp_ji)]
 
-Every estimate converges only up to one common yaw a and translation p̄
-(``EstimateFrame.COMMON_YAW_TRANSLATION``): ``ψ̂_i → ψ_i + a``, ``p̂_i → R_z(a) p_i + p̄``.
+2. Stage 2, every ``1/yaw_rate`` (``h₂``), the Jacobi step of (13) over the excited pairs
+   (stable and row-stochastic for every ``c = h₂ k_z`` and every graph; forward Euler diverges
+   on the paper's cube, §7)::
+
+       ẑ_i ← (ẑ_i + c Σ_j conj(u_ij) ẑ_j) / (1 + c n_i),   u_ij = unit(ẑ_ij)
+
+3. Stage 1, every step, on the owned pairs: correct, then predict with the odometry
+   increments (§7; exact kinematics, ``E = P̂ - y``, ``δ'`` the previous step's displacement in
+   the frame at its end, 0 at first)::
+
+       ẑ⁺     = ẑ_ij - k_ψ (conj(δ'_j) E_ij + [two-way] δ'_i conj(E_ji))          (8)
+       P̂_ij  ← e^{-ιΔψ_i} (P̂_ij - δ_i + δ_j ẑ⁺ - h k_pe E_ij)                     (7)
+       P̂_ji  ← e^{-ιΔψ_j} (P̂_ji - δ_j + δ_i conj(ẑ⁺) - h k_pe E_ji)   [two-way]
+       ẑ_ij  ← e^{ι(Δψ_j - Δψ_i)} ẑ⁺
+
+   (vertical parts: ``p̂_z ← p̂_z - δ_iz + δ_jz - h k_pe e_z``).
+4. Dead reckoning and the yaw's rotation: ``p̂_i ← p̂_i + R̂_i δ_i``, ``ẑ_i ← e^{ιΔψ_i} ẑ_i``.
+
+Initial values (§8, §9): ``ẑ_i(0) = e^{ιψ̂_i(0)}``; each ``P̂`` is its first measurement and each
+pair starts at ``unit(conj(ẑ_i) ẑ_j)`` from the first ``ẑ_j`` received (at t = 0 the rule of
+the paper's scenario).
+
+Persistent excitation (Theorem 1, §5): only the sensed robots' horizontal motion excites a
+pair. Both ends integrate it from the odometry they both have (``∫|v_xy|² dt``: own and
+received); a pair joins the consensus once it reaches ``pe_threshold`` (default
+:data:`EXCITATION_M2_S`) and stays in (the paper's fleet stops in formation). ``excitation_recent`` (a 1 s exponential window) says
+whether it is excited now.
+
+Everything converges only up to one common yaw and translation
+(``EstimateFrame.COMMON_YAW_TRANSLATION``): the estimates live in an estimation frame whose
+relation to the world no stage determines.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.sparse.csgraph import connected_components
 
-Array = NDArray[np.float64]
+from ..core.motion import rot_z
+from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, Index,
+                   Roles, Sensor, State, StepInputs, gain)
+
+if TYPE_CHECKING:
+    from ..scenario.model import Scenario
+
 Complex = NDArray[np.complex128]
-Index = NDArray[np.intp]
+
+Z_HAT = Channel('z_hat', per='agent', frame='estimation', shape=(2,),
+                doc='ẑ_j = |ẑ_j| e^{ιψ̂_j}, the unnormalised yaw estimate, [re, im]')
+P_HAT = Channel('p_hat', per='agent', frame='estimation', doc='p̂_j, the position estimate [m]')
+MEAS = Channel('meas', per='edge', frame='body',
+               doc='ʲp_ji, j\'s measurement of the listener i (body frame of j) [m]; zeros if '
+                   'j does not sense i')
+RELYAW = Channel('relyaw', per='edge', frame='body', shape=(2,),
+                 doc='unit(ẑ_ji), the relative yaw of the pair j owns, [re, im]; zeros if j '
+                     'does not own it (yet)')
 
 # |ẑ| below this has no usable angle (Remark 3): its unit value is taken as 1.
 MIN_MODULUS = 1e-12
+# Persistent excitation (Theorem 1, §5): a pair is excited by the horizontal motion of the
+# robots its edges sense; it joins the consensus once ∫ |v_xy|² dt over its sensed robots
+# reaches EXCITATION_M2_S (0.05 m²/s: e.g. 0.5 s at 0.3 m/s; the slow rate of stage 1 is
+# ≈ k_ψ |v_xy|²/k_pe, §2), and it stays in: the paper's own fleet stops once in formation.
+EXCITATION_M2_S = 0.05
+# The window of the "excited now" diagnostic [s].
+EXCITATION_WINDOW_S = 1.0
+# Stage 3's Euler correction diverges when h₃ k_p λ_max(L̄) reaches this (§7).
+EULER_LIMIT = 2.0
 
 
 def unit(z: Complex) -> Complex:
@@ -65,159 +115,344 @@ def unit(z: Complex) -> Complex:
     return np.where(r > MIN_MODULUS, z / np.where(r > MIN_MODULUS, r, 1.0), 1.0 + 0j)
 
 
-def rot_z(psi: Array) -> Array:
-    """``R_z(ψ)`` for each angle, ``(..., 3, 3)``."""
-    c, s = np.cos(psi), np.sin(psi)
-    out = np.zeros(np.shape(psi) + (3, 3))
-    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = c, -s, s, c
-    out[..., 2, 2] = 1.0
-    return out
+def yaw_of(R: Array) -> Array:
+    """The yaw of rotations ``(..., 3, 3)`` (exact for rotations about z)."""
+    return np.arctan2(R[..., 1, 0], R[..., 0, 0])
+
+
+def as_complex(v: Array) -> Complex:
+    """``x + ιy`` of the first two components of ``v`` ``(..., ≥2)``."""
+    return v[..., 0] + 1j * v[..., 1]
+
+
+def as_pair(z: Complex) -> Array:
+    """``[re, im]`` of ``z``, ``(..., 2)``: how complex numbers travel."""
+    return np.stack([z.real, z.imag], axis=-1)
 
 
 @dataclass(frozen=True)
-class Pairs:
-    """The communication pairs ``{a, b}`` (``a < b``) of the sensing edges ``(tail, head)``:
-    ``edge_pair[k]`` is the pair of edge k, ``reversed_[k]`` whether edge k runs b → a."""
+class DeCarliGains:
+    """Gains of (7)-(8), (13), (21) and the two slower stages' rates."""
 
-    a: Index
-    b: Index
-    edge_pair: Index
-    reversed_: NDArray[np.bool_]
-
-    @staticmethod
-    def of(tail: Index, head: Index) -> Pairs:
-        lo, hi = np.minimum(tail, head), np.maximum(tail, head)
-        keys, edge_pair = np.unique(np.stack([lo, hi], axis=1), axis=0, return_inverse=True)
-        return Pairs(a=keys[:, 0].astype(np.intp), b=keys[:, 1].astype(np.intp),
-                     edge_pair=edge_pair.reshape(-1).astype(np.intp), reversed_=tail > head)
-
-    def __len__(self) -> int:
-        return int(self.a.shape[0])
-
-    def edge_yaw(self, z_pair: Complex) -> Complex:
-        """``ẑ_k`` of every edge from the pair states."""
-        z = z_pair[self.edge_pair]
-        return np.where(self.reversed_, np.conj(z), z)
+    k_pe: float = gain(20.0, 'relative-position gain k_pe of (7)-(8) [1/s]')
+    k_psi: float = gain(600.0, 'relative-yaw gain k_psi of (7)-(8) [1/m^2]')
+    k_z: float = gain(40.0, 'yaw consensus gain k_z of (13) [1/s]')
+    k_p: float = gain(1.0, 'position gain k_p of (21) [1/s]')
+    yaw_rate: float = gain(100.0, 'rate of the yaw consensus (13) [Hz]; divides the '
+                                  'estimator frequency')
+    position_rate: float = gain(50.0, 'rate of the position correction (21) [Hz]; divides the '
+                                      'estimator frequency')
+    pe_threshold: float = gain(EXCITATION_M2_S, 'excitation a pair needs to join the yaw '
+                               'consensus, integral of |v_xy|^2 [m^2/s] (0: every pair from the '
+                               'start)', zero_allowed=True)
 
 
-def relative_yaw_step(P_hat: Complex, pz_hat: Array, z_pair: Complex, pairs: Pairs,
-                      tail: Index, head: Index, y: Complex, y_z: Array, delta: Complex,
-                      delta_z: Array, dpsi: Array, delta_end_prev: Complex, h: float,
-                      k_pe: float, k_psi: float) -> tuple[Complex, Array, Complex, Complex]:
-    """One tick of stage 1 for every sensing edge and pair (module docstring; (7)-(8), §7).
+@dataclass
+class DeCarliState(State):
+    """Per robot: ``ẑ_i``, and per link slot (``(N, D)``, D the most links of a robot; grown
+    at the first step that has them) what the robot keeps of the pair."""
 
-    Args:
-        P_hat, pz_hat: ``(K,)`` horizontal (complex) and vertical estimates of ``ⁱp_ij``.
-        z_pair: ``(M,)`` the pair states ``ẑ_ab``.
-        pairs: the pairs of the edges (:meth:`Pairs.of`).
-        tail, head: ``(K,)`` the sensing robot i and the sensed robot j of each edge.
-        y, y_z: ``(K,)`` the measurements ``ⁱp_ij`` at the tick's start (complex xy, z).
-        delta, delta_z: ``(N,)`` every robot's odometry displacement over the tick, in its
-            frame at the tick's start (complex xy, z) [m].
-        dpsi: ``(N,)`` every robot's yaw increment over the tick [rad].
-        delta_end_prev: ``(N,)`` ``δ'`` of the previous tick (the regressor; 0 at first).
-        h: the tick [s]; k_pe, k_psi: the gains of (7).
+    z_hat: Complex            # (N,) ẑ_i, unnormalised
+    d_own: Complex            # (N,) δ'_i of the last step (the regressor of reversed edges)
+    P_out: Complex            # (N, D) ⁱp̂_ij, horizontal (owned pairs)
+    Pz_out: Array             # (N, D) its vertical part
+    P_in: Complex             # (N, D) ʲp̂_ji (owned two-way pairs)
+    Pz_in: Array
+    z_pair: Complex           # (N, D) ẑ_ij ≈ e^{ι(ψ_j - ψ_i)} (owned pairs)
+    d_other: Complex          # (N, D) δ'_j of the last step
+    ready_out: NDArray[np.bool_]    # (N, D) P_out initialised (first measurement)
+    ready_in: NDArray[np.bool_]
+    ready_pair: NDArray[np.bool_]
+    excitation: Array         # (N, D) ∫ |v_xy|² dt of the pair's sensed robots [m²/s]
+    excitation_recent: Array  # (N, D) the same over a 1 s exponential window
 
-    Returns:
-        ``(P̂, p̂_z, ẑ_pair)`` at the tick's end and the errors ``E_k`` used (complex xy).
-    """
-    E = P_hat - y
-    e_z = pz_hat - y_z
-    a, b = pairs.a, pairs.b
-    # g_k = conj(δ'_b) E_k for k = (a, b); δ'_a conj(E_k) for k = (b, a).
-    other = np.where(pairs.reversed_, delta_end_prev[a[pairs.edge_pair]],
-                     np.conj(delta_end_prev[b[pairs.edge_pair]]))
-    g = other * np.where(pairs.reversed_, np.conj(E), E)
-    m = len(pairs)
-    z_plus = z_pair - k_psi * (np.bincount(pairs.edge_pair, weights=g.real, minlength=m)
-                               + 1j * np.bincount(pairs.edge_pair, weights=g.imag, minlength=m))
-    z_k = pairs.edge_yaw(z_plus)
-    P_next = np.exp(-1j * dpsi[tail]) * (P_hat - delta[tail] + delta[head] * z_k - h * k_pe * E)
-    pz_next = pz_hat - delta_z[tail] + delta_z[head] - h * k_pe * e_z
-    z_next = np.exp(1j * (dpsi[b] - dpsi[a])) * z_plus
-    return P_next, pz_next, z_next, E
-
-
-def yaw_consensus_step(z: Complex, u_pair: Complex, pairs: Pairs, active: NDArray[np.bool_],
-                       c: float) -> Complex:
-    """The Jacobi step of stage 2, (13) (module docstring; §7), over the ``active`` pairs
-    (excited ones): ``ẑ_i ← (ẑ_i + c Σ_j conj(ẑ_ij) ẑ_j) / (1 + c |N_i|)``, with the unit
-    relative yaws ``u_pair`` ``(M,)`` (``ẑ_ij = u_ab`` for i = a, ``conj(u_ab)`` for i = b)
-    and ``c = h₂ k_z``."""
-    n = z.shape[0]
-    a, b, u = pairs.a[active], pairs.b[active], u_pair[active]
-    pull_a = np.conj(u) * z[b]   # conj(ẑ_ab) ẑ_b, for robot a
-    pull_b = u * z[a]            # conj(ẑ_ba) ẑ_a = u_ab ẑ_a, for robot b
-    total = (np.bincount(a, weights=pull_a.real, minlength=n)
-             + np.bincount(b, weights=pull_b.real, minlength=n)
-             + 1j * (np.bincount(a, weights=pull_a.imag, minlength=n)
-                     + np.bincount(b, weights=pull_b.imag, minlength=n)))
-    degree = np.bincount(a, minlength=n) + np.bincount(b, minlength=n)
-    return (z + c * total) / (1.0 + c * degree)
-
-
-def position_correction(p_hat: Array, psi_hat: Array, tail: Index, head: Index,
-                        measured: Array, h3: float, k_p: float) -> Array:
-    """The correction of stage 3, (21) in edge form: ``p̂_i − h₃ k_p Σ_k E_ik r_k`` with
-    ``r_k = p̂_a − p̂_b + R̂_a ᵃp_ab`` for every edge k = (a, b) (``measured`` ``(K, 3)``,
-    ``R̂_a = R_z(ψ̂_a)``, ``psi_hat`` ``(N,)``)."""
-    n = p_hat.shape[0]
-    r = p_hat[tail] - p_hat[head] + np.einsum('kab,kb->ka', rot_z(psi_hat[tail]), measured)
-    signed = np.zeros_like(p_hat)
-    for axis in range(3):
-        signed[:, axis] = (np.bincount(tail, weights=r[:, axis], minlength=n)
-                           - np.bincount(head, weights=r[:, axis], minlength=n))
-    return p_hat - h3 * k_p * signed
-
-
-def dead_reckoning(p_hat: Array, psi_hat: Array, delta: Array) -> Array:
-    """``p̂_i + R̂_i δ_i`` (every tick of stage 3; ``delta`` ``(N, 3)`` in each robot's frame)."""
-    return p_hat + np.einsum('nab,nb->na', rot_z(psi_hat), delta)
-
-
-# Persistent excitation (Theorem 1, §5): a pair is excited by the horizontal motion of the
-# robots its edges sense; it joins the consensus once ∫ |v_xy|² dt over its sensed robots
-# reaches EXCITATION_M2_S (0.05 m²/s: e.g. 0.5 s at 0.3 m/s; the slow rate of stage 1 is
-# ≈ k_ψ |v_xy|²/k_pe, §2), and it stays in: the paper's own fleet stops once in formation.
-EXCITATION_M2_S = 0.05
-# The window of the "excited now" diagnostic [s].
-EXCITATION_WINDOW_S = 1.0
-
-
-class ExcitationMonitor:
-    """Per pair: the excitation its sensed robots give it (§5), the pairs the consensus may
-    use (:attr:`active`) and those excited within the last window (:attr:`excited_now`).
-
-    Args:
-        pairs: the pairs of the sensing edges.
-        h: the tick [s] (the excitation of a tick is ``|δ_xy|²/h``).
-    """
-
-    def __init__(self, pairs: Pairs, h: float, threshold: float = EXCITATION_M2_S,
-                 window: float = EXCITATION_WINDOW_S) -> None:
-        self.pairs, self.h, self.threshold = pairs, h, threshold
-        m = len(pairs)
-        # The robot each edge senses: its motion excites the edge's pair.
-        self._sensed = np.where(pairs.reversed_, pairs.a[pairs.edge_pair],
-                                pairs.b[pairs.edge_pair])
-        self.total = np.zeros(m)          # ∫ Σ |v_xy|² dt since the start [m²/s]
-        self._recent = np.zeros((max(1, int(round(window / h))), m))
-        self._k = 0
-
-    def add(self, delta: Complex) -> None:
-        """One tick's horizontal displacements ``δ`` ``(N,)`` (complex) of every robot."""
-        per_edge = np.abs(delta[self._sensed]) ** 2 / self.h
-        tick = np.bincount(self.pairs.edge_pair, weights=per_edge, minlength=len(self.pairs))
-        self.total += tick
-        self._recent[self._k % self._recent.shape[0]] = tick
-        self._k += 1
+    LINK_FIELDS: ClassVar[tuple[str, ...]] = (
+        'P_out', 'Pz_out', 'P_in', 'Pz_in', 'z_pair', 'd_other', 'ready_out', 'ready_in',
+        'ready_pair', 'excitation', 'excitation_recent')
 
     @property
-    def active(self) -> NDArray[np.bool_]:
-        """Pairs excited enough to have converged: the ones stage 2 uses."""
-        return self.total >= self.threshold
+    def slots(self) -> int:
+        return int(self.P_out.shape[1])
 
-    @property
-    def excited_now(self) -> NDArray[np.bool_]:
-        """Pairs excited within the last window (a diagnostic: the fleet may have stopped)."""
-        return self._recent.sum(axis=0) >= self.threshold
+    def grown(self, slots: int) -> DeCarliState:
+        """This state with at least ``slots`` link slots (new ones zero, not initialised)."""
+        if slots <= self.slots:
+            return self
+        out = self.rows(slice(None))
+        pad = slots - self.slots
+        for name in self.LINK_FIELDS:
+            v = getattr(out, name)
+            setattr(out, name, np.concatenate([v, np.zeros((v.shape[0], pad), v.dtype)], 1))
+        return out
+
+
+class DeCarli(Estimator[DeCarliGains, DeCarliState]):
+    """De Carli, Restrepo & Robuffo Giordano (2024): module docstring."""
+
+    method: ClassVar[str] = 'de_carli'
+    title: ClassVar[str] = 'De Carli et al.'
+    Gains: ClassVar[type] = DeCarliGains
+    roles: ClassVar[Roles] = Roles()
+    sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.ODOMETRY,
+                                                     Sensor.RELATIVE_POSITIONS})
+    sends: ClassVar[tuple[Channel, ...]] = (Z_HAT, P_HAT, MEAS, RELYAW)
+    frame: ClassVar[EstimateFrame] = EstimateFrame.COMMON_YAW_TRANSLATION
+    edge_gains: ClassVar[bool] = False
+    links: ClassVar[Literal['sensing', 'communication']] = 'communication'
+    reference_scenario: ClassVar[str] = 'de_carli_8_quadrotors.yaml'
+
+    # --- state
+    def initial_state(self, R_hat: Array, p_hat: Array) -> DeCarliState:
+        n = R_hat.shape[0]
+        psi = yaw_of(R_hat)
+        links = {name: np.zeros((n, 0), complex if name.startswith(('P_', 'z_', 'd_'))
+                                else bool if name.startswith('ready') else float)
+                 for name in DeCarliState.LINK_FIELDS}
+        return DeCarliState(R_hat=rot_z(psi), p_hat=np.array(p_hat, dtype=float),
+                            z_hat=np.exp(1j * psi), d_own=np.zeros(n, complex), **links)
+
+    def propagate(self, x: DeCarliState, delta_R: Array,
+                  displacement: Array | None = None) -> DeCarliState:
+        out = x.rows(slice(None))
+        if displacement is not None:
+            out.p_hat = x.p_hat + np.einsum('nab,nb->na', x.R_hat, displacement)
+        out.z_hat = np.exp(1j * yaw_of(delta_R)) * x.z_hat
+        out.R_hat = rot_z(np.angle(out.z_hat))
+        return out
+
+    def every(self, rate: float, h: float) -> int:
+        """Estimator steps per period of a stage running at ``rate``."""
+        return max(1, int(round(1.0 / (rate * h))))
+
+    # --- messages
+    def outbox(self, x: DeCarliState, sender: Index, bearings: Array,
+               slot: Index | None = None) -> dict[str, Array]:
+        relyaw = np.zeros((len(sender), 2))
+        if slot is not None and x.slots:
+            inside = slot < x.slots
+            s, k = sender[inside], np.minimum(slot[inside], x.slots - 1)
+            ready = x.ready_pair[s, k]
+            relyaw[inside] = np.where(ready[:, None], as_pair(unit(x.z_pair[s, k])), 0.0)
+        return {'z_hat': as_pair(x.z_hat), 'p_hat': x.p_hat,
+                'meas': np.array(bearings, dtype=float), 'relyaw': relyaw}
+
+    # --- the step
+    def step(self, x: DeCarliState, h: float, inputs: StepInputs,
+             reorthonormalize: bool = True) -> tuple[DeCarliState, dict[str, Array]]:
+        g = self.gains
+        L = inputs.links
+        edges = inputs.edges
+        assert L is not None and edges.slot is not None, 'de_carli steps need link inputs'
+        n = x.p_hat.shape[0]
+        ag, sl = edges.agent, edges.slot
+        x = x.grown(int(sl.max()) + 1 if len(sl) else 0)
+        out = x.rows(slice(None))
+        rec = inputs.received
+        tick = int(round(inputs.t / h))
+        h2, h3 = self.every(g.yaw_rate, h) * h, self.every(g.position_rate, h) * h
+
+        dpsi_i = yaw_of(inputs.delta_R)
+        delta_i = (np.zeros((n, 3)) if inputs.displacement is None
+                   else np.asarray(inputs.displacement, dtype=float))
+        dc_i = as_complex(delta_i)
+        dpsi_j = yaw_of(L.other_delta_R)
+        delta_j = L.other_displacement
+        dc_j = as_complex(delta_j)
+        z_j = as_complex(rec['z_hat'])
+        y, meas = L.relative_positions, rec['meas']
+        y_c, meas_c = as_complex(y), as_complex(meas)
+        senses, sensed_by, owns = L.senses, L.sensed_by, L.owns
+        two_way = owns & sensed_by
+
+        # First use of a link: the first measurement, the pair from the first ẑ_j (§8).
+        new = owns & senses & ~x.ready_out[ag, sl]
+        out.P_out[ag[new], sl[new]], out.Pz_out[ag[new], sl[new]] = y_c[new], y[new, 2]
+        out.ready_out[ag[new], sl[new]] = True
+        new = two_way & ~x.ready_in[ag, sl]
+        out.P_in[ag[new], sl[new]], out.Pz_in[ag[new], sl[new]] = meas_c[new], meas[new, 2]
+        out.ready_in[ag[new], sl[new]] = True
+        new = owns & ~x.ready_pair[ag, sl] & (np.abs(z_j) > 0)
+        out.z_pair[ag[new], sl[new]] = unit(np.conj(x.z_hat[ag[new]]) * z_j[new])
+        out.ready_pair[ag[new], sl[new]] = True
+
+        # 1. Stage 3's correction (21), from the state at t.
+        correction = np.zeros((n, 3))
+        if tick % self.every(g.position_rate, h) == 0:
+            R_i = x.R_hat[ag]
+            R_j = rot_z(np.angle(z_j))
+            diff = x.p_hat[ag] - rec['p_hat']
+            term = (senses[:, None] * (diff + np.einsum('kab,kb->ka', R_i, y))
+                    + sensed_by[:, None] * (diff - np.einsum('kab,kb->ka', R_j, meas)))
+            correction = edges.sum_by_agent(term)
+            out.p_hat = x.p_hat - h3 * g.k_p * correction
+
+        # 2. Stage 2: the Jacobi step of (13) over the excited pairs.
+        pair_u = np.where(owns, unit(out.z_pair[ag, sl]), np.conj(unit(as_complex(rec['relyaw']))))
+        active = (x.excitation[ag, sl] >= g.pe_threshold) & np.where(
+            owns, out.ready_pair[ag, sl], np.hypot(*rec['relyaw'].T) > 0.5)
+        pull = np.where(active, np.conj(pair_u) * z_j, 0.0)
+        yaw_target = edges.sum_by_agent(as_pair(pull))
+        n_active = np.bincount(ag[active], minlength=n)
+        z_hat = x.z_hat
+        if tick % self.every(g.yaw_rate, h) == 0:
+            c = h2 * g.k_z
+            z_hat = (z_hat + c * as_complex(yaw_target)) / (1.0 + c * n_active)
+
+        # 3. Stage 1 on the owned pairs: correct (8), then predict (7).
+        k = owns & out.ready_pair[ag, sl] & out.ready_out[ag, sl]
+        a, s = ag[k], sl[k]
+        E_out = out.P_out[a, s] - y_c[k]
+        e_out_z = out.Pz_out[a, s] - y[k, 2]
+        tw = two_way[k]
+        E_in = np.where(tw, out.P_in[a, s] - meas_c[k], 0.0)
+        e_in_z = np.where(tw, out.Pz_in[a, s] - meas[k, 2], 0.0)
+        z_plus = out.z_pair[a, s] - g.k_psi * (np.conj(x.d_other[a, s]) * E_out
+                                              + x.d_own[a] * np.conj(E_in))
+        rot_i, rot_j = np.exp(-1j * dpsi_i[a]), np.exp(-1j * dpsi_j[k])
+        out.P_out[a, s] = rot_i * (out.P_out[a, s] - dc_i[a] + dc_j[k] * z_plus
+                                   - h * g.k_pe * E_out)
+        out.Pz_out[a, s] = (out.Pz_out[a, s] - delta_i[a, 2] + delta_j[k, 2]
+                            - h * g.k_pe * e_out_z)
+        out.P_in[a, s] = np.where(tw, rot_j * (out.P_in[a, s] - dc_j[k]
+                                               + dc_i[a] * np.conj(z_plus) - h * g.k_pe * E_in),
+                                  out.P_in[a, s])
+        out.Pz_in[a, s] = np.where(tw, out.Pz_in[a, s] - delta_j[k, 2] + delta_i[a, 2]
+                                   - h * g.k_pe * e_in_z, out.Pz_in[a, s])
+        out.z_pair[a, s] = np.exp(1j * (dpsi_j[k] - dpsi_i[a])) * z_plus
+        out.d_other[ag, sl] = np.exp(-1j * dpsi_j) * dc_j
+        out.d_own = np.exp(-1j * dpsi_i) * dc_i
+
+        # Excitation: the horizontal motion of the robots the pair's edges sense (Theorem 1).
+        tick_excitation = (senses * np.abs(dc_j) ** 2 + sensed_by * np.abs(dc_i[ag]) ** 2) / h
+        out.excitation[ag, sl] = x.excitation[ag, sl] + tick_excitation
+        decay = np.exp(-h / EXCITATION_WINDOW_S)
+        out.excitation_recent[ag, sl] = decay * x.excitation_recent[ag, sl] + tick_excitation
+
+        # 4. Dead reckoning with the new yaw, then the yaw's rotation over the step.
+        out.p_hat = out.p_hat + np.einsum('nab,nb->na', rot_z(np.angle(z_hat)), delta_i)
+        out.z_hat = np.exp(1j * dpsi_i) * z_hat
+        out.R_hat = rot_z(np.angle(out.z_hat))
+
+        residual = np.zeros(n)
+        np.maximum.at(residual, a, np.abs(E_out))
+        diagnostics = {'innovation': correction, 'z_modulus': np.abs(out.z_hat),
+                       'pairs_excited': n_active.astype(float),
+                       'relative_residual_m': residual}
+        return out, diagnostics
+
+    # --- what the recordings show
+    edge_error_label: ClassVar[str] = 'rel_yaw_err'
+
+    def edge_errors(self, x: DeCarliState, R: Array, edges: Edges, other: Index) -> Array:
+        """Fig. 2(a): per link, ``|ẑ_ij - e^{ι(ψ_j - ψ_i)}|`` (chordal, no alignment needed)
+        where its robot owns the pair, NaN elsewhere; ``R`` the true attitudes."""
+        psi = yaw_of(R)
+        agent, slot = edges.agent, edges.slot
+        assert slot is not None
+        out = np.full(len(agent), np.nan)
+        if not x.slots:
+            return out
+        inside = slot < x.slots
+        k = np.flatnonzero(inside)
+        own = x.ready_pair[agent[k], slot[k]]
+        k = k[own]
+        out[k] = np.abs(x.z_pair[agent[k], slot[k]] - np.exp(1j * (psi[other[k]]
+                                                                   - psi[agent[k]])))
+        return out
+
+    # --- assumptions
+    def check(self, scenario: Scenario) -> CheckReport:
+        report = CheckReport()
+        names = [a.name for a in scenario.agents]
+        n = len(names)
+        tail, head = sensing_edges(scenario)
+        adjacency = np.zeros((n, n))
+        adjacency[tail, head] = adjacency[head, tail] = 1.0
+        count, label = connected_components(adjacency, directed=False)
+        if count > 1:
+            main = np.bincount(label).argmax()
+            for i in np.flatnonzero(label != main):
+                report.findings.append(Finding(
+                    'error', names[i], 'neighbours', 'not connected to the rest of the fleet '
+                    'in the communication graph (every sensing edge, both ways)',
+                    'add a sensing edge between it and the fleet'))
+        for a in scenario.agents:
+            if a.yaw is None and (abs(a.attitude[2, 2] - 1.0) > 1e-9
+                                  or any(c.constant or c.terms for c in
+                                         (a.angular_velocity.x, a.angular_velocity.y))):
+                report.findings.append(Finding(
+                    'error', a.name, 'attitude', 'De Carli et al. need yaw-only body frames '
+                    '(roll and pitch compensated by the IMU)',
+                    'give it a `yaw:` spline, or an attitude about z and an angular velocity '
+                    '[0, 0, w]'))
+        h = scenario.step
+        for rate_name in ('yaw_rate', 'position_rate'):
+            rate = getattr(self.gains, rate_name)
+            ratio = scenario.frequency / rate
+            if ratio < 1.0 - 1e-9 or abs(ratio - round(ratio)) > 1e-6:
+                report.findings.append(Finding(
+                    'error', 'gains', rate_name, f'{rate:g} Hz does not divide the estimator '
+                    f'frequency {scenario.frequency:g} Hz',
+                    f'use frequency / n, e.g. {scenario.frequency / 2:g}'))
+        laplacian = edge_laplacian(tail, head, n)
+        lam = float(np.linalg.eigvalsh(laplacian)[-1]) if len(tail) else 0.0
+        h3 = self.every(self.gains.position_rate, h) * h
+        if h3 * self.gains.k_p * lam >= EULER_LIMIT:
+            report.findings.append(Finding(
+                'error', 'gains', 'k_p', f'the position correction diverges: h3 k_p '
+                f'lambda_max(L) = {h3 * self.gains.k_p * lam:.3g} >= {EULER_LIMIT:g}',
+                f'lower k_p below {EULER_LIMIT / (h3 * lam):.3g} or raise position_rate'))
+        if not scenario.moves:
+            for a_, b_, sensed in pairs_and_sensed(scenario):
+                report.findings.append(unexcited(names, a_, b_, sensed, 0.0))
+        return report
+
+    def check_motion(self, scenario: Scenario, times: Array,
+                     positions: Array) -> list[Finding]:
+        """Warn for every pair whose sensed robots' horizontal motion along the sampled truth
+        stays below the excitation the consensus waits for (the paper's mode is checked with
+        the exogenous motion: the truth cannot depend on estimates here)."""
+        names = [a.name for a in scenario.agents]
+        step = np.diff(positions[:, :, :2], axis=0)
+        dt = np.diff(times)[:, None]
+        energy = (np.sum(step ** 2, axis=2) / np.maximum(dt, 1e-300)).sum(axis=0)  # (N,)
+        return [unexcited(names, a, b, sensed, float(energy[list(sensed)].sum()))
+                for a, b, sensed in pairs_and_sensed(scenario)
+                if energy[list(sensed)].sum() < EXCITATION_M2_S]
+
+
+def sensing_edges(scenario: Scenario) -> tuple[Index, Index]:
+    """``(tail, head)`` of every sensing edge (i measures its neighbour j)."""
+    tail, head = [], []
+    for i, a in enumerate(scenario.agents):
+        for nb in a.neighbours:
+            tail.append(i)
+            head.append(scenario.index[nb.name])
+    return np.array(tail, dtype=np.intp), np.array(head, dtype=np.intp)
+
+
+def edge_laplacian(tail: Index, head: Index, n: int) -> Array:
+    """``L̄ = E Eᵀ`` (24, corrected: off-diagonals -1 or -2) of the sensing edges."""
+    incidence = np.zeros((n, len(tail)))
+    incidence[tail, np.arange(len(tail))] = 1.0
+    incidence[head, np.arange(len(tail))] = -1.0
+    return incidence @ incidence.T
+
+
+def pairs_and_sensed(scenario: Scenario) -> list[tuple[int, int, set[int]]]:
+    """Every communication pair ``(a, b)``, ``a < b``, with the robots its edges sense."""
+    tail, head = sensing_edges(scenario)
+    pairs: dict[tuple[int, int], set[int]] = {}
+    for i, j in zip(tail.tolist(), head.tolist()):
+        pairs.setdefault((min(i, j), max(i, j)), set()).add(j)
+    return [(a, b, sensed) for (a, b), sensed in sorted(pairs.items())]
+
+
+def unexcited(names: list[str], a: int, b: int, sensed: set[int], energy: float) -> Finding:
+    who = ' and '.join(names[k] for k in sorted(sensed))
+    return Finding('warning', names[b], 'neighbours',
+                   f'the pair {names[a]}-{names[b]} is never excited: {who} (what its edges '
+                   f'sense) moves {energy:.3g} m^2/s horizontally (integral of |v_xy|^2), '
+                   f'below {EXCITATION_M2_S:g}; its relative yaw cannot converge and the '
+                   'consensus leaves it out',
+                   f'make {who} move horizontally, or add a sensing edge to a robot that does')

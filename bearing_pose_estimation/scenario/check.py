@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core import graph
-from ..estimators.base import CheckReport, Finding
+from ..estimators.base import CheckReport, Finding, Sensor
 from .model import Scenario
 
 Array = NDArray[np.float64]
@@ -83,6 +83,9 @@ def close_approach_findings(scenario: Scenario, times: Array,
     (its closest approach): an error when they collide (closer than
     :data:`graph.COLLOCATED_M`), else a warning. Pairs collocated at t = 0 are left to the
     static check."""
+    bearings = scenario.estimator().uses(Sensor.BEARINGS)
+    why = ('bearings between them are undefined at collision' if bearings
+           else 'robots this close may collide')
     out = []
     for i, j, dist, t in zip(*graph.close_approaches(times, positions,
                                                      graph.CLOSE_APPROACH_M)):
@@ -92,10 +95,11 @@ def close_approach_findings(scenario: Scenario, times: Array,
         fix = f'change the velocities or start positions of {a} or {b}'
         if dist < graph.COLLOCATED_M:
             out.append(Finding('error', b, 'velocity', f'collides with {a} at t = {t:.2f} s '
-                               f'(closest distance {dist:.3g} m): bearings between them are '
-                               'undefined', fix))
+                               f'(closest distance {dist:.3g} m): '
+                               + ('bearings between them are undefined' if bearings
+                                  else 'they collide'), fix))
         else:
             out.append(Finding('warning', b, 'velocity', f'comes within {dist:.3f} m of {a} '
                                f'at t = {t:.2f} s (closer than {graph.CLOSE_APPROACH_M:g} m; '
-                               'bearings between them are undefined at collision)', fix))
+                               f'{why})', fix))
     return out

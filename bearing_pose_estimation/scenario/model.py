@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from .. import estimators
 from ..core import so3
-from ..core.motion import AngularVelocity, LinearVelocity
+from ..core.motion import AngularVelocity, LinearVelocity, YawSpline
 from ..estimators.base import Estimator
 
 
@@ -36,6 +36,8 @@ class Agent:
     velocity: LinearVelocity | None = None
     initial_position: NDArray[np.float64] | None = None   # p̂_i(0), followers only
     initial_attitude: NDArray[np.float64] | None = None   # R̂_i(0), followers only
+    yaw: YawSpline | None = None     # yaw-only attitude R_z(ψ(t)) (replaces angular_velocity)
+    formation_position: NDArray[np.float64] | None = None   # p*_i: driven by the controller
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,22 @@ class Sensors:
 
 
 @dataclass(frozen=True)
+class FormationControl:
+    """The formation controller that moves the agents with a ``formation_position``
+    (:mod:`core.formation`, De Carli et al. (30)-(31)): gain ``k_c`` [1/s], speed bound
+    ``nu_max`` [m/s]; ``mode`` ``exogenous`` (true yaws: the motion does not depend on the
+    estimates) or ``paper`` (estimated yaws: a closed loop, batch simulator only); evaluated
+    at ``rate`` [Hz] and held in the body frame in between."""
+
+    k_c: float = 1.0
+    nu_max: float = 1.0
+    mode: str = 'exogenous'
+    rate: float = 200.0
+
+    MODES = ('exogenous', 'paper')
+
+
+@dataclass(frozen=True)
 class SimulationRates:
     """How the simulator node samples the world. Truth is integrated with ``internal_step``
     [s]; every sensor period must be a whole number of internal steps."""
@@ -150,6 +168,7 @@ class Scenario:
     random_init: RandomInit | None = None
     simulation: SimulationRates = SimulationRates()
     sensors: Sensors = Sensors()
+    formation: FormationControl | None = None
     source: str = '<memory>'
     index: dict[str, int] = field(default_factory=dict, compare=False, repr=False)
 
@@ -199,7 +218,15 @@ class Scenario:
     @property
     def moves(self) -> bool:
         """Some agent translates (static positions are the papers' setting)."""
-        return any(a.velocity is not None and not a.velocity.value.is_zero for a in self.agents)
+        return (any(a.velocity is not None and not a.velocity.value.is_zero
+                    for a in self.agents)
+                or (self.formation is not None
+                    and any(a.formation_position is not None for a in self.agents)))
+
+    @property
+    def yaw_only(self) -> bool:
+        """The agents' attitudes are yaw splines (``yaw:``), ``R_i = R_z(ψ_i(t))``."""
+        return any(a.yaw is not None for a in self.agents)
 
     def simulates(self, sensor: str) -> bool:
         """The simulators produce ``sensor`` (a :data:`Sensors.NAMES` entry): listed in

@@ -22,10 +22,11 @@ from numpy.typing import NDArray
 from .. import estimators
 from ..core import so3
 from ..core.errors import ScenarioError
-from ..core.motion import AngularVelocity, Component, LinearVelocity, Sinusoid, VectorProfile
+from ..core.motion import (AngularVelocity, Component, LinearVelocity, Sinusoid, VectorProfile,
+                           YawSpline, rot_z)
 from ..estimators.base import parse_gains
-from .model import (Agent, BearingPerturbation, Neighbour, Noise, RandomInit, Scenario,
-                    SensorSpec, Sensors, SimulationRates)
+from .model import (Agent, BearingPerturbation, FormationControl, Neighbour, Noise, RandomInit,
+                    Scenario, SensorSpec, Sensors, SimulationRates)
 
 # Agent names become ROS namespaces and frame prefixes (`agent_3/base_link`).
 _NAME_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
@@ -176,6 +177,47 @@ def _velocity(ctx: _Ctx, value: Any, where: str) -> LinearVelocity:
     return LinearVelocity(frame='body', value=_profile(ctx, m['body'], f'{where}.body'))
 
 
+def _numbers(ctx: _Ctx, value: Any, where: str, minimum: int) -> tuple[float, ...]:
+    if not isinstance(value, list) or len(value) < minimum:
+        raise ctx.fail(where, f'expected a list of at least {minimum} numbers, got {value!r}',
+                       'write it as [0.0, 1.0, ...]')
+    return tuple(_number(ctx, v, f'{where}[{i}]') for i, v in enumerate(value))
+
+
+def _yaw(ctx: _Ctx, value: Any, where: str, knots: tuple[float, ...] | None) -> YawSpline:
+    """``{values: [rad, ...], knots: [s, ...]}`` (knots default to the top-level
+    ``yaw_knots``): a clamped cubic spline."""
+    m = _mapping(ctx, value, where, {'knots', 'values'}, {'values'})
+    if 'knots' in m:
+        knots = _numbers(ctx, m['knots'], f'{where}.knots', 2)
+    elif knots is None:
+        raise ctx.fail(f'{where}.knots', 'missing, and there is no top-level `yaw_knots`',
+                       'add `knots: [0, 2, 4, ...]` [s] or a top-level `yaw_knots:`')
+    if any(b <= a for a, b in zip(knots, knots[1:])):
+        raise ctx.fail(f'{where}.knots', 'the knots must increase strictly',
+                       'sort them and remove duplicates')
+    values = _numbers(ctx, m['values'], f'{where}.values', 2)
+    if len(values) != len(knots):
+        raise ctx.fail(f'{where}.values', f'{len(values)} values for {len(knots)} knots',
+                       'give one yaw [rad] per knot')
+    return YawSpline(knots=knots, values=values)
+
+
+def _formation(ctx: _Ctx, value: Any) -> FormationControl:
+    m = _mapping(ctx, value, 'formation_control', {'k_c', 'nu_max', 'mode', 'rate'})
+    d = FormationControl()
+    mode = m.get('mode', d.mode)
+    if mode not in FormationControl.MODES:
+        raise ctx.fail('formation_control.mode', f'unknown mode {mode!r}',
+                       f'use one of: {", ".join(FormationControl.MODES)}')
+    return FormationControl(
+        k_c=_number(ctx, m.get('k_c', d.k_c), 'formation_control.k_c', positive=True),
+        nu_max=_number(ctx, m.get('nu_max', d.nu_max), 'formation_control.nu_max',
+                       positive=True),
+        mode=mode,
+        rate=_number(ctx, m.get('rate', d.rate), 'formation_control.rate', positive=True))
+
+
 def _neighbours(ctx: _Ctx, value: Any, where: str, default_k: float) -> tuple[Neighbour, ...]:
     if not isinstance(value, list):
         raise ctx.fail(where, f'expected a list, got {value!r}',
@@ -277,9 +319,9 @@ def _noise(ctx: _Ctx, value: Any) -> Noise:
 _TOP_KEYS = {'name', 'description', 'method', 'world_frame', 'gains', 'frequency',
              'publish_rate', 'duration',
              'noise', 'leaders', 'anchor', 'agents', 'initial_estimates', 'simulation',
-             'sensors'}
+             'sensors', 'formation_control', 'yaw_knots'}
 _AGENT_KEYS = {'name', 'position', 'attitude', 'angular_velocity', 'velocity', 'neighbours',
-               'initial_estimate'}
+               'initial_estimate', 'yaw', 'formation_position'}
 
 
 def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
@@ -318,6 +360,12 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
 
     simulation = _simulation(ctx, top.get('simulation', {}))
     sensors = _sensors(ctx, top.get('sensors', {}), simulation.internal_step)
+    formation = (_formation(ctx, top['formation_control']) if 'formation_control' in top
+                 else None)
+    if formation is not None:
+        _check_period(ctx, formation.rate, simulation.internal_step, 'formation_control.rate')
+    yaw_knots = (_numbers(ctx, top['yaw_knots'], 'yaw_knots', 2) if 'yaw_knots' in top
+                 else None)
 
     random_init = None
     if 'initial_estimates' in top:
@@ -380,6 +428,27 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
                                   f'{where}.angular_velocity')
         velocity = (_velocity(ctx, m['velocity'], f'{where}.velocity') if 'velocity' in m
                     else None)
+        yaw = None
+        if 'yaw' in m:
+            for key in ('attitude', 'angular_velocity'):
+                if key in m:
+                    raise ctx.fail(f'{where}.{key}', 'a yaw spline sets the attitude '
+                                   'R_z(ψ(t)) and its rate', f'remove `{key}` or `yaw`')
+            yaw = _yaw(ctx, m['yaw'], f'{where}.yaw', yaw_knots)
+            attitude = rot_z(np.array(yaw.values[0]))
+        formation_position = None
+        if 'formation_position' in m:
+            if formation is None:
+                raise ctx.fail(f'{where}.formation_position', 'no `formation_control:` '
+                               'block moves the agents to it',
+                               'add a top-level `formation_control: {k_c: 1, nu_max: 1}` or '
+                               'remove `formation_position`')
+            if velocity is not None:
+                raise ctx.fail(f'{where}.velocity', 'the formation controller sets the '
+                               'velocity of an agent with a formation_position',
+                               'remove `velocity` or `formation_position`')
+            formation_position = _vector(ctx, m['formation_position'],
+                                         f'{where}.formation_position')
         neighbours: tuple[Neighbour, ...] = ()
         p0 = R0 = None
         if is_leader:
@@ -408,8 +477,20 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
                                '`initial_estimates: {random: {seed: 0}}` at the top level')
         agents.append(Agent(name=aname, position=position, attitude=attitude,
                             angular_velocity=omega, neighbours=neighbours, velocity=velocity,
-                            initial_position=p0, initial_attitude=R0))
+                            initial_position=p0, initial_attitude=R0, yaw=yaw,
+                            formation_position=formation_position))
 
+    if yaw_knots is not None and not any(a.yaw is not None for a in agents):
+        raise ctx.fail('yaw_knots', 'no agent has a `yaw:` spline',
+                       'remove `yaw_knots` or give agents `yaw: {values: [...]}`')
+    if any(a.yaw is not None for a in agents) and not all(a.yaw is not None for a in agents):
+        bare = next(k for k, a in enumerate(agents) if a.yaw is None)
+        raise ctx.fail(f'agents[{bare}] ({agents[bare].name}).yaw', 'missing: either every '
+                       'agent follows a yaw spline or none does',
+                       'give it `yaw: {values: [...]}` (a constant yaw: two equal values)')
+    if formation is not None and not any(a.yaw is not None for a in agents):
+        raise ctx.fail('formation_control', 'the formation controller steers yaw-only robots',
+                       'give every agent a `yaw: {values: [...]}` spline')
     if anchor is not None and anchor not in seen:
         raise ctx.fail('anchor', f'{anchor!r} is not an agent',
                        f'use a name from `agents` ({", ".join(list(seen)[:5])}, ...)')
@@ -434,7 +515,7 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
                     frequency=frequency, publish_rate=publish_rate, duration=duration,
                     world_frame=world_frame,
                     noise=noise, random_init=random_init, simulation=simulation,
-                    sensors=sensors, source=source)
+                    sensors=sensors, formation=formation, source=source)
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -16,6 +16,15 @@ Noise (all off by default) comes from :class:`.noise.NoiseModel`, the same model
 simulator node's world uses; a scenario and its ``noise.seed`` give the same run.
 
 Leaders (for methods that have them) know their pose: their estimate is their truth.
+
+Methods whose robots talk both ways over every sensing edge (``links = 'communication'``, De
+Carli et al.) step over communication links instead (:func:`estimators.base.communication_links`):
+each robot's own relative positions ``ⁱp_ij = R_iᵀ (p_j - p_i)`` (+ noise) to the robots it
+senses, what each neighbour sends formed from its state and its own measurement of the robot
+(where it senses it), and the neighbour's gyro increment and odometry over the step. In the
+formation controller's ``paper`` mode the truth moves with the estimated yaws (a closed loop).
+Their recordings add each pair's error (:meth:`Estimator.edge_errors`) and, under formation
+control, each robot's formation error (:func:`core.formation.formation_error`).
 """
 from __future__ import annotations
 
@@ -24,7 +33,8 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from ..estimators.base import Edges, State, StepInputs, route
+from ..core.formation import formation_error
+from ..estimators.base import Edges, LinkInputs, State, StepInputs, communication_links, route
 from ..scenario.model import Scenario, initial_estimates
 from ..studies.results import PoseErrors, Recording, pose_errors, to_world
 from .noise import NoiseModel
@@ -58,6 +68,12 @@ class BatchSimulator(OnTruth):
                 owner.append(scenario.index[a.name])
                 nbr.append(scenario.index[nb.name])
                 k.append(nb.k)
+        self.links = None
+        if self.estimator.links == 'communication':
+            self.links = communication_links(np.array(owner, np.intp), np.array(nbr, np.intp),
+                                             self.n)
+            owner, nbr = list(self.links['agent']), list(self.links['other'])
+            k = [1.0] * len(owner)
         self.edge_nbr = np.array(nbr, dtype=np.intp)
         self.edges = Edges(agent=np.array(owner, dtype=np.intp), k=np.array(k), n_agents=self.n)
         # Both ends of every edge measure: i its b^i_ij, j its b^j_ji.
@@ -96,6 +112,8 @@ class BatchSimulator(OnTruth):
 
     def inputs(self) -> StepInputs:
         """What every agent's next step consumes, measured now (noise drawn)."""
+        if self.links is not None:
+            return self.link_inputs()
         b_world = (self._ends_b_world if self._ends_b_world is not None
                    else self.truth.world_bearings(self._ends, self._other_ends))
         both = self.truth.body_bearings(self._ends, b_world)
@@ -113,6 +131,47 @@ class BatchSimulator(OnTruth):
                           received=route(sent, self.estimator.sends, self.edge_nbr),
                           displacement=displacement)
 
+    def link_inputs(self) -> StepInputs:
+        """:meth:`inputs` of a ``links = 'communication'`` method."""
+        assert self.links is not None
+        agent, other = self.edges.agent, self.edge_nbr
+        senses, sensed_by = self.links['senses'], self.links['sensed_by']
+        y = self.noise.sensor('relative_positions',
+                              self.truth.relative_positions(agent, other)) * senses[:, None]
+        theirs = self.noise.sensor('relative_positions', self.truth.relative_positions(
+            other, agent)) * sensed_by[:, None]
+        assert self.edges.slot is not None
+        sent = self.estimator.outbox(self.x, other, theirs,
+                                     slot=self.edges.slot[self.links['reverse']])
+        delta_R = self.gyro_increment(self.truth.increment())
+        samples = self.h * self.scenario.sensors.odometry.rate
+        displacement = self.noise.odometry_displacement(self.truth.displacement(), self.h,
+                                                        samples)
+        links = LinkInputs(senses=senses, sensed_by=sensed_by, owns=self.links['owns'],
+                           relative_positions=y, other_delta_R=delta_R[other],
+                           other_displacement=displacement[other])
+        return StepInputs(delta_R=delta_R, edges=self.edges, bearings=np.zeros((len(agent), 3)),
+                          received=route(sent, self.estimator.sends, other),
+                          displacement=displacement, links=links, t=self.t)
+
+    def extra_errors(self) -> dict[str, float]:
+        """The recording's columns beyond the pose errors, now: each pair's error (one
+        column per owned link, ``<label>_<a>_<b>``) and, under formation control, each robot's
+        formation error ``formation_err_<agent>_m``."""
+        out: dict[str, float] = {}
+        names = [a.name for a in self.scenario.agents]
+        per_edge = self.estimator.edge_errors(self.x, self.R, self.edges, self.edge_nbr)
+        if per_edge is not None:
+            label = self.estimator.edge_error_label
+            for e in np.flatnonzero(self.links['owns'] if self.links is not None
+                                    else np.ones(len(self.edges), bool)):
+                a, b = sorted((int(self.edges.agent[e]), int(self.edge_nbr[e])))
+                out[f'{label}_{names[a]}_{names[b]}'] = float(per_edge[e])
+        if self.truth.p_star is not None:
+            for name, err in zip(names, formation_error(self.p, self.truth.p_star)):
+                out[f'formation_err_{name}_m'] = float(err)
+        return out
+
     def gyro_increment(self, delta_R: Array) -> Array:
         """What the gyros report over the step: ``ΔR exp(h (bias + noise))`` (body frame),
         the noise averaged over the IMU samples the step spans (``simulation.imu_rate``)."""
@@ -121,6 +180,8 @@ class BatchSimulator(OnTruth):
 
     def step(self) -> None:
         """Advance truth and every estimator by one step ``h``."""
+        if self.truth.control is not None and self.truth.control.mode == 'paper':
+            self.truth.controller_yaws = np.arctan2(self.x.R_hat[:, 1, 0], self.x.R_hat[:, 0, 0])
         inputs = self.inputs()
         self.truth.advance()
         self.x, _ = self.estimator.step(self.x, self.h, inputs,
@@ -154,6 +215,8 @@ class BatchSimulator(OnTruth):
         every = max(1, int(round(record_every / self.h)))
         prog_every = max(1, int(round(progress_every / self.h)))
         tracks = self.truth.moves
+        extras = self.links is not None or self.truth.p_star is not None
+        extra: list[dict[str, float]] = []
         t, rows = [], []
         p: list[Array] = []
         p_hat: list[Array] = []
@@ -161,6 +224,8 @@ class BatchSimulator(OnTruth):
             if s % every == 0 or s == n_steps:
                 t.append(self.t)
                 rows.append(self.errors())
+                if extras:
+                    extra.append(self.extra_errors())
                 if tracks:
                     p.append(self.p.copy())
                     p_hat.append(to_world(self.estimator.frame, self.R, self.p, self.x.R_hat,
@@ -170,7 +235,10 @@ class BatchSimulator(OnTruth):
             if s < n_steps:
                 self.step()
         followers = [a.name for a in self.scenario.followers]
+        columns = {name: np.array([row[name] for row in extra]) for name in
+                   (extra[0] if extra else {})}
         if not tracks:
-            return Recording.of(t, followers, rows)
+            return Recording.of(t, followers, rows, extra=columns)
         return Recording.of(t, followers, rows, agents=[a.name for a in self.scenario.agents],
-                            leaders=list(self.scenario.leaders), p=p, p_hat=p_hat)
+                            leaders=list(self.scenario.leaders), p=p, p_hat=p_hat,
+                            extra=columns)

@@ -7,6 +7,13 @@ together over steps of ``dt`` (the estimator step in the batch simulator,
 the rotation, the closed-form integral or 3-point Gauss-Legendre quadrature for the
 translation (:mod:`core.motion`). Static agents (the default) never move.
 
+Yaw-only fleets (``yaw:`` splines, De Carli et al.) have ``R_i = R_z(ψ_i(t))`` exactly. Their
+formation controller (``formation_control:``, :mod:`core.formation`) is evaluated every
+``1/formation_control.rate`` and its body-frame velocity held in between (a sampled-data plant,
+the note's §7); the displacement of a held velocity is integrated by 3-point Gauss-Legendre.
+In the ``paper`` mode the controller uses the estimated yaws: the batch simulator sets
+:attr:`Truth.controller_yaws` before each step (unset, the true yaws are used).
+
 The sensors are defined from it (:meth:`Truth.body_bearings` and the methods below):
 bearings ``b^i_ij = R_iᵀ (p_j - p_i)/‖p_j - p_i‖``, relative positions
 ``ⁱp_ij = R_iᵀ (p_j - p_i)``, ranges ``‖p_j - p_i‖``, bearing rates ``d b^i_ij/dt``, and
@@ -18,7 +25,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core import so3
-from ..core.motion import ZERO, ProfileSet, body_displacement, magnus_increment
+from ..core import formation
+from ..core.motion import (ZERO, ProfileSet, YawSplines, body_displacement, magnus_increment,
+                           rot_z)
 from ..scenario.model import Scenario
 
 Array = NDArray[np.float64]
@@ -43,10 +52,27 @@ class Truth:
                                and a.velocity.frame == frame else ZERO for a in agents])
 
         self.v_world, self.v_body = velocities('world'), velocities('body')
-        self.moves = not (self.v_world.is_zero and self.v_body.is_zero)
+        self.yaws = YawSplines([a.yaw for a in agents]) if scenario.yaw_only else None
+        self.control = scenario.formation
+        self._controlled = np.array([a.formation_position is not None for a in agents])
+        if self.control is not None and self._controlled.any():
+            self._p_star = np.stack([a.formation_position if a.formation_position is not None
+                                     else np.zeros(3) for a in agents])
+            tail, head = [], []
+            for i, a in enumerate(agents):
+                for nb in a.neighbours:
+                    tail.append(i)
+                    head.append(scenario.index[nb.name])
+            self._tail, self._head = np.array(tail, np.intp), np.array(head, np.intp)
+            self._control_every = max(1, int(round(1.0 / (self.control.rate * self.dt))))
+        else:
+            self.control = None
+        self.moves = not (self.v_world.is_zero and self.v_body.is_zero) or self.control is not None
+        # The yaws the controller uses (paper mode: the estimates); None: the true yaws.
+        self.controller_yaws: Array | None = None
         # Constant rates (common in generated fleets): the increment never changes.
         self._constant = (magnus_increment(self.omega, 0.0, self.dt)
-                          if self.omega.is_constant else None)
+                          if self.omega.is_constant and self.yaws is None else None)
         self.reset()
 
     def reset(self) -> None:
@@ -56,6 +82,8 @@ class Truth:
         self.p = np.stack([a.position for a in self.scenario.agents])
         self._next: tuple[int, Array] | None = None  # the increment from step k, once computed
         self._next_delta: tuple[int, Array] | None = None  # the displacement from step k
+        self.v_control = np.zeros_like(self.p)   # the controller's held body velocities
+        self.controller_yaws = None
 
     @property
     def t(self) -> float:
@@ -72,7 +100,8 @@ class Truth:
         if self._constant is not None:
             return self._constant
         if self._next is None or self._next[0] != self.k:  # measured, then stepped: once
-            self._next = (self.k, magnus_increment(self.omega, self.t, self.dt))
+            self._next = (self.k, self.yaws.increment(self.t, self.dt) if self.yaws is not None
+                          else magnus_increment(self.omega, self.t, self.dt))
         return self._next[1]
 
     def displacement(self) -> Array:
@@ -85,25 +114,63 @@ class Truth:
             delta = np.einsum('nba,nb->na', self.R, self.v_world.integral(self.t, self.dt))
             if not self.v_body.is_zero:
                 delta += body_displacement(self.omega, self.v_body, self.t, self.dt)
+            if self.control is not None:
+                if self.k % self._control_every == 0:
+                    self.v_control = self.controller_velocity()
+                assert self.yaws is not None   # the parser requires yaw splines
+                delta += self.yaws.held_displacement(self.t, self.dt, self.v_control)
             self._next_delta = (self.k, delta)
         return self._next_delta[1]
+
+    def controller_velocity(self) -> Array:
+        """The formation controller's body-frame velocities now ``(N, 3)`` [m/s]
+        (:func:`core.formation.body_velocity`), with :attr:`controller_yaws` in the paper
+        mode."""
+        assert self.control is not None and self.yaws is not None
+        psi = self.yaws(self.t)
+        used = (self.controller_yaws if self.control.mode == 'paper'
+                and self.controller_yaws is not None else psi)
+        return formation.body_velocity(self.p, used, psi, self._p_star, self._tail,
+                                       self._head, self.control.k_c, self.control.nu_max,
+                                       self._controlled)
+
+    @property
+    def p_star(self) -> Array | None:
+        """The desired formation ``(N, 3)`` [m] (None without formation control)."""
+        return self._p_star if self.control is not None else None
 
     def advance(self) -> Array:
         """Advance by ``dt``; return the rotation increment used."""
         delta_R = self.increment()
         if self.moves:
             self.p = self.p + np.einsum('nab,nb->na', self.R, self.displacement())
-        self.R = so3.matmul(self.R, delta_R)
         self.k += 1
+        if self.yaws is not None:   # exact, nothing accumulates
+            self.R = rot_z(self.yaws(self.t))
+            return delta_R
+        self.R = so3.matmul(self.R, delta_R)
         if self.reorthonormalizes:
             self.R = so3.reorthonormalize(self.R)
         return delta_R
+
+    def angular_rate(self) -> Array:
+        """Body angular velocities now, ``(N, 3)`` [rad/s]."""
+        if self.yaws is not None:
+            out = np.zeros((len(self.p), 3))
+            out[:, 2] = self.yaws.rate(self.t)
+            return out
+        return self.omega(self.t)
 
     def velocity(self) -> Array:
         """World-frame velocities ``dp_i/dt`` now, ``(N, 3)`` [m/s]."""
         v = self.v_world(self.t)
         if not self.v_body.is_zero:
             v = v + np.einsum('nab,nb->na', self.R, self.v_body(self.t))
+        if self.control is not None:
+            if self.k % self._control_every == 0 and (self._next_delta is None
+                                                       or self._next_delta[0] != self.k):
+                self.displacement()   # evaluates the controller at this instant
+            v = v + np.einsum('nab,nb->na', self.R, self.v_control)
         return v
 
     def relative_positions(self, owner: Index, target: Index) -> Array:
@@ -125,7 +192,7 @@ class Truth:
         d_dot = v[target] - v[owner]
         u_dot = (d_dot - u * so3.dot(u, d_dot)[:, None]) / rho
         b = self.body_bearings(owner, u)
-        w = self.omega(self.t)[owner]
+        w = self.angular_rate()[owner]
         return self.body_bearings(owner, u_dot) - so3.cross(w, b)
 
     def world_bearings(self, owner: Index, target: Index) -> Array:

@@ -20,8 +20,8 @@ Then, per agent: ``att_err`` is the geodesic angle of ``R_i R̂_iᵀ`` [rad]; ``
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -106,7 +106,9 @@ class Trajectories:
 class Recording:
     """Errors of every estimating agent (``followers``) at the recorded times: arrays ``(K, F)``
     for K records and F agents, as in :class:`PoseErrors`; for moving fleets, optionally the
-    :class:`Trajectories` of every agent at the same times (``None`` otherwise)."""
+    :class:`Trajectories` of every agent at the same times (``None`` otherwise); ``extra``:
+    method- or motion-specific columns ``(K,)`` by name (De Carli et al.: each pair's
+    relative-yaw error ``rel_yaw_err_<a>_<b>``, each robot's ``formation_err_<agent>_m``)."""
 
     t: Array
     followers: list[str]
@@ -115,12 +117,13 @@ class Recording:
     att_dist_I: Array
     pos_err_paper: Array
     trajectories: Trajectories | None = None
+    extra: dict[str, Array] = field(default_factory=dict)
 
     @staticmethod
     def of(t: Sequence[float], followers: list[str], rows: Sequence[PoseErrors], *,
            agents: list[str] | None = None, leaders: Sequence[str] = (),
-           p: Sequence[Array] | None = None, p_hat: Sequence[Array] | None = None
-           ) -> Recording:
+           p: Sequence[Array] | None = None, p_hat: Sequence[Array] | None = None,
+           extra: Mapping[str, Array] | None = None) -> Recording:
         """A recording from the errors at each time (the one place one is assembled); with
         ``agents`` (all N names, in row order), ``leaders`` and the true and world-frame
         estimated positions ``p``, ``p_hat`` ``(N, 3)`` at each time, also their
@@ -128,8 +131,13 @@ class Recording:
         att_err, pos_err, att_dist_I, pos_err_paper = (
             np.array([r[c] for r in rows]) for c in range(len(PoseErrors._fields)))
         times = np.array(t, dtype=float)
+        columns = {name: np.asarray(v, dtype=float) for name, v in (extra or {}).items()}
+        for name, v in columns.items():
+            if v.shape != times.shape:
+                raise ValueError(f'extra column {name} must be {times.shape}, got {v.shape}')
         if p is None and p_hat is None and agents is None:
-            return Recording(times, followers, att_err, pos_err, att_dist_I, pos_err_paper)
+            return Recording(times, followers, att_err, pos_err, att_dist_I, pos_err_paper,
+                             extra=columns)
         if p is None or p_hat is None or agents is None:
             raise ValueError('trajectories need agents, p and p_hat together')
         shape = (len(times), len(agents), 3)
@@ -145,7 +153,7 @@ class Recording:
         if unknown:
             raise ValueError(f'not among the agents: {", ".join(unknown)}')
         return Recording(times, followers, att_err, pos_err, att_dist_I, pos_err_paper,
-                         Trajectories(list(agents), list(leaders), P, P_hat))
+                         Trajectories(list(agents), list(leaders), P, P_hat), extra=columns)
 
     def mean_errors(self) -> tuple[Array, Array]:
         """Mean attitude [rad] and position [m] error over the agents, per record."""
