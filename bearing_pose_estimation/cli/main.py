@@ -9,6 +9,7 @@ Exit codes: 0 success; 1 invalid scenario, failed check, or a file it refuses to
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -38,6 +39,15 @@ def _load_checked(path: str) -> Scenario:
         raise ScenarioError('\n'.join(f'{path}: {str(e).removeprefix("error: ")}'
                                       for e in report.errors))
     return scenario
+
+
+def _with_formation_mode(scenario: Scenario, mode: str | None) -> Scenario:
+    """``scenario`` with its formation controller in ``mode`` (None: as written)."""
+    if mode is None or scenario.formation is None:
+        return scenario
+    print(f'formation control: {mode} mode', file=sys.stderr)
+    return dataclasses.replace(scenario, formation=dataclasses.replace(scenario.formation,
+                                                                       mode=mode), index={})
 
 
 def _out_dir(arg: str | Path, outputs: list[str], force: bool) -> Path:
@@ -74,11 +84,12 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from ..sim.batch import BatchSimulator
-    from ..studies.plots import TRAJECTORY_PLOT, plot_trajectories, write_plots
+    from ..studies.plots import CASCADE_PLOT, TRAJECTORY_PLOT, plot_cascade, plot_trajectories, \
+        write_plots
     from ..studies.summary import (format_summary, summarize, write_metrics_csv,
                                    write_summary_json)
 
-    scenario = _load_checked(args.scenario)
+    scenario = _with_formation_mode(_load_checked(args.scenario), args.formation_mode)
     if args.gains:
         from ..studies.compare import parse_gain_overrides
         try:
@@ -90,7 +101,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         scenario = scenario.with_method(scenario.method, **given.get(scenario.method, {}))
         print(f'gains: {format_gains(scenario.gains)}', file=sys.stderr)
     # Moving fleets also get their trajectories drawn (the recording holds them).
-    plots = [] if args.no_plots else PLOT_FILES + ([TRAJECTORY_PLOT] if scenario.moves else [])
+    plots = [] if args.no_plots else (PLOT_FILES + ([TRAJECTORY_PLOT] if scenario.moves else [])
+                                      + [CASCADE_PLOT])
     out = _out_dir(args.out or f'results/{scenario.name}', ['metrics.csv', 'summary.json']
                    + plots, args.force)
     duration = args.duration if args.duration is not None else scenario.duration
@@ -117,6 +129,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if TRAJECTORY_PLOT in plots and rec.trajectories is not None:
         files.append(plot_trajectories(rec, out / TRAJECTORY_PLOT,
                                        title=f'{scenario.name}: true and estimated trajectories'))
+    if CASCADE_PLOT in plots:
+        cascade = plot_cascade(rec, out / CASCADE_PLOT, title=f'{scenario.name}: the cascade')
+        files += [cascade] if cascade is not None else []
     print(format_summary(summary))
     print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
     return 0
@@ -130,9 +145,12 @@ def _method_scenarios(args: argparse.Namespace
     from ..scenario import read_scenario_data
     from ..studies.compare import method_scenarios
 
-    scenario = _load_checked(args.scenario)
-    derived = method_scenarios(read_scenario_data(args.scenario), scenario, args.methods,
-                               args.gain_overrides)
+    mode = getattr(args, 'formation_mode', None)
+    scenario = _with_formation_mode(_load_checked(args.scenario), mode)
+    data = read_scenario_data(args.scenario)
+    if mode is not None and isinstance(data.get('formation_control'), dict):
+        data['formation_control']['mode'] = mode
+    derived = method_scenarios(data, scenario, args.methods, args.gain_overrides)
     shown = {str(w) for w in check_scenario(scenario).warnings}
     for method, (_, method_scenario) in derived.items():
         for w in check_scenario(method_scenario).warnings:
@@ -354,13 +372,21 @@ def cmd_generate(args: argparse.Namespace) -> int:
 def _add_method_options(p: argparse.ArgumentParser) -> None:
     """The scenario and the methods to run with their gains (``compare``, ``noise-study``)."""
     p.add_argument('scenario', help='scenario YAML file')
-    p.add_argument('--methods', nargs='+', default=list(estimators.methods()),
+    p.add_argument('--methods', nargs='+', default=None,
                    choices=estimators.methods(),
                    metavar='METHOD',
-                   help=f'methods to run (default: all: {", ".join(estimators.methods())})')
+                   help='methods to run (default: every one the scenario can run, its own first; '
+                        f'registered: {", ".join(estimators.methods())})')
     p.add_argument('--gains', action='append', default=[], metavar='METHOD:GAIN=V[,GAIN=V]',
                    help='override gains of one method, e.g. tran_anderson_ahn:k_omega=3,k_c=2 '
                    '(repeatable; k_ij stays per edge, from the scenario)')
+
+
+def _add_formation_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument('--formation-mode', choices=['paper', 'exogenous'],
+                   help='formation controller mode (scenarios with formation_control): paper, '
+                        'the closed loop on the estimated yaws; exogenous, the true yaws '
+                        '(default: the scenario\'s)')
 
 
 def _add_output_options(p: argparse.ArgumentParser, suffix: str, per_run: bool = False,
@@ -427,6 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--record-every', type=float, default=0.1,
                    help='metrics row interval [s], at most 0.5 (default: 0.1)')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
+    _add_formation_option(p)
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser('compare', help='run several estimators on one scenario; table and plot',
@@ -442,6 +469,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_output_options(p, '_compare')
     p.add_argument('--record-every', type=float, default=0.1,
                    help='row interval of compare.csv [s], at most 0.5 (default: 0.1)')
+    _add_formation_option(p)
     p.add_argument('--distributed', action='store_true',
                    help='also run each method over DDS, one process per agent')
     _add_dds_options(p)
@@ -534,7 +562,20 @@ def main(argv: list[str] | None = None) -> int:
         if args.jobs is not None and args.jobs < 1:
             parser.error('--jobs must be at least 1')
     if args.command in ('compare', 'noise-study'):
-        from ..studies.compare import parse_gain_overrides
+        from ..studies.compare import compatible_methods, incompatible, parse_gain_overrides
+        try:
+            scenario = load_scenario(args.scenario)
+        except ScenarioError as exc:
+            print(f'error: {exc}', file=sys.stderr)
+            return 1
+        if args.methods is None:
+            args.methods, skipped = compatible_methods(scenario)
+            for method, why in skipped.items():
+                print(f'{args.scenario}: not running {method}: {why}', file=sys.stderr)
+        for method in args.methods:
+            why = incompatible(scenario, method)
+            if why is not None:
+                parser.error(f'{method} cannot run on {args.scenario}: {why}')
         try:
             args.gain_overrides = parse_gain_overrides(args.gains)
         except ValueError as exc:

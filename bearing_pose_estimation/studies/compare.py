@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from .. import estimators
-from ..estimators.base import format_gains, gain_fields
+from ..estimators.base import Sensor, format_gains, gain_fields
 from ..scenario.model import Scenario
 from ..scenario.parse import EDGE_GAIN, parse_scenario
 from ..sim.batch import BatchSimulator
@@ -78,6 +78,38 @@ def parse_gain_overrides(texts: list[str]) -> dict[str, dict[str, float]]:
                                  f'got {value!r}')
             out.setdefault(method, {})[key] = number
     return out
+
+
+def incompatible(scenario: Scenario, method: str) -> str | None:
+    """Why ``method`` cannot run on ``scenario`` (its roles, or a sensor the scenario does not
+    simulate), or None."""
+    cls = estimators.get(method)
+    if cls.roles.leaders != len(scenario.leaders):
+        return (f'it needs {cls.roles.leaders} leaders, the scenario has '
+                f'{len(scenario.leaders)}')
+    if cls.roles.anchor != (scenario.anchor is not None):
+        return 'it needs an anchor' if cls.roles.anchor else 'it has no anchor'
+    always = {Sensor.GYRO, Sensor.BEARINGS, Sensor.KNOWN_POSE}
+    missing = sorted(s.value for s in cls.sensors - always if not scenario.simulates(s.value))
+    if missing:
+        return (f'it needs {", ".join(missing)}, which the scenario does not simulate (list '
+                'them under `sensors:`)')
+    return None
+
+
+def compatible_methods(scenario: Scenario) -> tuple[list[str], dict[str, str]]:
+    """The registered methods that can run on ``scenario`` (its own first), and why each
+    other cannot."""
+    ok, why = [scenario.method], {}
+    for m in estimators.methods():
+        if m == scenario.method:
+            continue
+        reason = incompatible(scenario, m)
+        if reason is None:
+            ok.append(m)
+        else:
+            why[m] = reason
+    return ok, why
 
 
 def method_data(data: Mapping[str, Any], scenario: Scenario, method: str,

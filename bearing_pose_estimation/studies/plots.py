@@ -4,6 +4,10 @@ Fig. 2 is the average attitude error norm ``(1/n_f) Σ |R̃_i|_I``; Fig. 3 the a
 error norm ``(1/n_f) Σ ‖p̃_i‖`` with ``p̃_i = p_i − R̃_i p̂_i``. Each figure has the paper's linear
 view and a log view showing the convergence rate, with per-follower curves.
 
+Methods that keep per-pair states under formation control (De Carli et al.) add
+:func:`plot_cascade`: their Fig. 2's four panels, the relative-yaw error per pair, the yaw
+and position errors per robot and the formation error per robot, on log axes.
+
 For moving fleets, :func:`plot_trajectories` draws the true and estimated (world-frame)
 trajectories in 3D next to each agent's position error, the distance between the two.
 """
@@ -53,6 +57,50 @@ def write_plots(rec: Recording, out_dir: Path) -> list[Path]:
             'Average position estimation error norm (Fig. 3)',
             r'$\|p_i - \tilde R_i \hat p_i\|$ [m]', pos)
     return [att, pos]
+
+
+CASCADE_PLOT = 'cascade.png'
+
+
+def plot_cascade(rec: Recording, path: Path, title: str = '') -> Path | None:
+    """Write ``path`` (:data:`CASCADE_PLOT`): the errors of the cascade, one panel per stage
+    (pairs' relative yaw, robots' yaw, position, formation), per pair or robot with their mean;
+    None (nothing written) when the recording has no per-pair errors."""
+    pairs = {k: v for k, v in rec.extra.items() if k.startswith('rel_yaw_err_')}
+    if not pairs:
+        return None
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    formation = {k: v for k, v in rec.extra.items() if k.startswith('formation_err_')}
+    panels = [('(a) relative yaw per pair', r'$|\hat z_{ij} - e^{\iota\psi_{ij}}|$',
+               np.array(list(pairs.values())).T, [k[len('rel_yaw_err_'):] for k in pairs]),
+              ('(b) yaw per robot (aligned)', 'rad', rec.att_err, rec.followers),
+              ('(c) position per robot (aligned)', 'm', rec.pos_err, rec.followers)]
+    if formation:
+        panels.append(('(d) formation per robot', 'm', np.array(list(formation.values())).T,
+                       [k[len('formation_err_'):].removesuffix('_m') for k in formation]))
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.8),
+                             constrained_layout=True)
+    for ax, (name, unit, values, labels) in zip(axes, panels):
+        for k, label in enumerate(labels[:20]):
+            ax.plot(rec.t, np.maximum(values[:, k], 1e-17), lw=0.8, alpha=0.6, label=label)
+        finite = np.isfinite(values)   # a pair's state starts at the first step
+        mean = np.where(finite, values, 0.0).sum(axis=1) / np.maximum(finite.sum(axis=1), 1)
+        ax.plot(rec.t, np.where(finite.any(axis=1), np.maximum(mean, 1e-17), np.nan), 'k',
+                lw=2.0, label='mean')
+        ax.set_yscale('log')
+        ax.set_title(name)
+        ax.set_ylabel(unit)
+        ax.set_xlabel('time [s]')
+        ax.grid(True, which='both', alpha=0.3)
+    axes[0].legend(fontsize=6, ncol=2)
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def write_compare_plot(recs: dict[str, Recording], path: Path,

@@ -101,16 +101,24 @@ def quantities(rec: Recording) -> dict[str, float | None]:
     }
 
 
+# Recordings' extra columns (Recording.extra) summed up by their mean over the group: the
+# prefix -> the quantity's name in summary.json.
+EXTRA_GROUPS = {'rel_yaw_err_': 'relative_yaw_error_mean', 'formation_err_': 'formation_error_mean_m'}
+
+
 def write_metrics_csv(rec: Recording, path: Path) -> None:
     with path.open('w', newline='') as fh:
         w = csv.writer(fh)
         w.writerow(['t', 'attitude_error_mean_rad', 'position_error_mean_m']
-                   + [f'att_{n}' for n in rec.followers] + [f'pos_{n}' for n in rec.followers])
+                   + [f'att_{n}' for n in rec.followers] + [f'pos_{n}' for n in rec.followers]
+                   + list(rec.extra))
         att_mean, pos_mean = rec.mean_errors()
+        extra = list(rec.extra.values())
         for k in range(rec.t.size):
             w.writerow([f'{rec.t[k]:.6f}', f'{att_mean[k]:.9e}', f'{pos_mean[k]:.9e}']
                        + [f'{x:.9e}' for x in rec.att_err[k]]
-                       + [f'{x:.9e}' for x in rec.pos_err[k]])
+                       + [f'{x:.9e}' for x in rec.pos_err[k]]
+                       + [f'{column[k]:.9e}' for column in extra])
 
 
 def read_metrics_csv(path: Path) -> Recording:
@@ -124,8 +132,9 @@ def read_metrics_csv(path: Path) -> Recording:
     f = len(followers)
     att, pos = values[:, 3:3 + f], values[:, 3 + f:3 + 2 * f]
     nan = np.full_like(att, np.nan)
+    extra = {name: values[:, 3 + 2 * f + k] for k, name in enumerate(header[3 + 2 * f:])}
     return Recording(t=values[:, 0], followers=followers, att_err=att, pos_err=pos,
-                     att_dist_I=nan, pos_err_paper=nan.copy())
+                     att_dist_I=nan, pos_err_paper=nan.copy(), extra=extra)
 
 
 def summarize(rec: Recording, **extra: Any) -> dict[str, Any]:
@@ -134,6 +143,10 @@ def summarize(rec: Recording, **extra: Any) -> dict[str, Any]:
     summary: dict[str, Any] = dict(extra)
     summary['duration_s'] = float(rec.t[-1])
     summary.update(quantities(rec))
+    for prefix, name in EXTRA_GROUPS.items():
+        group = [v for k, v in rec.extra.items() if k.startswith(prefix)]
+        if group:
+            summary[f'final_{name}'] = float(np.mean([v[-1] for v in group]))
     summary['per_agent'] = {
         name: {
             'final_attitude_error_rad': float(rec.att_err[-1, k]),
@@ -171,4 +184,6 @@ def format_summary(summary: dict[str, Any]) -> str:
         f'steady state (last {STEADY_FRACTION:.0%} of the run, the floor if the errors stop '
         f'falling): mean attitude error {s["steady_attitude_error_mean_rad"]:.3e} rad, mean '
         f'position error {s["steady_position_error_mean_m"]:.3e} m',
-    ])
+    ] + [f'final {name.replace("_", " ").removesuffix(" m")}: {s[f"final_{name}"]:.3e}'
+         + (' m' if name.endswith('_m') else '')
+         for name in EXTRA_GROUPS.values() if f'final_{name}' in s])
