@@ -58,8 +58,7 @@ Array = NDArray[np.float64]
 Complex = NDArray[np.complex128]
 Index = NDArray[np.intp]
 
-from bearing_pose_estimation.estimators.de_carli import (EXCITATION_M2_S, EXCITATION_WINDOW_S,
-                                                          unit)
+from bearing_pose_estimation.estimators.de_carli import EXCITATION_M2_S, EXCITATION_WINDOW_S
 
 @dataclass(frozen=True)
 class Pairs:

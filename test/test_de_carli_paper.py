@@ -21,8 +21,9 @@ from scipy.integrate import solve_ivp
 from scipy.interpolate import CubicSpline
 
 from de_carli_reference import (ExcitationMonitor, Pairs, dead_reckoning, position_correction,
-                                relative_yaw_step, rot_z, unit, yaw_consensus_step)
+                                relative_yaw_step, rot_z, yaw_consensus_step)
 
+from bearing_pose_estimation.estimators.de_carli import unit
 from bearing_pose_estimation.scenario import check_scenario, parse_scenario
 from bearing_pose_estimation.scenario.parse import read_scenario_data
 from bearing_pose_estimation.sim.batch import BatchSimulator

@@ -1,4 +1,5 @@
-"""De Carli et al. (2024), the three stages' math (estimators/de_carli.py), against the
+"""De Carli et al. (2024), the three stages' math (the fleet-wide reference implementation,
+de_carli_reference.py, which the method is checked against tick for tick), against the
 properties the corrected notes derive: exact discrete kinematics, convergence to machine
 precision under persistent excitation, a consensus step that stays stable where forward Euler
 diverges, and the common yaw/translation as an exact solution of the position observer."""
@@ -6,10 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from de_carli_reference import (Pairs, dead_reckoning,
-                                                          position_correction,
-                                                          relative_yaw_step, rot_z, unit,
-                                                          yaw_consensus_step)
+from de_carli_reference import (Pairs, dead_reckoning, position_correction, relative_yaw_step,
+                                rot_z, yaw_consensus_step)
+
+from bearing_pose_estimation.estimators.de_carli import unit
 
 H = 0.005   # the paper's 200 Hz base tick
 

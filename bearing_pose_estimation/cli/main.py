@@ -573,9 +573,9 @@ def main(argv: list[str] | None = None) -> int:
             for method, why in skipped.items():
                 print(f'{args.scenario}: not running {method}: {why}', file=sys.stderr)
         for method in args.methods:
-            why = incompatible(scenario, method)
-            if why is not None:
-                parser.error(f'{method} cannot run on {args.scenario}: {why}')
+            reason = incompatible(scenario, method)
+            if reason is not None:
+                parser.error(f'{method} cannot run on {args.scenario}: {reason}')
         try:
             args.gain_overrides = parse_gain_overrides(args.gains)
         except ValueError as exc:

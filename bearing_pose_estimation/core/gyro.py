@@ -51,7 +51,7 @@ class IntervalBuffer:
         self.bridged = 0                   # gaps of lost samples bridged so far
         # Increments over covered intervals never change (samples are only appended), and the
         # node asks for the same ones repeatedly (all bearings of one message share a stamp).
-        self._cache: dict[tuple[float, float], NDArray[np.float64]] = {}
+        self._cache: dict[tuple[str, float, float], NDArray[np.float64]] = {}
 
     @property
     def start(self) -> float:
@@ -114,7 +114,7 @@ class IntervalBuffer:
         if not self.covers(t0, t1):
             raise ValueError(f'{what} buffer covers [{self.start:.6f}, {self.end:.6f}], '
                              f'not [{t0:.6f}, {t1:.6f}]')
-        key = (t0, t1)
+        key = (what, t0, t1)   # one buffer may be integrated several ways
         cached = self._cache.get(key)
         if cached is not None:
             return cached

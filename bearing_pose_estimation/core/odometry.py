@@ -54,6 +54,22 @@ class OdometryBuffer(IntervalBuffer):
         """
         return self.integrated(t0, t1, _displacement, 'odometry')
 
+    def rotation(self, t0: float, t1: float) -> Array:
+        """``R(t0)ᵀ R(t1)`` from the samples' angular rates (``t0 <= t1``): the rotation of an
+        agent whose gyro this receiver does not see (a neighbour's odometry).
+
+        Raises:
+            ValueError: the buffer does not cover ``[t0, t1]``.
+        """
+        return self.integrated(t0, t1, _rotation, 'odometry rotation')
+
+
+def _rotation(segments: list[tuple[Array, float]]) -> Array:
+    R = np.eye(3)
+    for sample, duration in segments:
+        R = R @ so3.exp(sample[:3] * duration)
+    return R
+
 
 def _displacement(segments: list[tuple[Array, float]]) -> Array:
     """The translation of the product of the segments' SE(3) exponentials (samples

@@ -141,41 +141,15 @@ def _vector_problem(v: Array, tolerance: float) -> str | None:
     return None
 
 
-class AgentEstimator:
-    """One agent's estimator (any registered method), fed by time-stamped measurements.
+class TimedAgent:
+    """What every agent's logic shares, whatever its method's measurements: the state, the
+    fixed step grid, the gyro and odometry buffers and their time rules (:class:`AgentEstimator`
+    documents them), and the stepping loop. Subclasses feed their method's measurements and
+    neighbours' messages and build each step's inputs (:meth:`_step`)."""
 
-    Every ``add_*`` method returns None when the input is used, or the cause of its rejection
-    (``non_finite``, ``absurd_rate``, ``zero_vector``, ``not_unit``, ``unknown_id``,
-    ``out_of_order``, ``future_stamp``, ``stale``, ...). Time rules (documented in the README):
-
-    - a gyro stamp more than ``jump_back`` before the newest means the clock jumped back (e.g. a
-      simulator restart): the estimator restarts from its initial estimate at the new time
-      (cause ``time_jump``);
-    - a gap longer than ``max_gyro_gap`` (late start, restart, data outage): the state time
-      restarts after the gap, keeping the estimate, which the observer then corrects
-      (``gyro_gap``);
-    - in both cases the step grid stays aligned to the scenario's ``t0``.
-
-    Args:
-        estimator: the method with its gains (:func:`bearing_pose_estimation.estimators.build`).
-        agent_id: this agent's id (how others' bearing messages name it).
-        neighbours: ``(name, agent_id, k_ij)`` of each neighbour j ∈ N_i (empty for leaders).
-        step: the estimator step ``h`` [s] (1 / estimator frequency).
-        R0, p0: initial estimate ``R̂_i(t0)``, ``p̂_i(t0)`` (a leader's true pose).
-        t0: the scenario's start time; the first gyro interval starts here.
-        leader: leader mode (known pose, no observer).
-        known_ids: the ids that exist (bearings to other ids are rejected); None: any.
-        limits: input checks and timeouts.
-    """
-
-    def __init__(self, estimator: Estimator, agent_id: int,
-                 neighbours: list[tuple[str, int, float]], step: float, R0: Array, p0: Array,
+    def __init__(self, estimator: Estimator, agent_id: int, step: float, R0: Array, p0: Array,
                  t0: float = 0.0, leader: bool = False, gyro_horizon: float = 2.0,
                  known_ids: set[int] | None = None, limits: Limits = Limits()) -> None:
-        missing = sorted(s.value for s in estimator.sensors - SUPPORTED_SENSORS)
-        if missing:
-            raise NotImplementedError(f'{estimator.method} needs sensors {", ".join(missing)}, '
-                                      'which the agent logic cannot feed yet')
         self.estimator = estimator
         self.agent_id = agent_id
         self.h = float(step)
@@ -189,19 +163,12 @@ class AgentEstimator:
         self.p0 = np.array(p0, dtype=float).reshape(3)
         self.x: State = estimator.initial_state(self.R0[None], self.p0[None])
         self.channels: dict[str, Channel] = {c.name: c for c in estimator.sends}
-        self.neighbours = [NeighbourState(n, int(i), float(k)) for n, i, k in neighbours]
-        self._by_id = {nb.agent_id: nb for nb in self.neighbours}
         self.gyro = GyroBuffer(t0, gyro_horizon)
         self.uses_odometry = estimator.uses(Sensor.ODOMETRY)
         self.odometry = OdometryBuffer(t0, gyro_horizon)
         self.odometry_missing_steps = 0   # steps run without odometry while it was expected
-        # Moving: neighbour values that could not be paired at one instant (none of their
-        # instants has an own bearing yet: the edge sits the step out; or the sender never
-        # sends its channels at one instant, or no odometry covers the delay: used as they
-        # are).
+        # Neighbour values that could not be paired at one instant (see the subclasses).
         self.unpaired = 0
-        self._bearings: dict[int, deque[tuple[float, Array]]] = {}
-        self._known_pose: tuple[float, Array, Array] | None = None
         self.last = StepInfo(t=self.t0)
         self.non_finite_steps = 0
 
@@ -231,12 +198,13 @@ class AgentEstimator:
         self.t0, self.k = self.origin + n * self.h, 0
         self.gyro.reset(stamp)
         self.odometry.reset(stamp)
-        self._bearings.clear()
         if reset_estimate:
             self.x = self.estimator.initial_state(self.R0[None], self.p0[None])
-            for nb in self.neighbours:
-                nb.clear()
+        self._clear_inputs(reset_estimate)
         self.last = StepInfo(t=self.t)
+
+    def _clear_inputs(self, reset_estimate: bool) -> None:
+        """Forget the measurements held (and, ``reset_estimate``, what neighbours sent)."""
 
     # ------------------------------------------------------------------------------ inputs
     def add_gyro(self, stamp: float, omega: Array, now: float | None = None) -> str | None:
@@ -294,6 +262,74 @@ class AgentEstimator:
         them and feed them forward."""
         return (self.uses_odometry and not self.odometry.empty
                 and self.odometry.end >= self.gyro.end - self.limits.sensor_timeout)
+
+    def steps_ready(self) -> int:
+        """How many steps the gyro data (and live odometry) allows now."""
+        end = self.gyro.end
+        if self.odometry_live():
+            end = min(end, self.odometry.end)
+        return max(0, int(np.floor((end - self.t) / self.h + 1e-9)))
+
+    def _step(self) -> None:
+        raise NotImplementedError
+
+    def advance(self, max_steps: int | None = None) -> int:
+        """Run every step the gyro data allows (at most ``max_steps``); return how many ran."""
+        n = self.steps_ready()
+        if max_steps is not None:
+            n = min(n, max_steps)
+        for _ in range(n):
+            self._step()
+        return n
+
+
+class AgentEstimator(TimedAgent):
+    """One agent's estimator (any registered method), fed by time-stamped measurements.
+
+    Every ``add_*`` method returns None when the input is used, or the cause of its rejection
+    (``non_finite``, ``absurd_rate``, ``zero_vector``, ``not_unit``, ``unknown_id``,
+    ``out_of_order``, ``future_stamp``, ``stale``, ...). Time rules (documented in the README):
+
+    - a gyro stamp more than ``jump_back`` before the newest means the clock jumped back (e.g. a
+      simulator restart): the estimator restarts from its initial estimate at the new time
+      (cause ``time_jump``);
+    - a gap longer than ``max_gyro_gap`` (late start, restart, data outage): the state time
+      restarts after the gap, keeping the estimate, which the observer then corrects
+      (``gyro_gap``);
+    - in both cases the step grid stays aligned to the scenario's ``t0``.
+
+    Args:
+        estimator: the method with its gains (:func:`bearing_pose_estimation.estimators.build`).
+        agent_id: this agent's id (how others' bearing messages name it).
+        neighbours: ``(name, agent_id, k_ij)`` of each neighbour j ∈ N_i (empty for leaders).
+        step: the estimator step ``h`` [s] (1 / estimator frequency).
+        R0, p0: initial estimate ``R̂_i(t0)``, ``p̂_i(t0)`` (a leader's true pose).
+        t0: the scenario's start time; the first gyro interval starts here.
+        leader: leader mode (known pose, no observer).
+        known_ids: the ids that exist (bearings to other ids are rejected); None: any.
+        limits: input checks and timeouts.
+    """
+
+    def __init__(self, estimator: Estimator, agent_id: int,
+                 neighbours: list[tuple[str, int, float]], step: float, R0: Array, p0: Array,
+                 t0: float = 0.0, leader: bool = False, gyro_horizon: float = 2.0,
+                 known_ids: set[int] | None = None, limits: Limits = Limits()) -> None:
+        missing = sorted(s.value for s in estimator.sensors - SUPPORTED_SENSORS)
+        if missing or estimator.links != 'sensing':
+            raise NotImplementedError(
+                f'{estimator.method} needs sensors {", ".join(missing)}, which this agent logic '
+                'cannot feed' if missing else f'{estimator.method} talks over communication '
+                'links: use estimators.link_agent.LinkAgentEstimator')
+        super().__init__(estimator, agent_id, step, R0, p0, t0=t0, leader=leader,
+                         gyro_horizon=gyro_horizon, known_ids=known_ids, limits=limits)
+        self.neighbours = [NeighbourState(n, int(i), float(k)) for n, i, k in neighbours]
+        self._by_id = {nb.agent_id: nb for nb in self.neighbours}
+        # Moving: neighbour values that could not be paired at one instant (none of their
+        # instants has an own bearing yet: the edge sits the step out; or the sender never
+        # sends its channels at one instant, or no odometry covers the delay: used as they
+        # are): :attr:`unpaired`.
+        self._bearings: dict[int, deque[tuple[float, Array]]] = {}
+        self._known_pose: tuple[float, Array, Array] | None = None
 
     def add_bearings(self, stamp: float, ids: NDArray[np.integer],
                      bearings: Array) -> list[str]:
@@ -375,23 +411,13 @@ class AgentEstimator:
         self._known_pose = (float(stamp), R, p)
         return None
 
+    def _clear_inputs(self, reset_estimate: bool) -> None:
+        self._bearings.clear()
+        if reset_estimate:
+            for nb in self.neighbours:
+                nb.clear()
+
     # ------------------------------------------------------------------------------ stepping
-    def steps_ready(self) -> int:
-        """How many steps the gyro data (and live odometry) allows now."""
-        end = self.gyro.end
-        if self.odometry_live():
-            end = min(end, self.odometry.end)
-        return max(0, int(np.floor((end - self.t) / self.h + 1e-9)))
-
-    def advance(self, max_steps: int | None = None) -> int:
-        """Run every step the gyro data allows (at most ``max_steps``); return how many ran."""
-        n = self.steps_ready()
-        if max_steps is not None:
-            n = min(n, max_steps)
-        for _ in range(n):
-            self._step()
-        return n
-
     def body_bearing(self, agent_id: int, t: float, at: float | None = None) -> Array | None:
         """Own bearing to ``agent_id`` rotated to the body frame at ``t`` with the gyro, or
         None (none, or older than ``sensor_timeout``): the newest sample the gyro can bridge

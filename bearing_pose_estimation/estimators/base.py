@@ -237,11 +237,16 @@ class State:
 @dataclass(frozen=True)
 class LinkInputs:
     """What a ``links = 'communication'`` method's step knows of each edge ``i → j`` beyond
-    the channels, all ``(E, ...)``: whether i ``senses`` j (``relative_positions`` holds its
-    measurement ``ⁱp_ij`` at the step's start, body frame [m]; zeros otherwise), whether j
-    senses i (``sensed_by``: j's own measurement of i comes as a channel), whether i ``owns``
-    the pair's shared state, and the other end's gyro increment and odometry displacement over
-    the step (``other_delta_R``, ``other_displacement``, in j's body frame at the start)."""
+    the channels, all ``(E, ...)``: whether i ``senses`` j and j senses i (``sensed_by``: j's
+    own measurement of i comes as a channel), whether i ``owns`` the pair's shared state; i's
+    measurement ``ⁱp_ij`` at the step's start (``relative_positions``, body frame [m]); the other
+    end's gyro increment and odometry displacement over the step (``other_delta_R``,
+    ``other_displacement``, in j's body frame at the start).
+
+    A node may lack some of it for a step (None: nothing is missing, the batch simulator):
+    ``measured``, its own measurement; ``their_measured``, j's; ``present``, j's odometry (the
+    edge then sits the step out and restarts its relative estimates from the next
+    measurements); ``fresh``, j's channels of this instant."""
 
     senses: NDArray[np.bool_]
     sensed_by: NDArray[np.bool_]
@@ -249,9 +254,20 @@ class LinkInputs:
     relative_positions: Array
     other_delta_R: Array
     other_displacement: Array
+    measured: NDArray[np.bool_] | None = None
+    their_measured: NDArray[np.bool_] | None = None
+    present: NDArray[np.bool_] | None = None
+    fresh: NDArray[np.bool_] | None = None
 
     def rows(self, sel: Index) -> LinkInputs:
-        return LinkInputs(*(getattr(self, f.name)[sel] for f in dataclasses.fields(self)))
+        def pick(v: NDArray[np.bool_] | None) -> NDArray[np.bool_] | None:
+            return None if v is None else v[sel]
+
+        return LinkInputs(self.senses[sel], self.sensed_by[sel], self.owns[sel],
+                          self.relative_positions[sel], self.other_delta_R[sel],
+                          self.other_displacement[sel], measured=pick(self.measured),
+                          their_measured=pick(self.their_measured), present=pick(self.present),
+                          fresh=pick(self.fresh))
 
 
 @dataclass(frozen=True)
@@ -418,6 +434,11 @@ class Estimator(ABC, Generic[G, S]):
         diagnostics (``'innovation'``: what drove the correction, ``(N, 3)``).
         ``reorthonormalize``: pull rotations back onto SO(3) (the batch simulator does it every
         few steps only)."""
+
+    def due(self, channel: str, t: float, h: float) -> bool:
+        """The step at ``t`` reads ``channel`` (multirate methods read some only at their
+        stage's ticks: a node waits for those alone). Default: every step."""
+        return True
 
     # --- assumptions
     @abstractmethod

@@ -236,6 +236,14 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         return {'z_hat': as_pair(x.z_hat), 'p_hat': x.p_hat,
                 'meas': np.array(bearings, dtype=float), 'relyaw': relyaw}
 
+    def due(self, channel: str, t: float, h: float) -> bool:
+        """``z_hat`` at the consensus and position ticks (R̂_j pairs with ʲp_ji), ``relyaw``
+        at the consensus ticks, ``p_hat`` at the position ticks, ``meas`` every step."""
+        tick = int(round(t / h))
+        yaw = tick % self.every(self.gains.yaw_rate, h) == 0
+        position = tick % self.every(self.gains.position_rate, h) == 0
+        return {'z_hat': yaw or position, 'relyaw': yaw, 'p_hat': position}.get(channel, True)
+
     # --- the step
     def step(self, x: DeCarliState, h: float, inputs: StepInputs,
              reorthonormalize: bool = True) -> tuple[DeCarliState, dict[str, Array]]:
@@ -262,16 +270,25 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         y, meas = L.relative_positions, rec['meas']
         y_c, meas_c = as_complex(y), as_complex(meas)
         senses, sensed_by, owns = L.senses, L.sensed_by, L.owns
-        two_way = owns & sensed_by
+        every_edge = np.ones(len(ag), dtype=bool)
+        y_ok = senses & (every_edge if L.measured is None else L.measured)
+        m_ok = sensed_by & (every_edge if L.their_measured is None else L.their_measured)
+        present = every_edge if L.present is None else L.present
+        fresh = every_edge if L.fresh is None else L.fresh
 
-        # First use of a link: the first measurement, the pair from the first ẑ_j (§8).
-        new = owns & senses & ~x.ready_out[ag, sl]
+        # An edge whose other end's odometry is missing sits the step out; its relative
+        # estimates restart from the next measurements (their prediction needs δ_j).
+        gone = ~present
+        out.ready_out[ag[gone], sl[gone]] = False
+        out.ready_in[ag[gone], sl[gone]] = False
+        # First use of an edge: the first measurement, the pair from the first ẑ_j (§8).
+        new = owns & y_ok & present & ~out.ready_out[ag, sl]
         out.P_out[ag[new], sl[new]], out.Pz_out[ag[new], sl[new]] = y_c[new], y[new, 2]
         out.ready_out[ag[new], sl[new]] = True
-        new = two_way & ~x.ready_in[ag, sl]
+        new = owns & m_ok & present & ~out.ready_in[ag, sl]
         out.P_in[ag[new], sl[new]], out.Pz_in[ag[new], sl[new]] = meas_c[new], meas[new, 2]
         out.ready_in[ag[new], sl[new]] = True
-        new = owns & ~x.ready_pair[ag, sl] & (np.abs(z_j) > 0)
+        new = owns & fresh & ~x.ready_pair[ag, sl] & (np.abs(z_j) > 0)
         out.z_pair[ag[new], sl[new]] = unit(np.conj(x.z_hat[ag[new]]) * z_j[new])
         out.ready_pair[ag[new], sl[new]] = True
 
@@ -281,14 +298,15 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
             R_i = x.R_hat[ag]
             R_j = rot_z(np.angle(z_j))
             diff = x.p_hat[ag] - rec['p_hat']
-            term = (senses[:, None] * (diff + np.einsum('kab,kb->ka', R_i, y))
-                    + sensed_by[:, None] * (diff - np.einsum('kab,kb->ka', R_j, meas)))
+            term = fresh[:, None] * (
+                y_ok[:, None] * (diff + np.einsum('kab,kb->ka', R_i, y))
+                + m_ok[:, None] * (diff - np.einsum('kab,kb->ka', R_j, meas)))
             correction = edges.sum_by_agent(term)
             out.p_hat = x.p_hat - h3 * g.k_p * correction
 
         # 2. Stage 2: the Jacobi step of (13) over the excited pairs.
         pair_u = np.where(owns, unit(out.z_pair[ag, sl]), np.conj(unit(as_complex(rec['relyaw']))))
-        active = (x.excitation[ag, sl] >= g.pe_threshold) & np.where(
+        active = (x.excitation[ag, sl] >= g.pe_threshold) & fresh & np.where(
             owns, out.ready_pair[ag, sl], np.hypot(*rec['relyaw'].T) > 0.5)
         pull = np.where(active, np.conj(pair_u) * z_j, 0.0)
         yaw_target = edges.sum_by_agent(as_pair(pull))
@@ -299,13 +317,13 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
             z_hat = (z_hat + c * as_complex(yaw_target)) / (1.0 + c * n_active)
 
         # 3. Stage 1 on the owned pairs: correct (8), then predict (7).
-        k = owns & out.ready_pair[ag, sl] & out.ready_out[ag, sl]
+        k = owns & present & out.ready_pair[ag, sl] & out.ready_out[ag, sl]
         a, s = ag[k], sl[k]
-        E_out = out.P_out[a, s] - y_c[k]
-        e_out_z = out.Pz_out[a, s] - y[k, 2]
-        tw = two_way[k]
-        E_in = np.where(tw, out.P_in[a, s] - meas_c[k], 0.0)
-        e_in_z = np.where(tw, out.Pz_in[a, s] - meas[k, 2], 0.0)
+        E_out = np.where(y_ok[k], out.P_out[a, s] - y_c[k], 0.0)
+        e_out_z = np.where(y_ok[k], out.Pz_out[a, s] - y[k, 2], 0.0)
+        tw = sensed_by[k] & out.ready_in[a, s]
+        E_in = np.where(tw & m_ok[k], out.P_in[a, s] - meas_c[k], 0.0)
+        e_in_z = np.where(tw & m_ok[k], out.Pz_in[a, s] - meas[k, 2], 0.0)
         z_plus = out.z_pair[a, s] - g.k_psi * (np.conj(x.d_other[a, s]) * E_out
                                               + x.d_own[a] * np.conj(E_in))
         rot_i, rot_j = np.exp(-1j * dpsi_i[a]), np.exp(-1j * dpsi_j[k])
@@ -319,11 +337,12 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         out.Pz_in[a, s] = np.where(tw, out.Pz_in[a, s] - delta_j[k, 2] + delta_i[a, 2]
                                    - h * g.k_pe * e_in_z, out.Pz_in[a, s])
         out.z_pair[a, s] = np.exp(1j * (dpsi_j[k] - dpsi_i[a])) * z_plus
-        out.d_other[ag, sl] = np.exp(-1j * dpsi_j) * dc_j
+        out.d_other[ag, sl] = np.where(present, np.exp(-1j * dpsi_j) * dc_j, 0.0)
         out.d_own = np.exp(-1j * dpsi_i) * dc_i
 
         # Excitation: the horizontal motion of the robots the pair's edges sense (Theorem 1).
-        tick_excitation = (senses * np.abs(dc_j) ** 2 + sensed_by * np.abs(dc_i[ag]) ** 2) / h
+        tick_excitation = present * (senses * np.abs(dc_j) ** 2
+                                     + sensed_by * np.abs(dc_i[ag]) ** 2) / h
         out.excitation[ag, sl] = x.excitation[ag, sl] + tick_excitation
         decay = np.exp(-h / EXCITATION_WINDOW_S)
         out.excitation_recent[ag, sl] = decay * x.excitation_recent[ag, sl] + tick_excitation

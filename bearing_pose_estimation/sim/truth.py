@@ -52,7 +52,8 @@ class Truth:
                                and a.velocity.frame == frame else ZERO for a in agents])
 
         self.v_world, self.v_body = velocities('world'), velocities('body')
-        self.yaws = YawSplines([a.yaw for a in agents]) if scenario.yaw_only else None
+        self.yaws = (YawSplines([a.yaw for a in agents if a.yaw is not None])
+                     if scenario.yaw_only else None)   # the parser: all agents or none
         self.control = scenario.formation
         self._controlled = np.array([a.formation_position is not None for a in agents])
         if self.control is not None and self._controlled.any():

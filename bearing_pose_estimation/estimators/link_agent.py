@@ -1,0 +1,452 @@
+"""One robot of a ``links = 'communication'`` method (De Carli et al.), independent of ROS: the
+logic of its estimator node.
+
+The step ``[t, t+h]`` of such a method needs, besides its own gyro, odometry and relative
+positions, each communication neighbour j's odometry over the same step (it predicts
+``ⁱp̂_ij`` with ``δ_j``), j's measurement of this robot at t (where j senses it) and j's
+channels formed at t (the method's :meth:`base.Estimator.due` ones: De Carli's ``ẑ_j`` and
+relative yaws at the consensus ticks, ``p̂_j`` at the position ticks). Every input is paired
+at its instant, never extrapolated (the notes' §8, timing pitfalls): relative positions are
+interpolated between the samples around t after rotating them to the body frame at t (own:
+with the gyro; j's: with j's odometry), odometry is integrated exactly.
+
+So a step waits until every neighbour's inputs for it are here, or known not to come:
+
+- a channel value of j stamped t is lost once j has sent a newer one;
+- j is silent (nothing newer than ``t - neighbour_timeout``), or its odometry is that far
+  behind: j is left out of the step;
+- :meth:`LinkAgentEstimator.advance` with ``impatient=True`` (the node's wall-clock patience)
+  leaves out whatever is still missing.
+
+What is left out is passed to the step as missing (:class:`base.LinkInputs`): the method
+decides (De Carli: an edge without j's odometry sits the step out and its relative estimates
+restart from the next measurements; without j's channels it leaves the consensus and the
+position correction for that tick). Causes are counted in :attr:`LinkAgentEstimator.missing`.
+"""
+from __future__ import annotations
+
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.odometry import OdometryBuffer
+from .agent import Limits, StepInfo, TimedAgent, estimator_for
+from .base import Edges, Estimator, LinkInputs, StepInputs
+
+if TYPE_CHECKING:
+    from ..scenario.model import Scenario
+
+Array = NDArray[np.float64]
+# Samples of relative positions and channel values kept per source.
+_HISTORY = 16
+# Relative positions beyond this [m] are absurd (a camera with depth sees metres).
+MAX_RANGE_M = 1e4
+
+
+@dataclass
+class Link:
+    """What this robot knows of one communication neighbour j."""
+
+    name: str
+    agent_id: int
+    senses: bool       # this robot measures j
+    sensed_by: bool    # j measures this robot
+    owns: bool         # this robot keeps the pair's shared state
+    odometry: OdometryBuffer
+    measured: deque[tuple[float, Array]] = field(default_factory=lambda: deque(maxlen=_HISTORY))
+    theirs: deque[tuple[float, Array]] = field(default_factory=lambda: deque(maxlen=_HISTORY))
+    history: dict[str, deque[tuple[float, Array]]] = field(default_factory=dict)
+
+    def newest(self) -> float:
+        """The newest stamp of anything j sent (channels, its measurement, its odometry)."""
+        stamps = [h[-1][0] for h in self.history.values() if h]
+        stamps += [self.theirs[-1][0]] if self.theirs else []
+        if not self.odometry.empty:
+            stamps.append(self.odometry.end)
+        return max(stamps, default=-np.inf)
+
+    def value_at(self, channel: str, t: float) -> tuple[Array | None, bool]:
+        """``(value, decided)``: j's value of ``channel`` stamped ``t``; or None with
+        ``decided`` when it will not come (j already sent a newer one)."""
+        hist = self.history.get(channel)
+        if not hist:
+            return None, False
+        for stamp, value in reversed(hist):
+            if abs(stamp - t) < 1e-9:
+                return value, True
+        return None, hist[-1][0] > t + 1e-9
+
+
+def _interpolated(samples: deque[tuple[float, Array]], t: float,
+                  rotate: Callable[[float, float], Array]) -> tuple[Array | None, bool]:
+    """``(value, decided)`` of relative-position ``samples`` at ``t``: the sample at t, or the
+    two around it rotated to the body frame at t (``rotate(s, t) = R(t)ᵀ R(s)``) and
+    interpolated linearly; None with ``decided`` once a sample after t is here and none
+    before, or no rotation covers the span."""
+    before = after = None
+    for stamp, v in reversed(samples):
+        if abs(stamp - t) < 1e-9:
+            return v, True
+        if stamp > t:
+            after = (stamp, v)
+        else:
+            before = (stamp, v)
+            break
+    if after is None:
+        return None, False
+    if before is None:
+        return None, True
+    try:
+        a = rotate(before[0], t) @ before[1]
+        b = rotate(after[0], t) @ after[1]
+    except ValueError:   # no rotation data over the span
+        return None, True
+    w = (t - before[0]) / (after[0] - before[0])
+    return (1.0 - w) * a + w * b, True
+
+
+def _rotation_of(odometry: OdometryBuffer) -> Callable[[float, float], Array]:
+    """``rotate(s, t) = R(t)ᵀ R(s)`` from a neighbour's odometry (either order)."""
+    def rotate(s: float, t: float) -> Array:
+        return odometry.rotation(t, s) if s >= t else odometry.rotation(s, t).T
+    return rotate
+
+
+class LinkAgentEstimator(TimedAgent):
+    """One robot of a ``links = 'communication'`` method fed by time-stamped inputs (module
+    docstring); the time rules of its own gyro and odometry are :class:`agent.AgentEstimator`'s.
+
+    Args:
+        estimator: the method with its gains.
+        agent_id: this robot's id.
+        links: ``(name, agent_id, senses, sensed_by)`` of each communication neighbour, in the
+            order of the method's link slots (the batch simulator's: ids ascending).
+        step, R0, p0, t0, known_ids, limits: as :class:`agent.AgentEstimator`.
+    """
+
+    def __init__(self, estimator: Estimator, agent_id: int,
+                 links: list[tuple[str, int, bool, bool]], step: float, R0: Array, p0: Array,
+                 t0: float = 0.0, gyro_horizon: float = 2.0, known_ids: set[int] | None = None,
+                 limits: Limits = Limits()) -> None:
+        super().__init__(estimator, agent_id, step, R0, p0, t0=t0, gyro_horizon=gyro_horizon,
+                         known_ids=known_ids, limits=limits)
+        self.links = [Link(name, int(j), bool(s), bool(b),
+                           owns=bool(j > agent_id) if (s and b) else bool(s),
+                           odometry=OdometryBuffer(t0, gyro_horizon))
+                      for name, j, s, b in links]
+        self._by_id = {link.agent_id: link for link in self.links}
+        self._senses = np.array([lk.senses for lk in self.links], dtype=bool)
+        self._sensed_by = np.array([lk.sensed_by for lk in self.links], dtype=bool)
+        self._owns = np.array([lk.owns for lk in self.links], dtype=bool)
+        self.missing: Counter[str] = Counter()   # inputs left out of a step, by what
+        self.impatient = False
+        self._pending: StepInputs | None = None
+
+    @property
+    def neighbours(self) -> list[Link]:
+        """The communication neighbours (the node subscribes to their topics)."""
+        return self.links
+
+    def _clear_inputs(self, reset_estimate: bool) -> None:
+        for link in self.links:
+            link.measured.clear()
+            if reset_estimate:
+                link.theirs.clear()
+                link.history.clear()
+                link.odometry.reset(self.t0)
+
+    # ------------------------------------------------------------------------------ inputs
+    def add_relative_positions(self, stamp: float, ids: NDArray[np.integer],
+                               vectors: Array) -> list[str]:
+        """Own measurements ``ⁱp_ij`` (body frame [m]) of the robots ``ids`` at ``stamp``;
+        points of robots this one does not sense are ignored. Returns the causes of the
+        rejected points."""
+        if not np.isfinite(stamp):
+            return ['non_finite'] * len(ids)
+        if stamp > self.gyro.end + self.limits.max_future:
+            return ['future_stamp'] * len(ids)
+        rejected = []
+        for j, v in zip(np.asarray(ids).tolist(), np.asarray(vectors, dtype=float)):
+            link = self._by_id.get(int(j))
+            if link is None or not link.senses:
+                if self.known_ids is not None and int(j) not in self.known_ids:
+                    rejected.append('unknown_id')
+                continue
+            problem = self._vector_problem(v)
+            if problem is None and link.measured and stamp <= link.measured[-1][0]:
+                problem = 'out_of_order'
+            if problem is None:
+                link.measured.append((float(stamp), v.copy()))
+            else:
+                rejected.append(problem)
+        return rejected
+
+    def add_neighbour_measurements(self, agent_id: int, stamp: float,
+                                   ids: NDArray[np.integer], vectors: Array) -> str | None:
+        """Neighbour j's relative positions at ``stamp`` (its sensor's message): the point of
+        this robot, when j senses it, is kept."""
+        link = self._by_id.get(agent_id)
+        if link is None:
+            return 'unknown_id'
+        if not link.sensed_by or not np.isfinite(stamp):
+            return None if link.sensed_by is False else 'non_finite'
+        mine = np.flatnonzero(np.asarray(ids) == self.agent_id)
+        if not mine.size:
+            return None
+        v = np.asarray(vectors, dtype=float)[mine[0]]
+        problem = self._vector_problem(v)
+        if problem is None and link.theirs and stamp <= link.theirs[-1][0]:
+            problem = 'out_of_order'
+        if problem is not None:
+            return problem
+        link.theirs.append((float(stamp), v.copy()))
+        return None
+
+    def add_neighbour_odometry(self, agent_id: int, stamp: float, v: Array,
+                               omega: Array) -> str | None:
+        """Neighbour j's odometry sample (interval-average twist, :mod:`core.odometry`)."""
+        link = self._by_id.get(agent_id)
+        if link is None:
+            return 'unknown_id'
+        v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
+        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(omega)) and np.isfinite(stamp)):
+            return 'non_finite'
+        if (float(np.linalg.norm(omega)) > self.limits.max_rate
+                or float(np.linalg.norm(v)) > self.limits.max_speed):
+            return 'absurd_rate'
+        end = link.odometry.end
+        if stamp <= end:
+            if stamp < end - self.limits.jump_back:   # j restarted its clock
+                link.odometry.reset(stamp)
+                return None
+            return 'out_of_order'
+        if stamp - end > self.limits.max_gyro_gap:
+            link.odometry.reset(stamp)
+            return 'odometry_gap'
+        link.odometry.add_twist(stamp, v, omega)
+        return None
+
+    def add_neighbour(self, agent_id: int, stamp: float,
+                      values: dict[str, object]) -> str | None:
+        """A message of neighbour j with its values of some channels at its state time
+        ``stamp`` (per-edge ones as ``{listener id: value}``); used whole or rejected whole."""
+        link = self._by_id.get(agent_id)
+        if link is None:
+            return 'unknown_id'
+        mine: dict[str, Array] = {}
+        for name, value in values.items():
+            channel = self.channels.get(name)
+            if channel is None:
+                return 'unknown_channel'
+            if channel.per == 'edge':
+                value = value.get(self.agent_id) if isinstance(value, dict) else None
+                if value is None:
+                    continue   # j has nothing for us in it (e.g. a pair it does not own)
+            v = np.asarray(value, dtype=float)
+            if v.shape != channel.shape:
+                return 'malformed'
+            mine[name] = v
+        if not (np.isfinite(stamp) and all(np.all(np.isfinite(v)) for v in mine.values())):
+            return 'non_finite'
+        if any(float(np.max(np.abs(v))) > MAX_RANGE_M for v in mine.values()):
+            return 'absurd_value'
+        if stamp > self.gyro.end + self.limits.max_future:
+            return 'future_stamp'
+        for name, v in mine.items():
+            hist = link.history.setdefault(name, deque(maxlen=_HISTORY))
+            if hist and stamp <= hist[-1][0] - 1e-9:
+                if hist[-1][0] - stamp > self.limits.jump_back:
+                    hist.clear()   # j restarted its clock
+                else:
+                    return 'out_of_order'
+            if hist and abs(stamp - hist[-1][0]) < 1e-9:
+                hist[-1] = (float(stamp), v)
+            else:
+                hist.append((float(stamp), v))
+        return None
+
+    def _vector_problem(self, v: Array) -> str | None:
+        if v.shape != (3,) or not np.all(np.isfinite(v)):
+            return 'non_finite'
+        if float(np.max(np.abs(v))) > MAX_RANGE_M:
+            return 'absurd_value'
+        return None
+
+    # ------------------------------------------------------------------------------ stepping
+    def stale_neighbours(self, t: float) -> list[str]:
+        """Neighbours silent for longer than ``neighbour_timeout`` before ``t``."""
+        limit = t - self.limits.neighbour_timeout
+        return [link.name for link in self.links if link.newest() < limit]
+
+    def _gather(self, t: float, final: bool) -> StepInputs | None:
+        """The inputs of the step at ``t``, or None while some may still come (``final``:
+        whatever is missing now is left out)."""
+        est, h = self.estimator, self.h
+        stale = set(self.stale_neighbours(t))
+        n = len(self.links)
+        y = np.zeros((n, 3))
+        theirs = np.zeros((n, 3))
+        other_R = np.tile(np.eye(3), (n, 1, 1))
+        other_d = np.zeros((n, 3))
+        flags = {name: np.zeros(n, dtype=bool)
+                 for name in ('measured', 'their_measured', 'present', 'fresh')}
+        received = {c.name: np.zeros((n,) + c.shape) for c in est.sends}
+        waiting = False
+        due = [c.name for c in est.sends if c.name != 'meas' and est.due(c.name, t, h)]
+        own_late = self.gyro.end - t > self.limits.sensor_timeout
+        for e, link in enumerate(self.links):
+            gone = link.name in stale or final
+            if link.senses:
+                v, decided = _interpolated(link.measured, t,
+                                           lambda s_, t_: self.gyro.increment(t_, s_))
+                if v is not None:
+                    y[e], flags['measured'][e] = v, True
+                elif not (decided or own_late or final):
+                    waiting = True
+            if link.odometry.covers(t, t + h):
+                other_R[e] = link.odometry.rotation(t, t + h)
+                other_d[e] = link.odometry.displacement(t, t + h)
+                flags['present'][e] = True
+            elif not (gone or link.odometry.end < t - self.limits.neighbour_timeout):
+                waiting = True
+            if link.sensed_by:
+                v, decided = _interpolated(link.theirs, t, _rotation_of(link.odometry))
+                if v is not None:
+                    theirs[e], flags['their_measured'][e] = v, True
+                elif not (decided or gone):
+                    waiting = True
+            fresh = True
+            for name in due:
+                if name == 'relyaw' and link.owns:
+                    continue
+                v, decided = link.value_at(name, t)
+                if v is not None:
+                    received[name][e] = v
+                else:
+                    fresh = False
+                    waiting |= not (decided or gone)
+            # Values not due this step: the newest (unused by the step, kept finite).
+            for c in est.sends:
+                if c.name not in due and c.name != 'meas' and link.history.get(c.name):
+                    received[c.name][e] = link.history[c.name][-1][1]
+            flags['fresh'][e] = fresh
+        if waiting:
+            return None
+        received['meas'] = theirs
+        expected = {'measured': self._senses, 'their_measured': self._sensed_by,
+                    'present': np.ones(n, bool), 'fresh': np.full(n, bool(due))}
+        for name, f in flags.items():
+            self.missing[name] += int(np.count_nonzero(expected[name] & ~f))
+        delta_R = self.gyro.increment(t, t + h)[None]
+        displacement = None
+        if self.odometry_live() and self.odometry.covers(t, t + h):
+            displacement = self.odometry.displacement(t, t + h)[None]
+        elif self.odometry_live():
+            self.odometry_missing_steps += 1
+        links = LinkInputs(
+            senses=self._senses, sensed_by=self._sensed_by, owns=self._owns,
+            relative_positions=y, other_delta_R=other_R, other_displacement=other_d, **flags)
+        return StepInputs(delta_R=delta_R,
+                          edges=Edges(agent=np.zeros(n, dtype=np.intp), k=np.ones(n),
+                                      n_agents=1, slot=np.arange(n, dtype=np.intp)),
+                          bearings=np.zeros((n, 3)), received=received,
+                          displacement=displacement, links=links, t=t)
+
+    def steps_ready(self) -> int:
+        """1 when the next step's inputs are all here (or known not to come), else 0."""
+        if super().steps_ready() == 0:
+            return 0
+        self._pending = self._gather(self.t, final=self.impatient)
+        return 0 if self._pending is None else 1
+
+    def advance(self, max_steps: int | None = None, impatient: bool = False) -> int:
+        """Run the steps whose inputs are complete (``impatient``: the first one with what is
+        here now); return how many ran."""
+        ran = 0
+        self.impatient = impatient
+        while max_steps is None or ran < max_steps:
+            if not self.steps_ready():
+                break
+            self._step()
+            ran += 1
+            self.impatient = False
+        self.impatient = False
+        return ran
+
+    def _step(self) -> None:
+        inputs = self._pending
+        assert inputs is not None
+        est = self.estimator
+        x, diagnostics = est.step(self.x, self.h, inputs)
+        if x.is_finite():
+            self.x = x
+        else:  # cannot happen with validated inputs; never let it reach the estimate
+            self.non_finite_steps += 1
+            self.x = est.propagate(self.x, inputs.delta_R, inputs.displacement)
+        self.last = StepInfo(t=self.t, edges_used=len(self.links),
+                             stale=tuple(self.stale_neighbours(self.t)),
+                             odometry=inputs.displacement is not None,
+                             diagnostics={k: v[0] for k, v in diagnostics.items()})
+        self._pending = None
+        self.k += 1
+
+    # ------------------------------------------------------------------------------ outputs
+    def outbox(self) -> dict[str, object]:
+        """What this robot sends at the state time: per-agent channels as arrays, per-edge
+        ones as ``{listener id: value}`` (the method's values for each link; ``meas`` is not
+        sent: the neighbours read this robot's sensor topic)."""
+        n = len(self.links)
+        sent = self.estimator.outbox(self.x, np.zeros(n, dtype=np.intp), np.zeros((n, 3)),
+                                     slot=np.arange(n, dtype=np.intp))
+        return {name: ({lk.agent_id: sent[name][e] for e, lk in enumerate(self.links)}
+                       if c.per == 'edge' else sent[name][0])
+                for name, c in self.channels.items() if name != 'meas'}
+
+    def bearings_at(self, t: float) -> bool:
+        return True
+
+    def conditioning(self) -> Array | None:
+        return None
+
+    def excitation(self) -> dict[str, tuple[float, bool]]:
+        """Per neighbour: the pair's excitation so far [m²/s] and whether it is excited now
+        (the method's per-link state, when it keeps one)."""
+        x = self.x
+        total = getattr(x, 'excitation', None)
+        recent = getattr(x, 'excitation_recent', None)
+        if total is None or recent is None:
+            return {}
+        threshold = getattr(self.estimator.gains, 'pe_threshold', 0.0)
+        return {lk.name: (float(total[0, e]) if e < total.shape[1] else 0.0,
+                          bool(e < recent.shape[1] and recent[0, e] >= threshold))
+                for e, lk in enumerate(self.links)}
+
+
+def link_estimator_for(scenario: Scenario, name: str, limits: Limits = Limits(),
+                       initial: tuple[Array, Array] | None = None) -> LinkAgentEstimator:
+    """The estimator of robot ``name`` as the scenario defines it (its communication links in
+    the batch simulator's order)."""
+    from ..scenario.model import initial_estimates
+
+    i = scenario.index[name]
+    R0, p0 = initial if initial is not None else initial_estimates(scenario)
+    senses = {nb.name for nb in scenario.agents[i].neighbours}
+    sensed_by = set(scenario.listeners(name))
+    others = sorted(senses | sensed_by, key=scenario.index.__getitem__)
+    links = [(o, scenario.agent_id(o), o in senses, o in sensed_by) for o in others]
+    return LinkAgentEstimator(scenario.estimator(), agent_id=scenario.agent_id(name),
+                              links=links, step=scenario.step, R0=R0[i], p0=p0[i],
+                              known_ids=set(range(1, len(scenario.agents) + 1)), limits=limits)
+
+
+def agent_for(scenario: Scenario, name: str, limits: Limits = Limits(),
+              initial: tuple[Array, Array] | None = None) -> TimedAgent:
+    """The agent logic of ``name`` for the scenario's method: :class:`LinkAgentEstimator` for
+    ``links = 'communication'`` methods, :class:`agent.AgentEstimator` for the others."""
+    if scenario.estimator().links == 'communication':
+        return link_estimator_for(scenario, name, limits, initial)
+    return estimator_for(scenario, name, limits, initial)

@@ -1,0 +1,150 @@
+"""The node logic of ``links = 'communication'`` methods (estimators/link_agent.py) on De Carli
+et al.'s scenario: eight robots fed, as their nodes would be, from the simulator node's world
+(truth on a 1 ms grid, sensors at their own rates) and each other's messages, reproduce the
+batch simulator; lost messages and a silent neighbour are left out (counted), never waited for
+for ever, and never reach the estimate as non-finite values."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from bearing_pose_estimation.scenario import parse_scenario
+from bearing_pose_estimation.scenario.parse import read_scenario_data
+from bearing_pose_estimation.sim.batch import BatchSimulator
+from bearing_pose_estimation.sim.world import World
+from bearing_pose_estimation.estimators.link_agent import LinkAgentEstimator, link_estimator_for
+
+CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'de_carli_8_quadrotors.yaml'
+
+
+def scenario():
+    data = read_scenario_data(CONFIG)
+    data['formation_control']['mode'] = 'exogenous'   # the world owns the truth
+    return parse_scenario(data)
+
+
+class Fleet:
+    """Eight robots' logic and the world, connected as over DDS but in one process: every
+    message is delivered at once, except those ``lose`` drops (``lose(sender, t)``) and what
+    ``silent`` robots would send."""
+
+    def __init__(self, s, lose=None, silent=()) -> None:
+        self.s, self.world = s, World(s)
+        self.names = [a.name for a in s.agents]
+        self.agents: dict[str, LinkAgentEstimator] = {n: link_estimator_for(s, n)
+                                                      for n in self.names}
+        self.lose = lose or (lambda sender, t: False)
+        self.patience = 0.05
+        self.silent = set(silent)
+        self.sent = {n: -1 for n in self.names}
+        every = self.world.sensor_every
+        self.imu_every, self.odom_every = self.world.imu_every, every['odometry']
+        self.rel_every = every['relative_positions']
+        self._relative_positions()
+        for n in self.names:
+            self._send(n)
+
+    def _send(self, name: str) -> None:
+        est = self.agents[name]
+        if name in self.silent or self.sent[name] == est.k:
+            return
+        self.sent[name] = est.k
+        due = [c for c in est.outbox() if est.estimator.due(c, est.t, est.h)]
+        if not due or self.lose(name, est.t):
+            return
+        sent = est.outbox()
+        for link in est.links:
+            self.agents[link.name].add_neighbour(est.agent_id, est.t,
+                                                 {c: sent[c] for c in due})
+
+    def _relative_positions(self) -> None:
+        t = self.world.t
+        for i, n in enumerate(self.names):
+            j, values = self.world.sensed('relative_positions', i)
+            ids = j + 1
+            assert not self.agents[n].add_relative_positions(t, ids, values)
+            for link in self.agents[n].links:
+                if n not in self.silent:
+                    self.agents[link.name].add_neighbour_measurements(i + 1, t, ids, values)
+
+    def run(self, T: float) -> None:
+        for _ in range(int(round(T / self.world.dt))):
+            self.world.step()
+            t = self.world.t
+            if self.world.due(self.imu_every):
+                omega = self.world.imu()
+                for i, n in enumerate(self.names):
+                    self.agents[n].add_gyro(t, omega[i])
+            if self.world.due(self.odom_every):
+                v, w = self.world.odometry()
+                for i, n in enumerate(self.names):
+                    self.agents[n].add_odometry(t, v[i], w[i])
+                    for link in self.agents[n].links if n not in self.silent else ():
+                        self.agents[link.name].add_neighbour_odometry(i + 1, t, v[i], w[i])
+            if self.world.due(self.rel_every):
+                self._relative_positions()
+            progress = True
+            while progress:
+                progress = False
+                for n in self.names:
+                    # The node's patience: a robot 50 ms behind its sensors gives up waiting.
+                    late = self.agents[n].t < t - self.patience
+                    if self.agents[n].advance(1, impatient=late):
+                        progress = True
+                        self._send(n)
+
+
+def test_the_robots_logic_reproduces_the_batch_simulator():
+    """Fed from the 1 ms world, every robot's state after 2 s equals the batch row: the
+    pairing of every input at its instant is exact."""
+    s = scenario()
+    fleet = Fleet(s)
+    fleet.run(2.0)
+    batch = BatchSimulator(s)
+    for _ in range(int(round(2.0 / batch.h))):
+        batch.step()
+    for i, n in enumerate(fleet.names):
+        est = fleet.agents[n]
+        assert abs(est.t - 2.0) < 1e-9
+        np.testing.assert_allclose(est.x.p_hat[0], batch.x.p_hat[i], atol=1e-9)
+        np.testing.assert_allclose(est.x.z_hat[0], batch.x.z_hat[i], atol=1e-9)
+        assert not est.missing or set(est.missing.values()) == {0}, (n, est.missing)
+
+
+def test_lost_messages_are_left_out_and_the_fleet_still_converges():
+    """A fifth of every robot's channel messages are lost: each step goes on once a newer
+    value shows the loss, or after the patience when two robots lost each other's values (no
+    robot falls further behind), the loss is counted, and the errors still fall."""
+    s = scenario()
+    rng = np.random.default_rng(0)
+    fleet = Fleet(s, lose=lambda sender, t: rng.uniform() < 0.2)
+    fleet.run(4.0)
+    assert all(e.t > 4.0 - fleet.patience - 0.02 for e in fleet.agents.values())
+    assert sum(e.missing['fresh'] for e in fleet.agents.values()) > 50
+    for e in fleet.agents.values():   # the last few steps, with what is here
+        while e.t < 4.0 - 1e-9:
+            e.advance(1, impatient=True)
+    batch = BatchSimulator(s)
+    R_hat = np.stack([rot for e in fleet.agents.values() for rot in e.x.R_hat])
+    p_hat = np.stack([p for e in fleet.agents.values() for p in e.x.p_hat])
+    for _ in range(int(round(4.0 / batch.h))):
+        batch.step()
+    from bearing_pose_estimation.studies.results import pose_errors
+    errors = pose_errors(batch.estimator.frame, batch.R, batch.p, R_hat, p_hat)
+    assert errors.att_err.mean() < 1e-3 and errors.pos_err.mean() < 0.05, errors
+    assert all(np.all(np.isfinite(e.x.p_hat)) for e in fleet.agents.values())
+
+
+def test_a_silent_neighbour_is_left_out_after_the_timeout():
+    """Robot 7 never sends anything: its neighbours wait for it no longer than the neighbour
+    timeout of their own clock, then step without it; their relative estimates of it never
+    start."""
+    s = scenario()
+    fleet = Fleet(s, silent={'robot_7'})
+    fleet.run(1.5)
+    for n in ('robot_3', 'robot_4', 'robot_6'):
+        est = fleet.agents[n]
+        assert est.t > 0.9, (n, est.t)
+        assert est.missing['present'] > 0
+        assert 'robot_7' in est.stale_neighbours(est.t)
