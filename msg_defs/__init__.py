@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from numpy.typing import NDArray
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
@@ -34,7 +34,10 @@ BEARING_RATES = 'bearing_rates'    # sensor_msgs/PointCloud2, in: d/dt b^i_ij [1
 RANGES = 'ranges'                  # sensor_msgs/PointCloud2, in: ‖p_j - p_i‖ [m] (field `range`)
 KNOWN_POSE = 'known_pose'          # geometry_msgs/PoseStamped, in: leaders' known pose
 ESTIMATE = 'estimate'              # geometry_msgs/PoseStamped, out: (R̂_i, p̂_i) in world
+# (or the estimation frame of methods without world poses, estimation_frame)
 WORLD_BEARINGS = 'world_bearings'  # sensor_msgs/PointCloud2, out: R̂_i b^i_il for listeners l
+YAW_ESTIMATE = 'yaw_estimate'      # geometry_msgs/Vector3Stamped, out: ẑ_i = (x + ιy), De Carli
+RELATIVE_YAWS = 'relative_yaws'    # sensor_msgs/PointCloud2, out: unit(ẑ_ij) (x, y) per pair
 DIAGNOSTICS = '/diagnostics'       # diagnostic_msgs/DiagnosticArray, out: each node's health
 GROUND_TRUTH = 'ground_truth'      # geometry_msgs/PoseStamped, simulator: true pose
 CLOCK = '/clock'                   # rosgraph_msgs/Clock, simulator (use_sim_time)
@@ -47,6 +50,13 @@ def topic(agent: str, name: str) -> str:
 
 # ----------------------------------------------------------------------------- frames
 WORLD_FRAME = 'world'
+
+
+def estimation_frame(fleet: str) -> str:
+    """The common frame of a fleet whose estimates are not world poses (De Carli et al.: one
+    yaw and one translation away from ``world``, neither known by design):
+    ``<fleet>/estimation``."""
+    return f'{fleet}/estimation'
 
 
 def body_frame(agent: str) -> str:
@@ -354,14 +364,22 @@ def decode_pose(msg: PoseStamped) -> tuple[float, Array, Array]:
 class ChannelWire:
     """How one estimator channel (``estimators.base.Channel``, by name) travels: the topic of
     the sender's namespace, its type and frame, and the decoder to ``(stamp, value)``; a
-    per-edge value is ``{listener id: vector}``. ``encode(t, value)`` builds the message; None:
-    the channel rides on the ``estimate`` every estimator publishes anyway."""
+    per-edge value is ``{listener id: vector}``. ``frame`` is a fixed frame id or a template:
+    ``{estimate}`` the frame of the method's estimates (:func:`estimate_frame`),
+    ``{sender_body}`` the sender's body frame. ``encode(t, value, frame)`` builds the message;
+    None: the channel rides on a message published anyway (the ``estimate``, or the sender's
+    sensor topic)."""
 
     topic: str
     type: type
     frame: str
     decode: Callable[[Any], tuple[float, Any]]
-    encode: Callable[[float, Any], Any] | None
+    encode: Callable[[float, Any, str], Any] | None
+
+    def frame_of(self, sender: str, estimate: str) -> str:
+        """The frame id a message of ``sender`` must carry (``estimate``: the frame of the
+        method's estimates)."""
+        return self.frame.format(estimate=estimate, sender_body=body_frame(sender))
 
 
 def _decode_position(msg: PoseStamped) -> tuple[float, Array]:
@@ -374,18 +392,59 @@ def _decode_id_vectors(msg: PointCloud2) -> tuple[float, dict[int, Array]]:
     return t, dict(zip(ids.tolist(), vectors))
 
 
-def _encode_id_vectors(t: float, value: dict[int, Array]) -> PointCloud2:
+def _encode_id_vectors(t: float, value: dict[int, Array], frame: str) -> PointCloud2:
     ids = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
-    return encode_vectors(t, WORLD_FRAME, ids, np.array(list(value.values())).reshape(-1, 3))
+    return encode_vectors(t, frame, ids, np.array(list(value.values())).reshape(-1, 3))
+
+
+def _decode_complex(msg: Vector3Stamped) -> tuple[float, Array]:
+    v = np.array([msg.vector.x, msg.vector.y])
+    if not np.all(np.isfinite(v)):
+        raise WireError('non-finite complex number')
+    return from_stamp(msg.header.stamp), v
+
+
+def _encode_complex(t: float, value: Array, frame: str) -> Vector3Stamped:
+    """A complex number ``x + ιy`` (``[x, y]``) as a Vector3Stamped with z = 0."""
+    msg = Vector3Stamped()
+    msg.header.stamp = to_stamp(t)
+    msg.header.frame_id = frame
+    msg.vector.x, msg.vector.y = float(value[0]), float(value[1])
+    return msg
+
+
+def _decode_id_pairs(msg: PointCloud2) -> tuple[float, dict[int, Array]]:
+    t, ids, vectors = decode_vectors(msg)
+    return t, dict(zip(ids.tolist(), vectors[:, :2]))
+
+
+def _encode_id_pairs(t: float, value: dict[int, Array], frame: str) -> PointCloud2:
+    ids = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
+    pairs = np.array(list(value.values()), dtype=float).reshape(-1, 2)
+    return encode_vectors(t, frame, ids, np.column_stack([pairs, np.zeros(len(pairs))]))
 
 
 # Channel name -> wire. p_hat: the position of the sender's `estimate`; world_bearing: its
-# `world_bearings`, one point per listener.
+# `world_bearings`, one point per listener; De Carli et al.'s z_hat (`yaw_estimate`, the
+# complex ẑ_j), relyaw (`relative_yaws`, one point per listener of a pair it owns, z = 0) and
+# meas (the sender's own `relative_positions` sensor topic: the point of the listener).
 CHANNELS = {
-    'p_hat': ChannelWire(ESTIMATE, PoseStamped, WORLD_FRAME, _decode_position, None),
+    'p_hat': ChannelWire(ESTIMATE, PoseStamped, '{estimate}', _decode_position, None),
     'world_bearing': ChannelWire(WORLD_BEARINGS, PointCloud2, WORLD_FRAME, _decode_id_vectors,
                                  _encode_id_vectors),
+    'z_hat': ChannelWire(YAW_ESTIMATE, Vector3Stamped, '{estimate}', _decode_complex,
+                         _encode_complex),
+    'relyaw': ChannelWire(RELATIVE_YAWS, PointCloud2, '{sender_body}', _decode_id_pairs,
+                          _encode_id_pairs),
+    'meas': ChannelWire(RELATIVE_POSITIONS, PointCloud2, '{sender_body}', _decode_id_vectors,
+                        None),
 }
+
+
+def estimate_frame(frame: str, fleet: str) -> str:
+    """The frame id of a method's estimates: ``world`` for world poses, else
+    :func:`estimation_frame` (``frame``: ``estimators.base.EstimateFrame`` value)."""
+    return WORLD_FRAME if frame == 'world' else estimation_frame(fleet)
 
 
 def channel(name: str) -> ChannelWire:

@@ -168,6 +168,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     scenario, derived = _method_scenarios(args)
     outputs = [f for f in compare.OUTPUT_FILES if not (args.no_plots and f.endswith('.png'))]
     if args.distributed:
+        _refuse_paper_mode_over_dds(scenario)
         outputs += [f'{m}/{f}' for m in args.methods
                     for f in ('scenario.yaml', 'metrics.csv', 'summary.json')]
     out = _out_dir(args.out or f'results/{scenario.name}_compare', outputs, args.force)
@@ -318,16 +319,36 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
         raise ScenarioError(str(exc)) from exc
 
 
+def _refuse_paper_mode_over_dds(scenario: Scenario) -> None:
+    """A simulator node owns the truth and cannot see the estimates: no closed loop."""
+    if scenario.formation is not None and scenario.formation.mode == 'paper':
+        raise ScenarioError(f'{scenario.source}: formation_control.mode is paper (the '
+                            'controller uses the estimated yaws), which a simulator node '
+                            'cannot run. Fix: pass --formation-mode exogenous (the true yaws)')
+
+
 def cmd_run(args: argparse.Namespace) -> int:
-    scenario = _load_checked(args.scenario)
+    from ..scenario import read_scenario_data
+
+    scenario = _with_formation_mode(_load_checked(args.scenario), args.formation_mode)
+    _refuse_paper_mode_over_dds(scenario)
+    derived = args.formation_mode is not None and scenario.formation is not None
     processes = [a.name for a in scenario.agents] + ['simulator', 'monitor']
     plots = [] if args.no_plots else PLOT_FILES + (['trajectories.png'] if scenario.moves
                                                    else [])
-    outputs = (['metrics.csv', 'summary.json'] + plots
+    outputs = (['metrics.csv', 'summary.json'] + plots + (['scenario.yaml'] if derived else [])
                + [f'params/{p}.yaml' for p in processes] + [f'logs/{p}.log' for p in processes])
     out = _out_dir(args.out or f'results/{scenario.name}_dds', outputs, args.force)
     duration = args.duration if args.duration is not None else scenario.duration
-    result = _run_over_dds(scenario, Path(args.scenario), out, duration, args)
+    scenario_file = Path(args.scenario)
+    if derived:   # the nodes read the file: write the one with the mode changed
+        data = read_scenario_data(args.scenario)
+        data['formation_control']['mode'] = args.formation_mode
+        scenario_file = out / 'scenario.yaml'
+        scenario_file.write_text(f'# {args.scenario} with formation_control.mode: '
+                                 f'{args.formation_mode} (bearing-pose run --formation-mode)\n'
+                                 + yaml.safe_dump(data, sort_keys=False, width=100))
+    result = _run_over_dds(scenario, scenario_file, out, duration, args)
     logs = out.resolve() / 'logs'
     if not result.ok:
         print(f'run failed after {result.wall_s:.1f} s; logs in {logs}', file=sys.stderr)
@@ -515,6 +536,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('scenario', help='scenario YAML file')
     _add_output_options(p, '_dds')
     _add_dds_options(p)
+    _add_formation_option(p)
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser('generate', help='write a random valid scenario',

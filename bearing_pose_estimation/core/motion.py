@@ -179,25 +179,46 @@ class YawSpline:
 class YawSplines:
     """The yaw splines of N agents, evaluated in one call: ``ψ(t)``, ``ψ̇(t)`` ``(N,)``, the
     exact rotation increment ``R_z(ψ(t+h) - ψ(t))`` and the displacement of a body-frame
-    velocity held over a step."""
+    velocity held over a step. The piecewise cubics (scipy's clamped ``CubicSpline``) are
+    evaluated directly, vectorised over agents that share their knots."""
 
     def __init__(self, splines: Sequence[YawSpline]) -> None:
         from scipy.interpolate import CubicSpline
 
-        self._splines = [CubicSpline(np.array(s.knots), np.array(s.values), bc_type='clamped')
-                         for s in splines]
-        self._ends = [(s.knots[0], s.knots[-1]) for s in splines]
-        self._rates = [s.derivative() for s in self._splines]
+        fitted = [CubicSpline(np.array(s.knots), np.array(s.values), bc_type='clamped')
+                  for s in splines]
+        self._groups: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64]]]
+        self._groups = []
+        by_knots: dict[tuple[float, ...], list[int]] = {}
+        for i, s in enumerate(splines):
+            by_knots.setdefault(tuple(s.knots), []).append(i)
+        for knots, rows in by_knots.items():
+            # c[k, m, i]: coefficient of (t - t_m)^(3-k) on interval m for agent i.
+            c = np.stack([fitted[i].c for i in rows], axis=-1)
+            self._groups.append((np.array(rows, dtype=np.intp), np.array(knots), c))
+        self.n = len(splines)
+
+    def _eval(self, t: float, derivative: bool) -> NDArray[np.float64]:
+        out = np.zeros(self.n)
+        for rows, knots, c in self._groups:
+            tc = min(max(t, knots[0]), knots[-1])   # held outside the knots
+            m = min(max(int(np.searchsorted(knots, tc, side='right')) - 1, 0), len(knots) - 2)
+            s = tc - knots[m]
+            a3, a2, a1, a0 = c[0, m], c[1, m], c[2, m], c[3, m]
+            if derivative:
+                inside = knots[0] <= t <= knots[-1]
+                out[rows] = (3.0 * a3 * s + 2.0 * a2) * s + a1 if inside else 0.0
+            else:
+                out[rows] = ((a3 * s + a2) * s + a1) * s + a0
+        return out
 
     def __call__(self, t: float) -> NDArray[np.float64]:
         """``ψ_i(t)`` [rad]."""
-        return np.array([float(s(min(max(t, lo), hi)))
-                         for s, (lo, hi) in zip(self._splines, self._ends)])
+        return self._eval(t, derivative=False)
 
     def rate(self, t: float) -> NDArray[np.float64]:
         """``ψ̇_i(t)`` [rad/s] (0 outside the knots)."""
-        return np.array([float(d(t)) if lo <= t <= hi else 0.0
-                         for d, (lo, hi) in zip(self._rates, self._ends)])
+        return self._eval(t, derivative=True)
 
     def increment(self, t: float, h: float) -> NDArray[np.float64]:
         """``R_z(ψ(t+h) - ψ(t))`` ``(N, 3, 3)``: exact, no integration."""

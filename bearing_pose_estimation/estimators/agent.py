@@ -165,6 +165,9 @@ class TimedAgent:
         self.channels: dict[str, Channel] = {c.name: c for c in estimator.sends}
         self.gyro = GyroBuffer(t0, gyro_horizon)
         self.uses_odometry = estimator.uses(Sensor.ODOMETRY)
+        # A method that needs odometry (not only uses it when available) waits for it from
+        # the first step, unless it falls silent (sensor_timeout behind the gyro).
+        self.requires_odometry = Sensor.ODOMETRY in estimator.sensors
         self.odometry = OdometryBuffer(t0, gyro_horizon)
         self.odometry_missing_steps = 0   # steps run without odometry while it was expected
         # Neighbour values that could not be paired at one instant (see the subclasses).
@@ -259,9 +262,11 @@ class TimedAgent:
 
     def odometry_live(self) -> bool:
         """Odometry samples keep up with the gyro (within ``sensor_timeout``): steps wait for
-        them and feed them forward."""
-        return (self.uses_odometry and not self.odometry.empty
-                and self.odometry.end >= self.gyro.end - self.limits.sensor_timeout)
+        them and feed them forward. A method that needs odometry counts it live from the start,
+        before its first sample."""
+        keeps_up = self.odometry.end >= self.gyro.end - self.limits.sensor_timeout
+        return self.uses_odometry and keeps_up and (not self.odometry.empty
+                                                    or self.requires_odometry)
 
     def steps_ready(self) -> int:
         """How many steps the gyro data (and live odometry) allows now."""

@@ -90,8 +90,11 @@ class Channel:
     """One quantity that agent j sends the agents that listen to it (those with j among their
     neighbours). ``per='agent'``: one value for all of them (e.g. ``p̂_j``); ``per='edge'``: one
     value per listener i (e.g. ``R̂_j b^j_ji``). ``frame`` is the frame the value is expressed
-    in; ``unit`` values are unit vectors (validated on reception). The wire encoding of each
-    channel name lives in ``msg_defs``."""
+    in; ``unit`` values are unit vectors (validated on reception); ``sensor``: the value is
+    j's own measurement of i by that sensor, which travels on j's sensor topic (a node pairs it
+    at its instant like its own measurements); ``owner_only``: a per-edge value only the owner
+    of the pair's shared state sends (a receiver that owns the pair expects none). The wire
+    encoding of each channel name lives in ``msg_defs``."""
 
     name: str
     per: Literal['agent', 'edge']
@@ -99,6 +102,8 @@ class Channel:
     unit: bool = False
     shape: tuple[int, ...] = (3,)
     doc: str = ''
+    sensor: Sensor | None = None
+    owner_only: bool = False
 
 
 # ----------------------------------------------------------------------------- gains
@@ -455,6 +460,9 @@ class Estimator(ABC, Generic[G, S]):
     def conditioning_problem(self, eig: Array) -> str | None:
         """Why the spectrum ``eig`` (ascending) breaks the method's hypothesis, or None."""
         return None
+
+    # The names of the per-agent diagnostic 'stage' (an index), for methods that report one.
+    stages: ClassVar[tuple[str, ...]] = ()
 
     # --- what recordings show beyond the pose errors
     edge_error_label: ClassVar[str] = ''   # e.g. 'rel_yaw_err': the column prefix per pair

@@ -89,10 +89,10 @@ Complex = NDArray[np.complex128]
 Z_HAT = Channel('z_hat', per='agent', frame='estimation', shape=(2,),
                 doc='ẑ_j = |ẑ_j| e^{ιψ̂_j}, the unnormalised yaw estimate, [re, im]')
 P_HAT = Channel('p_hat', per='agent', frame='estimation', doc='p̂_j, the position estimate [m]')
-MEAS = Channel('meas', per='edge', frame='body',
+MEAS = Channel('meas', per='edge', frame='body', sensor=Sensor.RELATIVE_POSITIONS,
                doc='ʲp_ji, j\'s measurement of the listener i (body frame of j) [m]; zeros if '
                    'j does not sense i')
-RELYAW = Channel('relyaw', per='edge', frame='body', shape=(2,),
+RELYAW = Channel('relyaw', per='edge', frame='body', shape=(2,), owner_only=True,
                  doc='unit(ẑ_ji), the relative yaw of the pair j owns, [re, im]; zeros if j '
                      'does not own it (yet)')
 
@@ -105,6 +105,12 @@ MIN_MODULUS = 1e-12
 EXCITATION_M2_S = 0.05
 # The window of the "excited now" diagnostic [s].
 EXCITATION_WINDOW_S = 1.0
+# The diagnostics' stage of a robot: the first stage whose residual is above its threshold
+# (the relative-position error of its pairs [m], the consensus disagreement of its yaw, the
+# position residual of (21) [m]), or 'converged'.
+RELATIVE_DONE_M = 1e-3
+YAW_DONE = 1e-3
+POSITION_DONE_M = 1e-2
 # Stage 3's Euler correction diverges when h₃ k_p λ_max(L̄) reaches this (§7).
 EULER_LIMIT = 2.0
 
@@ -199,6 +205,8 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
     frame: ClassVar[EstimateFrame] = EstimateFrame.COMMON_YAW_TRANSLATION
     edge_gains: ClassVar[bool] = False
     links: ClassVar[Literal['sensing', 'communication']] = 'communication'
+    stages: ClassVar[tuple[str, ...]] = ('waiting_for_excitation', 'relative_yaw', 'yaw',
+                                         'position', 'converged')
     reference_scenario: ClassVar[str] = 'de_carli_8_quadrotors.yaml'
 
     # --- state
@@ -292,16 +300,16 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         out.z_pair[ag[new], sl[new]] = unit(np.conj(x.z_hat[ag[new]]) * z_j[new])
         out.ready_pair[ag[new], sl[new]] = True
 
-        # 1. Stage 3's correction (21), from the state at t.
-        correction = np.zeros((n, 3))
+        # 1. Stage 3's correction (21), from the state at t (its residual every step, for
+        # the diagnostics).
+        R_i = x.R_hat[ag]
+        R_j = rot_z(np.angle(z_j))
+        diff = x.p_hat[ag] - rec['p_hat']
+        term = fresh[:, None] * (
+            y_ok[:, None] * (diff + np.einsum('kab,kb->ka', R_i, y))
+            + m_ok[:, None] * (diff - np.einsum('kab,kb->ka', R_j, meas)))
+        correction = edges.sum_by_agent(term)
         if tick % self.every(g.position_rate, h) == 0:
-            R_i = x.R_hat[ag]
-            R_j = rot_z(np.angle(z_j))
-            diff = x.p_hat[ag] - rec['p_hat']
-            term = fresh[:, None] * (
-                y_ok[:, None] * (diff + np.einsum('kab,kb->ka', R_i, y))
-                + m_ok[:, None] * (diff - np.einsum('kab,kb->ka', R_j, meas)))
-            correction = edges.sum_by_agent(term)
             out.p_hat = x.p_hat - h3 * g.k_p * correction
 
         # 2. Stage 2: the Jacobi step of (13) over the excited pairs.
@@ -354,9 +362,16 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
 
         residual = np.zeros(n)
         np.maximum.at(residual, a, np.abs(E_out))
+        target = as_complex(yaw_target)
+        yaw_residual = np.abs(target - n_active * x.z_hat) / np.maximum(
+            n_active * np.abs(x.z_hat), MIN_MODULUS)
+        position_residual = np.linalg.norm(correction, axis=1)
+        stage = np.select([n_active == 0, residual > RELATIVE_DONE_M, yaw_residual > YAW_DONE,
+                           position_residual > POSITION_DONE_M], [0, 1, 2, 3], 4)
         diagnostics = {'innovation': correction, 'z_modulus': np.abs(out.z_hat),
                        'pairs_excited': n_active.astype(float),
-                       'relative_residual_m': residual}
+                       'relative_residual_m': residual, 'yaw_residual': yaw_residual,
+                       'position_residual_m': position_residual, 'stage': stage.astype(float)}
         return out, diagnostics
 
     # --- what the recordings show

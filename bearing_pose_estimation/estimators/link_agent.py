@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.odometry import OdometryBuffer
-from .agent import Limits, StepInfo, TimedAgent, estimator_for
+from .agent import AgentEstimator, Limits, StepInfo, TimedAgent, estimator_for
 from .base import Edges, Estimator, LinkInputs, StepInputs
 
 if TYPE_CHECKING:
@@ -143,8 +143,10 @@ class LinkAgentEstimator(TimedAgent):
         self._sensed_by = np.array([lk.sensed_by for lk in self.links], dtype=bool)
         self._owns = np.array([lk.owns for lk in self.links], dtype=bool)
         self.missing: Counter[str] = Counter()   # inputs left out of a step, by what
+        self.waits: Counter[str] = Counter()     # attempts that waited, by what was awaited
         self.impatient = False
         self._pending: StepInputs | None = None
+        self._pending_k = -1
 
     @property
     def neighbours(self) -> list[Link]:
@@ -152,6 +154,7 @@ class LinkAgentEstimator(TimedAgent):
         return self.links
 
     def _clear_inputs(self, reset_estimate: bool) -> None:
+        self._pending = None
         for link in self.links:
             link.measured.clear()
             if reset_estimate:
@@ -240,7 +243,7 @@ class LinkAgentEstimator(TimedAgent):
         mine: dict[str, Array] = {}
         for name, value in values.items():
             channel = self.channels.get(name)
-            if channel is None:
+            if channel is None or channel.sensor is not None:   # sensor readings: see above
                 return 'unknown_channel'
             if channel.per == 'edge':
                 value = value.get(self.agent_id) if isinstance(value, dict) else None
@@ -282,11 +285,42 @@ class LinkAgentEstimator(TimedAgent):
         limit = t - self.limits.neighbour_timeout
         return [link.name for link in self.links if link.newest() < limit]
 
+    def _awaiting(self, t: float, due: list[str], stale: set[str]) -> str | None:
+        """What the step at ``t`` still waits for (the first thing found), or None when
+        every input is here or known not to come: a cheap check, run on every arriving
+        input, before :meth:`_gather` builds the inputs."""
+        h, tol = self.h, 1e-9
+        own_late = self.gyro.end - t > self.limits.sensor_timeout
+        for link in self.links:
+            if link.senses and not own_late and not (link.measured
+                                                     and link.measured[-1][0] >= t - tol):
+                return 'own_measurement'
+            if link.name in stale:
+                continue
+            odo = link.odometry
+            if not odo.covers(t, t + h) and odo.end >= t - self.limits.neighbour_timeout:
+                return 'odometry'
+            if link.sensed_by and not (link.theirs and link.theirs[-1][0] >= t - tol):
+                return 'their_measurement'
+            for name in due:
+                if link.owns and self.channels[name].owner_only:
+                    continue
+                hist = link.history.get(name)
+                if not (hist and hist[-1][0] >= t - tol):
+                    return name
+        return None
+
     def _gather(self, t: float, final: bool) -> StepInputs | None:
         """The inputs of the step at ``t``, or None while some may still come (``final``:
         whatever is missing now is left out)."""
         est, h = self.estimator, self.h
         stale = set(self.stale_neighbours(t))
+        due = [c.name for c in est.sends if c.sensor is None and est.due(c.name, t, h)]
+        if not final:
+            awaited = self._awaiting(t, due, stale)
+            if awaited is not None:
+                self.waits[awaited] += 1
+                return None
         n = len(self.links)
         y = np.zeros((n, 3))
         theirs = np.zeros((n, 3))
@@ -295,48 +329,37 @@ class LinkAgentEstimator(TimedAgent):
         flags = {name: np.zeros(n, dtype=bool)
                  for name in ('measured', 'their_measured', 'present', 'fresh')}
         received = {c.name: np.zeros((n,) + c.shape) for c in est.sends}
-        waiting = False
-        due = [c.name for c in est.sends if c.name != 'meas' and est.due(c.name, t, h)]
-        own_late = self.gyro.end - t > self.limits.sensor_timeout
-        for e, link in enumerate(self.links):
-            gone = link.name in stale or final
+        for e, link in enumerate(self.links):   # everything here is decided: take what is
             if link.senses:
-                v, decided = _interpolated(link.measured, t,
-                                           lambda s_, t_: self.gyro.increment(t_, s_))
+                v, _ = _interpolated(link.measured, t,
+                                     lambda s_, t_: self.gyro.increment(t_, s_))
                 if v is not None:
                     y[e], flags['measured'][e] = v, True
-                elif not (decided or own_late or final):
-                    waiting = True
             if link.odometry.covers(t, t + h):
                 other_R[e] = link.odometry.rotation(t, t + h)
                 other_d[e] = link.odometry.displacement(t, t + h)
                 flags['present'][e] = True
-            elif not (gone or link.odometry.end < t - self.limits.neighbour_timeout):
-                waiting = True
             if link.sensed_by:
-                v, decided = _interpolated(link.theirs, t, _rotation_of(link.odometry))
+                v, _ = _interpolated(link.theirs, t, _rotation_of(link.odometry))
                 if v is not None:
                     theirs[e], flags['their_measured'][e] = v, True
-                elif not (decided or gone):
-                    waiting = True
             fresh = True
             for name in due:
-                if name == 'relyaw' and link.owns:
+                if link.owns and self.channels[name].owner_only:
                     continue
-                v, decided = link.value_at(name, t)
+                v, _ = link.value_at(name, t)
                 if v is not None:
                     received[name][e] = v
                 else:
                     fresh = False
-                    waiting |= not (decided or gone)
             # Values not due this step: the newest (unused by the step, kept finite).
             for c in est.sends:
-                if c.name not in due and c.name != 'meas' and link.history.get(c.name):
+                if c.name not in due and c.sensor is None and link.history.get(c.name):
                     received[c.name][e] = link.history[c.name][-1][1]
             flags['fresh'][e] = fresh
-        if waiting:
-            return None
-        received['meas'] = theirs
+        for c in est.sends:
+            if c.sensor is not None:
+                received[c.name] = theirs
         expected = {'measured': self._senses, 'their_measured': self._sensed_by,
                     'present': np.ones(n, bool), 'fresh': np.full(n, bool(due))}
         for name, f in flags.items():
@@ -356,11 +379,18 @@ class LinkAgentEstimator(TimedAgent):
                           bearings=np.zeros((n, 3)), received=received,
                           displacement=displacement, links=links, t=t)
 
+    def own_inputs_ready(self) -> bool:
+        """Own gyro (and live odometry) cover the next step: only neighbours may be missing."""
+        return super().steps_ready() > 0
+
     def steps_ready(self) -> int:
         """1 when the next step's inputs are all here (or known not to come), else 0."""
-        if super().steps_ready() == 0:
+        if self._pending is not None and self._pending_k == self.k:
+            return 1   # complete inputs stay complete
+        if not self.own_inputs_ready():
             return 0
         self._pending = self._gather(self.t, final=self.impatient)
+        self._pending_k = self.k
         return 0 if self._pending is None else 1
 
     def advance(self, max_steps: int | None = None, impatient: bool = False) -> int:
@@ -397,14 +427,14 @@ class LinkAgentEstimator(TimedAgent):
     # ------------------------------------------------------------------------------ outputs
     def outbox(self) -> dict[str, object]:
         """What this robot sends at the state time: per-agent channels as arrays, per-edge
-        ones as ``{listener id: value}`` (the method's values for each link; ``meas`` is not
-        sent: the neighbours read this robot's sensor topic)."""
+        ones as ``{listener id: value}`` (the method's values for each link; a channel of a
+        sensor's readings is not sent: the neighbours read this robot's sensor topic)."""
         n = len(self.links)
         sent = self.estimator.outbox(self.x, np.zeros(n, dtype=np.intp), np.zeros((n, 3)),
                                      slot=np.arange(n, dtype=np.intp))
         return {name: ({lk.agent_id: sent[name][e] for e, lk in enumerate(self.links)}
                        if c.per == 'edge' else sent[name][0])
-                for name, c in self.channels.items() if name != 'meas'}
+                for name, c in self.channels.items() if c.sensor is None}
 
     def bearings_at(self, t: float) -> bool:
         return True
@@ -444,7 +474,7 @@ def link_estimator_for(scenario: Scenario, name: str, limits: Limits = Limits(),
 
 
 def agent_for(scenario: Scenario, name: str, limits: Limits = Limits(),
-              initial: tuple[Array, Array] | None = None) -> TimedAgent:
+              initial: tuple[Array, Array] | None = None) -> AgentEstimator | LinkAgentEstimator:
     """The agent logic of ``name`` for the scenario's method: :class:`LinkAgentEstimator` for
     ``links = 'communication'`` methods, :class:`agent.AgentEstimator` for the others."""
     if scenario.estimator().links == 'communication':

@@ -54,8 +54,9 @@ from .. import estimators
 from .. import msg_defs as wire
 from ..core import so3
 from ..core.errors import ScenarioError
-from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits, estimator_for
+from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits
 from ..estimators.base import Estimator, Sensor, format_gains, gain_fields
+from ..estimators.link_agent import LinkAgentEstimator, agent_for
 from ..scenario.parse import load_scenario
 from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
 
@@ -123,6 +124,9 @@ class EstimatorNode(Node):
                                   'empty: any')
         diagnostics_period = p('diagnostics_period', 1.0, '/diagnostics period [s]',
                                0.01, 3600.0)
+        self.neighbour_wait = p('neighbour_wait', 0.25, 'methods that talk over communication '
+                                'links: wall time [s] a step waits for a neighbour\'s missing '
+                                'input before going on without it', 0.0, 60.0)
         self.drop_rate = p('inject_drop_rate', 0.0, 'fault injection: probability of dropping '
                            'each neighbour message', 0.0, 1.0)
         self.delay = p('inject_delay', 0.0, 'fault injection: extra delay of each neighbour '
@@ -156,13 +160,18 @@ class EstimatorNode(Node):
             if ignored:
                 self.get_logger().warning(f'{", ".join(ignored)} ignored: they are for running '
                                           'without a scenario_file, which is set')
-            template = estimator_for(scenario, self.agent, limits)
+            template = agent_for(scenario, self.agent, limits)
             self.expect_odometry = scenario.simulates('odometry')
+            fleet = scenario.name
             publish_rate = publish_rate or scenario.publish_rate
             method = scenario.method
             where, fix = "the scenario's method", 'the scenario file sets the method'
         else:
             method = method or estimators.DEFAULT_METHOD
+            if estimators.get(method).links == 'communication':
+                raise ScenarioError(f'method {method} needs scenario_file: its communication '
+                                    'links come from the sensing graph. Fix: set scenario_file')
+            fleet = 'fleet'
             self.expect_odometry = False   # used whenever it arrives
             template = self._explicit_estimator(
                 explicit, limits, estimators.build(method, estimators.get(method).Gains()))
@@ -173,11 +182,13 @@ class EstimatorNode(Node):
         self.template = template
         self.gains = gains
         self.method = estimators.get(method)
+        self.links = isinstance(template, LinkAgentEstimator)
+        self.estimate_frame = wire.estimate_frame(self.method.frame.value, fleet)
         self.h = 1.0 / frequency if frequency > 0 else template.h
         # Publish on exact multiples of the publish period, so the monitor can pair estimates
         # with ground truth at identical stamps.
         self.publish_every = max(1, int(round(1.0 / (self.h * publish_rate))))
-        self.est: AgentEstimator | None = None
+        self.est: AgentEstimator | LinkAgentEstimator | None = None
         if self.start_time >= 0.0:
             self.est = self._make_estimator(self.start_time)
         self.rejected: Counter[str] = Counter()
@@ -188,6 +199,7 @@ class EstimatorNode(Node):
         self._delayed: list[tuple[float, int, Callable[[], None]]] = []  # (release, seq, fn)
         self._seq = 0
         self._diag_steps = (0, time.monotonic())
+        self._stuck: tuple[int, float] | None = None   # (k, wall time) a step began to wait
 
         qos_in, qos_est = wire.SENSOR_QOS, wire.ESTIMATE_QOS
         self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE, qos_est)
@@ -196,9 +208,13 @@ class EstimatorNode(Node):
         self.pub_channels = {name: (self.create_publisher(w.type, w.topic, qos_est), w.encode)
                              for name, w in self.wires.items() if w.encode is not None}
         self.pub_diag = self.create_publisher(DiagnosticArray, wire.DIAGNOSTICS, 10)
-        subs = [self.create_subscription(wire.Imu, wire.IMU, self.on_imu, qos_in),
-                self.create_subscription(wire.PointCloud2, wire.BEARINGS, self.on_bearings,
-                                         qos_in)]
+        subs = [self.create_subscription(wire.Imu, wire.IMU, self.on_imu, qos_in)]
+        if self.method.uses(Sensor.BEARINGS):
+            subs.append(self.create_subscription(wire.PointCloud2, wire.BEARINGS,
+                                                 self.on_bearings, qos_in))
+        if self.method.uses(Sensor.RELATIVE_POSITIONS):
+            subs.append(self.create_subscription(wire.PointCloud2, wire.RELATIVE_POSITIONS,
+                                                 self.on_relative_positions, qos_in))
         if self.method.uses(Sensor.ODOMETRY):
             odom = self.create_subscription(wire.Odometry, wire.ODOM, self.on_odometry, qos_in)
             if self.expect_odometry:  # the t0 announcement waits for its publisher too
@@ -211,9 +227,18 @@ class EstimatorNode(Node):
                                                  self.on_known_pose, qos_in))
         for nb in template.neighbours:
             for name, w in self.wires.items():
+                sensor = self.method_channel(name).sensor
+                if sensor is not None and not getattr(nb, 'sensed_by', False):
+                    continue   # nb does not measure this agent
                 subs.append(self.create_subscription(
                     w.type, wire.topic(nb.name, w.topic),
-                    partial(self._link, self.on_neighbour, nb.agent_id, name), qos_est))
+                    partial(self._link, self.on_neighbour, nb.agent_id, name, nb.name),
+                    qos_in if sensor is not None else qos_est))
+            if self.links:   # the prediction of what this agent senses of nb uses nb's motion
+                subs.append(self.create_subscription(
+                    wire.Odometry, wire.topic(nb.name, wire.ODOM),
+                    partial(self._link, self.on_neighbour_odometry, nb.agent_id, nb.name),
+                    qos_in))
         self._subs = subs
         self.timer = self.create_timer(self.h, self.on_timer)
         self.diag_timer = self.create_timer(diagnostics_period, self.publish_diagnostics)
@@ -222,6 +247,9 @@ class EstimatorNode(Node):
         # they are matched, so the simulator starts the clock only after hearing from everyone.
         self.ready_timer = self.create_timer(
             0.05, self.on_ready_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        if self.links:   # a step waiting for a lost input goes on after neighbour_wait
+            self.patience_timer = self.create_timer(
+                0.05, self.on_patience, clock=Clock(clock_type=ClockType.STEADY_TIME))
         role = 'leader' if template.leader else f'{len(template.neighbours)} neighbours'
         faults = (f'; INJECTING drop {self.drop_rate:g}, delay {self.delay:g} s on neighbour '
                   'messages' if self.drop_rate or self.delay else '')
@@ -230,6 +258,9 @@ class EstimatorNode(Node):
         warn_unknown_parameters(self)
 
     # --------------------------------------------------------------------------- set-up
+    def method_channel(self, name: str):   # noqa: ANN201 (a Channel)
+        return next(c for c in self.method.sends if c.name == name)
+
     def _explicit_estimator(self, e: dict, limits: Limits,
                             estimator: Estimator) -> AgentEstimator:
         names = [n for n in e['neighbours'] if n]
@@ -256,8 +287,15 @@ class EstimatorNode(Node):
                               step=0.01, leader=e['leader'], R0=so3.from_quat(q), p0=p0,
                               limits=limits)
 
-    def _make_estimator(self, t0: float) -> AgentEstimator:
+    def _make_estimator(self, t0: float) -> AgentEstimator | LinkAgentEstimator:
         t = self.template
+        if isinstance(t, LinkAgentEstimator):
+            return LinkAgentEstimator(self.method(self.gains), agent_id=t.agent_id,
+                                      links=[(lk.name, lk.agent_id, lk.senses, lk.sensed_by)
+                                             for lk in t.links],
+                                      step=self.h, R0=t.R0, p0=t.p0, t0=t0,
+                                      known_ids=t.known_ids, limits=t.limits)
+        assert isinstance(t, AgentEstimator)
         return AgentEstimator(self.method(self.gains), agent_id=t.agent_id,
                               neighbours=[(n.name, n.agent_id, n.k) for n in t.neighbours],
                               step=self.h, R0=t.R0, p0=t.p0, t0=t0,
@@ -310,9 +348,35 @@ class EstimatorNode(Node):
         # instant fires the timer too early, and the clock then waits for this agent.
         self.on_timer()
 
+    def on_relative_positions(self, msg: wire.PointCloud2) -> None:
+        decoded = self._decoded(msg, wire.decode_vectors, self.bearings_frame,
+                                'relative_positions')
+        est = self.est
+        if decoded is None or not isinstance(est, LinkAgentEstimator):
+            return
+        t, ids, vectors = decoded
+        for cause, n in Counter(est.add_relative_positions(t, ids, vectors)).items():
+            self._reject(cause, f'{n} relative position(s) at {t:.6f}', n)
+        self.on_timer()
+
+    def on_neighbour_odometry(self, agent_id: int, name: str, msg: wire.Odometry) -> None:
+        est = self.est
+        try:
+            t, v, omega = wire.decode_odometry(msg, wire.body_frame(name))
+        except wire.WireError as exc:
+            return self._reject('malformed', f'odom of agent {agent_id} ({exc})')
+        if not isinstance(est, LinkAgentEstimator):
+            return
+        cause = est.add_neighbour_odometry(agent_id, t, v, omega)
+        if cause == 'odometry_gap':
+            self.events[f'{cause}_{name}'] += 1
+        elif cause is not None:
+            return self._reject(cause, f'odom of agent {agent_id} at {t:.6f}')
+        self.on_timer()
+
     def on_bearings(self, msg: wire.PointCloud2) -> None:
         decoded = self._decoded(msg, wire.decode_vectors, self.bearings_frame, 'bearings')
-        if decoded is None or self.est is None:
+        if decoded is None or not isinstance(self.est, AgentEstimator):
             return
         t, ids, vectors = decoded
         for cause, n in Counter(self.est.add_bearings(t, ids, vectors)).items():
@@ -338,7 +402,7 @@ class EstimatorNode(Node):
 
     def on_known_pose(self, msg: wire.PoseStamped) -> None:
         decoded = self._decoded(msg, wire.decode_pose, wire.WORLD_FRAME, 'known_pose')
-        if decoded is not None and self.est is not None:
+        if decoded is not None and isinstance(self.est, AgentEstimator):
             t, R, p = decoded
             cause = self.est.set_known_pose(t, R, p)
             if cause is not None:
@@ -361,17 +425,24 @@ class EstimatorNode(Node):
         while self._delayed and self._delayed[0][0] <= now:
             heapq.heappop(self._delayed)[2]()
 
-    def on_neighbour(self, agent_id: int, channel: str, msg: object) -> None:
+    def on_neighbour(self, agent_id: int, channel: str, name: str, msg: object) -> None:
         """Neighbour j's value of one channel (from its ``estimate``, ``world_bearings``, ...)."""
         w = self.wires[channel]
         what = f'{w.topic} of agent {agent_id}'
-        decoded = self._decoded(msg, w.decode, w.frame, what)
+        decoded = self._decoded(msg, w.decode, w.frame_of(name, self.estimate_frame), what)
         if decoded is None or self.est is None:
             return
         t, value = decoded
-        cause = self.est.add_neighbour(agent_id, t, {channel: value})
+        if isinstance(self.est, LinkAgentEstimator) and self.method_channel(channel).sensor:
+            ids = np.fromiter(value.keys(), dtype=np.int64, count=len(value))
+            cause = self.est.add_neighbour_measurements(
+                agent_id, t, ids, np.array(list(value.values())).reshape(-1, 3))
+        else:
+            cause = self.est.add_neighbour(agent_id, t, {channel: value})
         if cause not in (None, 'not_seen'):  # not_seen: j has no bearing to us yet
             self._reject(cause, f'{what} at {t:.6f}')
+        elif self.links:
+            self.on_timer()   # the waiting step may have what it needs now
 
     # --------------------------------------------------------------------------- stepping
     def on_ready_check(self) -> None:
@@ -394,6 +465,10 @@ class EstimatorNode(Node):
                 self.events['world_bearings_skipped'] += 1
                 self._deferred = -1
             self.est.advance(1)
+            self._stuck = None
+            if self.links:
+                self._publish_links()
+                continue
             # On the absolute grid origin + n h (k restarts after a time jump or gap).
             if round((self.est.t - self.est.origin) / self.h) % self.publish_every == 0:
                 # Moving: what listeners pair with their own past must be measured at the stamp;
@@ -405,23 +480,56 @@ class EstimatorNode(Node):
                 if wait:
                     self._deferred = self.est.k
 
-    def _publish(self, world: bool, force: bool = False) -> None:
+    def on_patience(self) -> None:
+        """A step that waits longer than ``neighbour_wait`` (wall time) for a neighbour's
+        input goes on without it (e.g. two agents that lost each other's values)."""
+        est = self.est
+        if not isinstance(est, LinkAgentEstimator) or not est.own_inputs_ready():
+            self._stuck = None
+            return
+        now = time.monotonic()
+        if self._stuck is None or self._stuck[0] != est.k:
+            self._stuck = (est.k, now)
+        elif now - self._stuck[1] >= self.neighbour_wait:
+            if est.advance(1, impatient=True):
+                self.events['impatient_steps'] += 1
+                self._stuck = None
+                self._publish_links()
+                self.on_timer()
+
+    def _publish_links(self) -> None:
+        """After a step of a link method: its channels when a neighbour's next step reads
+        them, the estimate on the publish grid."""
+        est = self.est
+        assert est is not None
+        due = {name for name in self.wires if est.estimator.due(name, est.t, self.h)}
+        # Channels without a message of their own ride on the estimate.
+        rides = {name for name, w in self.wires.items() if w.topic == wire.ESTIMATE}
+        estimate = (round((est.t - est.origin) / self.h) % self.publish_every == 0
+                    or bool(due & rides))
+        world = bool(due & set(self.pub_channels))
+        if estimate or world:
+            self._publish(world=world, estimate=estimate)
+
+    def _publish(self, world: bool, force: bool = False, estimate: bool = True) -> None:
         """The estimate (unless already sent for this step or ``force``) and, with ``world``,
         the channels that have messages of their own."""
         est = self.est
         assert est is not None  # called once the estimator exists
         self._deferred = -1
         t = est.t
-        if force or self._published_k != est.k:
+        if force or (estimate and self._published_k != est.k):
             self.pub_estimate.publish(
-                wire.encode_pose(t, wire.WORLD_FRAME, est.R_hat[0], est.p_hat[0]))
+                wire.encode_pose(t, self.estimate_frame, est.R_hat[0], est.p_hat[0]))
             self._published_k = est.k
         if world and self.pub_channels:
             sent = est.outbox()
             for name, (pub, encode) in self.pub_channels.items():
                 value = sent[name]
                 if not isinstance(value, dict) or value:  # nothing measured yet: nothing to say
-                    pub.publish(encode(t, value))
+                    pub.publish(encode(t, value,
+                                       self.wires[name].frame_of(self.agent,
+                                                                 self.estimate_frame)))
 
     # --------------------------------------------------------------------------- health
     def publish_diagnostics(self) -> None:
@@ -450,6 +558,8 @@ class EstimatorNode(Node):
                     if problem is not None:
                         level = max(level, DiagnosticStatus.WARN)
                         problems.append(problem)
+            if isinstance(est, LinkAgentEstimator):
+                self._link_diagnostics(est, values)
             values['non_finite_steps'] = str(est.non_finite_steps)
             values['gyro_gaps_bridged'] = str(est.gyro.bridged)
             if est.uses_odometry:
@@ -470,6 +580,22 @@ class EstimatorNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         self.pub_diag.publish(msg)
 
+    def _link_diagnostics(self, est: LinkAgentEstimator, values: dict[str, str]) -> None:
+        """Per neighbour the pair's excitation (so far, and whether now), the method's own
+        per-agent values (De Carli: |ẑ_i|, the stage) and the inputs left out of steps."""
+        for name, (total, now) in est.excitation().items():
+            values[f'excitation_{name}'] = (f'{total:.3g} m2/s, '
+                                            + ('excited now' if now else 'not excited now'))
+        diag = est.last.diagnostics
+        stages = est.estimator.stages
+        for key, value in diag.items():
+            if key == 'stage' and stages:
+                values['stage'] = stages[int(value)]
+            elif np.ndim(value) == 0:
+                values[key] = f'{float(value):.4g}'
+        for what, n in sorted(est.missing.items()):
+            values[f'missing_{what}'] = str(n)
+
     def destroy_node(self) -> None:
         """Log what this estimator achieved: steps, the step rate in wall time, rejections."""
         if self.est is not None and self._wall_first_step is not None:
@@ -479,7 +605,10 @@ class EstimatorNode(Node):
                 f'wall: {self.est.k / wall:.1f} steps/s; rejected: {dict(self.rejected) or 0}; '
                 f'events: {dict(self.events) or 0}; lost-sample gaps bridged: gyro '
                 f'{self.est.gyro.bridged}, odometry {self.est.odometry.bridged}; unpaired '
-                f'neighbour values: {self.est.unpaired}')
+                f'neighbour values: {self.est.unpaired}'
+                + (f'; waited for: {dict(self.est.waits) or 0}; left out: '
+                   f'{dict(+self.est.missing) or 0}'
+                   if isinstance(self.est, LinkAgentEstimator) else ''))
         super().destroy_node()
 
 

@@ -35,6 +35,7 @@ from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from .. import msg_defs as wire
+from ..core.errors import ScenarioError
 from ..estimators.base import Sensor
 from .monitor_node import watched
 from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
@@ -69,12 +70,24 @@ class SimulatorNode(Node):
         # False: another node owns /clock (a bag replay, Gazebo); the stamps stay sim time.
         self.publish_clock = p('publish_clock', True, 'publish /clock (the simulated time)')
 
+        if s.formation is not None and s.formation.mode == 'paper':
+            raise ScenarioError(f'{s.source}: formation_control.mode: paper (the controller uses '
+                                'the estimated yaws) needs the estimates inside the truth, '
+                                'which a simulator node cannot have. Fix: mode: exogenous (or '
+                                'bearing-pose run --formation-mode exogenous)')
         self.world = World(s)
         self.monitor_watches = set(watched(s))   # the agents whose truth the monitor reads
         self.names = [a.name for a in s.agents]
-        # The topics the estimators exchange, from what the scenario's method sends.
+        # The topics the estimators exchange, from what the scenario's method sends (a
+        # channel of a sensor's readings rides on that sensor's topic: counted there).
+        method = s.estimator()
         self.channel_topics = list(dict.fromkeys(wire.channel(c.name).topic
-                                                 for c in s.estimator().sends))
+                                                 for c in method.sends if c.sensor is None))
+        self.uses_bearings = method.uses(Sensor.BEARINGS)
+        # Who listens to an agent: those that sense it, or, for methods that talk over
+        # communication links, every agent it senses or that senses it.
+        self.links = method.links == 'communication'
+        self.sensor_channels = {c.sensor.value for c in method.sends if c.sensor is not None}
         self.pub_imu, self.pub_bearings, self.pub_truth = [], [], []
         for name in self.names:
             topic = lambda t, n=name: wire.topic(n, t)  # noqa: E731
@@ -86,7 +99,6 @@ class SimulatorNode(Node):
                 self.create_publisher(wire.PoseStamped, topic(wire.GROUND_TRUTH), qos))
         # The moving-robot sensors the scenario simulates, and those the estimators read (the
         # start waits for their subscriptions).
-        method = s.estimator()
         self.pub_sensors = {
             name: [self.create_publisher(_SENSOR_TYPES[name], wire.topic(a, _SENSOR_TOPICS[name]),
                                          wire.SIM_PUB_QOS) for a in self.names]
@@ -131,16 +143,23 @@ class SimulatorNode(Node):
                           + (1 if name in s.leaders else 0))
             if self.pub_imu[k].get_subscription_count() < 1:
                 missing.append(wire.topic(name, wire.IMU))
-            if self.pub_bearings[k].get_subscription_count() < 1:
+            if self.uses_bearings and self.pub_bearings[k].get_subscription_count() < 1:
                 missing.append(wire.topic(name, wire.BEARINGS))
+            sensed = {nb.name for nb in s.agent(name).neighbours}
+            comm = sensed | set(s.listeners(name))
             for sensor in self.sensors_read:
-                if self.pub_sensors[sensor][k].get_subscription_count() < 1:
+                # Link methods: every neighbour reads the odometry, those it senses the
+                # readings of a sensor that is a channel.
+                extra = (len(comm) if sensor == 'odometry' else
+                         len(sensed) if sensor in self.sensor_channels else 0)
+                if self.pub_sensors[sensor][k].get_subscription_count() < 1 + (
+                        extra if self.links else 0):
                     missing.append(wire.topic(name, _SENSOR_TOPICS[sensor]))
             if self.pub_truth[k].get_subscription_count() < need_truth:
                 missing.append(wire.topic(name, wire.GROUND_TRUTH))
             # Every listener subscribes to each channel topic of the agent; the simulator and
             # the monitor to its estimate as well.
-            listeners = len(s.listeners(name))
+            listeners = len(comm) if self.links else len(s.listeners(name))
             wanted = dict.fromkeys(self.channel_topics, listeners)
             wanted[wire.ESTIMATE] = wanted.get(wire.ESTIMATE, 0) + 1 + monitored
             for topic, count in wanted.items():
