@@ -21,8 +21,10 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.task import Future
+from std_msgs.msg import Empty
 
 from .. import msg_defs as wire
 from ..estimators.base import EstimateFrame
@@ -74,6 +76,17 @@ class MonitorNode(Node):
         for k, name in enumerate(self.followers):
             self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE),
                                      partial(self._on_pose, self._est, k), wire.ESTIMATE_QOS)
+        # Ready once every subscription has matched its publisher on this side: the
+        # simulator's graph view alone (someone subscribed) does not mean the writers know
+        # this reader yet, and the first records would be lost.
+        self.pub_ready = self.create_publisher(Empty, wire.MONITOR_READY, wire.LATCHED_QOS)
+        self.ready_timer = self.create_timer(
+            0.05, self.on_ready_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def on_ready_check(self) -> None:
+        if all(sub.get_publisher_count() > 0 for sub in self.subscriptions):
+            self.pub_ready.publish(Empty())
+            self.ready_timer.cancel()
 
     def _on_pose(self, table: dict, k: int, msg: wire.PoseStamped) -> None:
         ns = wire.stamp_ns(msg.header.stamp)
@@ -111,6 +124,8 @@ class MonitorNode(Node):
             R_hat = np.stack([est[k][0] for k in range(n)])
             p_hat = np.stack([est[k][1] for k in range(n)])
             errors = pose_errors(self.frame, R, p, R_hat, p_hat)
+            if s.moves and n == len(s.agents):   # every agent estimates: the whole fleet
+                self.tracks.append((t, p, to_world(self.frame, R, p, R_hat, p_hat)[1]))
         self.rows.append((t, errors))
         del self._truth[ns], self._est[ns]
         self._recorded.add(ns)

@@ -33,6 +33,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
+from std_msgs.msg import Empty
 
 from .. import msg_defs as wire
 from ..core.errors import ScenarioError
@@ -112,6 +113,10 @@ class SimulatorNode(Node):
             self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE),
                                      partial(self._on_estimate, k), wire.ESTIMATE_QOS)
 
+        self.monitor_ready = False
+        if self.wait_for_monitor:
+            self.create_subscription(Empty, wire.MONITOR_READY, self._on_monitor_ready,
+                                     wire.LATCHED_QOS)
         self.state = 'waiting'
         self.lags: list[float] = []
         self.failed = Future()  # completes only if start-up fails; otherwise spin until Ctrl-C
@@ -129,6 +134,9 @@ class SimulatorNode(Node):
                                f'{"" if self.publish_clock else ", no /clock"}; '
                                f'waiting for {waiting}')
         warn_unknown_parameters(self)
+
+    def _on_monitor_ready(self, _msg: Empty) -> None:
+        self.monitor_ready = True
 
     def _on_estimate(self, k: int, msg: wire.PoseStamped) -> None:
         self.progress[k] = max(self.progress[k], wire.from_stamp(msg.header.stamp))
@@ -167,6 +175,8 @@ class SimulatorNode(Node):
                     missing.append(wire.topic(name, topic))
             if self.count_publishers(wire.topic(name, wire.ESTIMATE)) < 1:
                 missing.append(wire.topic(name, wire.ESTIMATE) + ' (publisher)')
+        if self.wait_for_monitor and not self.monitor_ready:
+            missing.append(wire.MONITOR_READY)
         return missing
 
     def _start(self) -> None:

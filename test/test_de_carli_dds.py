@@ -1,0 +1,133 @@
+"""De Carli et al. over DDS: the paper's eight quadrotors (exogenous motion) with robot 7
+hovering, one process per robot plus the simulator and the monitor, observed from the test
+process. One fleet, several checks:
+
+- the errors track the batch simulator within 5 % (the issue's acceptance);
+- the messages on the wire: ẑ_i as a complex number in the fleet's estimation frame, the
+  owners' relative yaws in their body frames;
+- /diagnostics reports each pair's excitation: the pairs only robot 7's motion could excite are
+  not excited, the others are; |ẑ_i| and the stage of each robot.
+"""
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+
+from bearing_pose_estimation import msg_defs as wire
+from bearing_pose_estimation.cli import launch
+from bearing_pose_estimation.scenario import load_scenario
+from bearing_pose_estimation.scenario.parse import read_scenario_data
+from bearing_pose_estimation.sim.batch import BatchSimulator
+from bearing_pose_estimation.studies.summary import read_metrics_csv
+
+from ros_helpers import observer
+
+CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'de_carli_8_quadrotors.yaml'
+DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
+DURATION = 3.0
+# Subscribed once the run is going: the simulator starts when every estimator's topics have
+# their expected subscribers, and an early observer would count as one of them.
+LATE_TOPICS = {'/robot_0/yaw_estimate': (wire.Vector3Stamped, wire.ESTIMATE_QOS),
+               '/robot_0/relative_yaws': (wire.PointCloud2, wire.ESTIMATE_QOS)}
+
+
+@pytest.fixture(scope='module')
+def run(tmp_path_factory):
+    """The fleet's run to its end: (scenario file, output dir, observer's messages)."""
+    tmp = tmp_path_factory.mktemp('de_carli_dds')
+    data = read_scenario_data(CONFIG)
+    data['formation_control']['mode'] = 'exogenous'
+    for agent in data['agents']:
+        if agent['name'] == 'robot_7':
+            del agent['formation_position']   # it hovers
+    scenario_file = tmp / 'hover.yaml'
+    scenario_file.write_text(yaml.safe_dump(data, sort_keys=False))
+    scenario = load_scenario(scenario_file)
+    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp / 'out', duration=DURATION,
+                           domain_id=DOMAIN, plots=False)
+    cfg.logs_dir.mkdir(parents=True)
+    specs = launch.plan_processes(scenario, launch.write_params(scenario, cfg), cfg.logs_dir,
+                                  launch.find_executable)
+    shm = launch.shm_files()
+    with observer() as obs, launch.ProcessGroup(env=launch.dds_env(DOMAIN, tmp / 'ros')) as g:
+        obs.subscribe(DiagnosticArray, '/diagnostics', 50)
+        for spec in specs:
+            g.start(spec)
+        assert obs.spin_until(lambda: _state_time(obs.messages, 'robot_0') > 0.5, 300.0)
+        for name, (msg_type, qos) in LATE_TOPICS.items():
+            obs.subscribe(msg_type, name, qos)
+        assert obs.spin_until(lambda: g.returncode('monitor') is not None, 300.0), \
+            'the monitor did not finish'
+        assert g.returncode('monitor') == 0
+        g.shutdown()
+        codes = {n: g.returncode(n) for n in g.pids}
+        assert set(codes.values()) == {0}, codes
+    assert launch.leaked_shm(shm) == []
+    return scenario_file, cfg.out_dir, obs.messages
+
+
+def test_the_fleet_tracks_the_batch_simulator_within_5_percent(run):
+    """Every 0.1 s record: position within 5 % of the batch run; attitude too, down to the
+    quaternion round trip of the estimates (1e-12 rad: below it, the wire's float64
+    quaternion, not the estimator, sets the difference)."""
+    scenario_file, out, _ = run
+    dds = read_metrics_csv(out / 'metrics.csv')
+    rec = BatchSimulator(load_scenario(scenario_file)).run(DURATION, record_every=0.1)
+    np.testing.assert_allclose(dds.t, rec.t, atol=1e-9)
+    att_b, pos_b = rec.mean_errors()
+    att_d, pos_d = dds.mean_errors()
+    assert np.all(np.abs(pos_d - pos_b) <= 0.05 * pos_b)
+    assert np.all(np.abs(att_d - att_b) <= np.maximum(0.05 * att_b, 1e-12))
+    assert pos_d[-1] < 0.1 * pos_d[0] and att_d[-1] < 1e-6
+
+
+def test_yaw_estimates_travel_as_complex_numbers_in_the_estimation_frame(run):
+    scenario_file, _, messages = run
+    frame = wire.estimation_frame(load_scenario(scenario_file).name)
+    yaws = messages['/robot_0/yaw_estimate']
+    assert yaws and {m.header.frame_id for m in yaws} == {frame}
+    moduli = [np.hypot(m.vector.x, m.vector.y) for m in yaws]
+    assert min(moduli) < 0.99 and all(m.vector.z == 0.0 for m in yaws)   # ẑ, not an angle
+    stamps = sorted(wire.from_stamp(m.header.stamp) for m in yaws)
+    assert np.allclose(np.diff(stamps)[:20], 0.01)   # at the consensus rate, 100 Hz
+    pairs = messages['/robot_0/relative_yaws']
+    assert pairs and {m.header.frame_id for m in pairs} == {'robot_0/base_link'}
+    # robot_0 (id 1) owns the two-way pair with robot_1 (the lower id): a unit complex number;
+    # robots 3 and 4 sense robot_0 and own theirs: zeros (the receivers expect none).
+    _, ids, values = wire.decode_vectors(pairs[-1])
+    assert sorted(ids.tolist()) == [2, 4, 5]
+    by_id = dict(zip(ids.tolist(), values))
+    assert abs(np.hypot(*by_id[2][:2]) - 1.0) < 1e-12
+    assert not by_id[4].any() and not by_id[5].any()
+
+
+def _state_time(messages, robot: str) -> float:
+    value = _last_status(messages, robot).get('state_time_s', 'n/a')
+    return -1.0 if value == 'n/a' else float(value)
+
+
+def _last_status(messages, robot: str) -> dict[str, str]:
+    for msg in reversed(messages['/diagnostics']):
+        for st in msg.status:
+            if st.name == f'{robot}/estimator':
+                return {kv.key: kv.value for kv in st.values}
+    return {}
+
+
+def test_diagnostics_report_each_pair_s_excitation(run):
+    """Robot 7 hovers: robots 4 and 6 report their pairs with it not excited (their edges
+    sense robot 7 alone), robot 3 its pair with robot 7 excited (robot 3 moves); every robot
+    reports |ẑ_i| and its stage."""
+    _, _, messages = run
+    for robot, other, excited in (('robot_4', 'robot_7', False), ('robot_6', 'robot_7', False),
+                                  ('robot_3', 'robot_7', True), ('robot_0', 'robot_1', True)):
+        status = _last_status(messages, robot)
+        value = status[f'excitation_{other}']
+        assert value.endswith('not excited now') != excited, (robot, value)
+        total = float(value.split()[0])
+        assert (total >= 0.05) == excited, (robot, value)
+        assert 0.0 < float(status['z_modulus']) <= 1.0
+        assert status['stage'] in ('relative_yaw', 'yaw', 'position', 'converged')
