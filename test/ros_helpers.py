@@ -34,6 +34,18 @@ class Observer:
     def subscribe(self, msg_type: type, topic: str, qos) -> None:
         self.node.create_subscription(msg_type, topic, self.messages[topic].append, qos)
 
+    def take_the_monitor_s_place(self, timeout: float = 60.0) -> None:
+        """Once every subscription of this observer has its publisher, announce it as the
+        monitor does (latched ``/monitor/ready``): a simulator waiting for a monitor then
+        starts the clock without losing this observer's first messages."""
+        from std_msgs.msg import Empty
+
+        pub = self.node.create_publisher(Empty, wire.MONITOR_READY, wire.LATCHED_QOS)
+        self._keep = pub
+        assert self.spin_until(lambda: all(s.get_publisher_count() > 0
+                                           for s in self.node.subscriptions), timeout)
+        pub.publish(Empty())
+
     def spin_until(self, condition: Callable[[], bool], timeout: float) -> bool:
         """Spin until ``condition()`` holds or ``timeout`` wall seconds pass."""
         end = time.monotonic() + timeout

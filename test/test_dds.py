@@ -305,7 +305,8 @@ def test_explicit_parameter_files_without_a_scenario_file(tmp_path, no_leftovers
         specs.append(launch.ProcessSpec(agent.name, 'estimator', tuple(argv),
                                         cfg.logs_dir / f'{agent.name}.log'))
     # The observer takes the monitor's place: the simulator starts the clock only once the
-    # observer's subscriptions (the followers' estimates and ground truth) are matched.
+    # observer's subscriptions (the followers' estimates and ground truth) are matched and it
+    # says so.
     specs.append(sim)
     followers = ('agent_3', 'agent_4')
     with observer() as obs, launch.ProcessGroup(env=launch.dds_env(
@@ -315,6 +316,7 @@ def test_explicit_parameter_files_without_a_scenario_file(tmp_path, no_leftovers
             obs.subscribe(wire.PoseStamped, f'/{agent}/ground_truth', wire.SIM_PUB_QOS)
         for spec in specs:
             group.start(spec)
+        obs.take_the_monitor_s_place()
 
         def reached(t: float) -> bool:  # cheap: the observer must keep up with the run
             return all(obs.messages[f'/{a}/{topic}'] and wire.from_stamp(

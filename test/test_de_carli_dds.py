@@ -95,13 +95,11 @@ def test_yaw_estimates_travel_as_complex_numbers_in_the_estimation_frame(run):
     assert np.allclose(np.diff(stamps)[:20], 0.01)   # at the consensus rate, 100 Hz
     pairs = messages['/robot_0/relative_yaws']
     assert pairs and {m.header.frame_id for m in pairs} == {'robot_0/base_link'}
-    # robot_0 (id 1) owns the two-way pair with robot_1 (the lower id): a unit complex number;
-    # robots 3 and 4 sense robot_0 and own theirs: zeros (the receivers expect none).
+    # robot_0 (id 1) owns only the two-way pair with robot_1 (id 2, the lower id owns it):
+    # robots 3 and 4 sense robot_0 and own theirs. One unit complex number, for robot_1.
     _, ids, values = wire.decode_vectors(pairs[-1])
-    assert sorted(ids.tolist()) == [2, 4, 5]
-    by_id = dict(zip(ids.tolist(), values))
-    assert abs(np.hypot(*by_id[2][:2]) - 1.0) < 1e-12
-    assert not by_id[4].any() and not by_id[5].any()
+    assert ids.tolist() == [2]
+    assert abs(np.hypot(values[0, 0], values[0, 1]) - 1.0) < 1e-12 and values[0, 2] == 0.0
 
 
 def _state_time(messages, robot: str) -> float:

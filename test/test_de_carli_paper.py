@@ -261,7 +261,7 @@ ALL_PAIRS = {'pe_threshold': 0.0}
 
 @pytest.fixture(scope='module', params=['exogenous', 'paper'])
 def runs(request):
-    paper, T, every = Paper(), 10.0, 0.01   # the scenario's output step
+    paper, T, every = Paper(), 7.0, 0.01   # the scenario's output step; settled by then
     disc, _ = batch(config(request.param, **ALL_PAIRS), T, every)
     return request.param, disc, continuous(paper, T, every, mode=request.param)
 
@@ -272,7 +272,7 @@ def test_the_method_matches_the_continuous_equations(runs):
     mode, disc, cont = runs
     for column, threshold in ((1, 1e-3), (2, 1e-2)):
         t_d, t_c = settle(disc, column, threshold), settle(cont, column, threshold)
-        assert 0.0 < t_c < 10.0
+        assert 0.0 < t_c < 7.0
         assert abs(t_d - t_c) <= 0.1 * t_c, (mode, column, t_d, t_c)
 
 
@@ -291,7 +291,7 @@ def test_the_cascade_order_holds(runs):
         assert abs(t_rel - t_yaw) <= 0.15, (mode, t_rel, t_yaw)
         assert t_pos >= max(t_rel, t_yaw) + 1.5, (mode, t_rel, t_yaw, t_pos)
     t_form = settle(disc, 4, 1e-2)
-    assert settle(disc, 2, 1e-2) < t_form < 10.0, (mode, t_form)
+    assert settle(disc, 2, 1e-2) < t_form < 7.0, (mode, t_form)
 
 
 def test_the_method_equals_the_reference_implementation_tick_for_tick():
@@ -324,7 +324,7 @@ def test_a_hovering_robot_s_pairs_are_warned_about_left_out_and_reported():
               if 'never excited' in f.problem}
     assert warned == {'robot_4-robot_7', 'robot_6-robot_7'}
     sim = BatchSimulator(scenario)
-    rec = sim.run(10.0)
+    rec = sim.run(5.0)
     x, links = sim.x, sim.links
     excited = {(int(a), int(b)) for a, b, e in zip(links['agent'], links['other'],
                                                   x.excitation[links['agent'],
@@ -336,5 +336,5 @@ def test_a_hovering_robot_s_pairs_are_warned_about_left_out_and_reported():
     assert unexcited == {(4, 7), (6, 7)}
     att, pos = rec.mean_errors()
     assert att[-1] < 1e-6 and pos[-1] < 1e-2, (att[-1], pos[-1])
-    biased = BatchSimulator(parse_scenario(hovering(config('exogenous', **ALL_PAIRS)))).run(10.0)
+    biased = BatchSimulator(parse_scenario(hovering(config('exogenous', **ALL_PAIRS)))).run(5.0)
     assert biased.mean_errors()[0][-1] > 1e-2

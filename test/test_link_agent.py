@@ -35,7 +35,6 @@ class Fleet:
         self.agents: dict[str, LinkAgentEstimator] = {n: link_estimator_for(s, n)
                                                       for n in self.names}
         self.lose = lose or (lambda sender, t: False)
-        self.patience = 0.05
         self.silent = set(silent)
         self.sent = {n: -1 for n in self.names}
         every = self.world.sensor_every
@@ -88,9 +87,7 @@ class Fleet:
             while progress:
                 progress = False
                 for n in self.names:
-                    # The node's patience: a robot 50 ms behind its sensors gives up waiting.
-                    late = self.agents[n].t < t - self.patience
-                    if self.agents[n].advance(1, impatient=late):
+                    if self.agents[n].advance(1):
                         progress = True
                         self._send(n)
 
@@ -114,25 +111,27 @@ def test_the_robots_logic_reproduces_the_batch_simulator():
 
 def test_lost_messages_are_left_out_and_the_fleet_still_converges():
     """A fifth of every robot's channel messages are lost: each step goes on once a newer
-    value shows the loss, or after the patience when two robots lost each other's values (no
-    robot falls further behind), the loss is counted, and the errors still fall."""
-    s = scenario()
+    value shows the loss, or once its own sensors are link_wait ahead (two robots that lost
+    each other's values), with the neighbour's newest values carried to the step's instant
+    by its odometry; no robot falls further behind, and the errors still fall."""
+    s, T = scenario(), 2.5
     rng = np.random.default_rng(0)
     fleet = Fleet(s, lose=lambda sender, t: rng.uniform() < 0.2)
-    fleet.run(4.0)
-    assert all(e.t > 4.0 - fleet.patience - 0.02 for e in fleet.agents.values())
-    assert sum(e.missing['fresh'] for e in fleet.agents.values()) > 50
+    fleet.run(T)
+    wait = next(iter(fleet.agents.values())).limits.link_wait
+    assert all(e.t > T - wait - 0.02 for e in fleet.agents.values())
+    assert sum(e.carried for e in fleet.agents.values()) > 50
     for e in fleet.agents.values():   # the last few steps, with what is here
-        while e.t < 4.0 - 1e-9:
+        while e.t < T - 1e-9:
             e.advance(1, impatient=True)
     batch = BatchSimulator(s)
     R_hat = np.stack([rot for e in fleet.agents.values() for rot in e.x.R_hat])
     p_hat = np.stack([p for e in fleet.agents.values() for p in e.x.p_hat])
-    for _ in range(int(round(4.0 / batch.h))):
+    for _ in range(int(round(T / batch.h))):
         batch.step()
     from bearing_pose_estimation.studies.results import pose_errors
     errors = pose_errors(batch.estimator.frame, batch.R, batch.p, R_hat, p_hat)
-    assert errors.att_err.mean() < 1e-3 and errors.pos_err.mean() < 0.05, errors
+    assert errors.att_err.mean() < 1e-3 and errors.pos_err.mean() < 0.1, errors
     assert all(np.all(np.isfinite(e.x.p_hat)) for e in fleet.agents.values())
 
 

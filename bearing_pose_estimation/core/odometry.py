@@ -52,7 +52,7 @@ class OdometryBuffer(IntervalBuffer):
         Raises:
             ValueError: the buffer does not cover ``[t0, t1]``.
         """
-        return self.integrated(t0, t1, _displacement, 'odometry')
+        return self.integrated(t0, t1, _pose, 'odometry')[9:]
 
     def rotation(self, t0: float, t1: float) -> Array:
         """``R(t0)ᵀ R(t1)`` from the samples' angular rates (``t0 <= t1``): the rotation of an
@@ -61,20 +61,13 @@ class OdometryBuffer(IntervalBuffer):
         Raises:
             ValueError: the buffer does not cover ``[t0, t1]``.
         """
-        return self.integrated(t0, t1, _rotation, 'odometry rotation')
+        return self.integrated(t0, t1, _pose, 'odometry')[:9].reshape(3, 3)
 
 
-def _rotation(segments: list[tuple[Array, float]]) -> Array:
-    R = np.eye(3)
-    for sample, duration in segments:
-        R = R @ so3.exp(sample[:3] * duration)
-    return R
-
-
-def _displacement(segments: list[tuple[Array, float]]) -> Array:
-    """The translation of the product of the segments' SE(3) exponentials (samples
-    ``(ω, v)``)."""
+def _pose(segments: list[tuple[Array, float]]) -> Array:
+    """The product of the segments' SE(3) exponentials (samples ``(ω, v)``), as its rotation
+    (row-major) and translation stacked in one 12-vector: one pass, one cache entry."""
     R, p = np.eye(3), np.zeros(3)
     for sample, duration in segments:
         R, p = se3_step(R, p, sample[:3], sample[3:], duration)
-    return p
+    return np.concatenate([R.reshape(9), p])

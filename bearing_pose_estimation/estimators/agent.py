@@ -96,7 +96,8 @@ class NeighbourState:
 # Causes that are events of the time rules, not bad input (see AgentEstimator), with what
 # they mean for the log.
 TIME_EVENTS = {'time_jump': 'the clock jumped back: restarted from the initial estimate',
-               'gyro_gap': 'gyro gap: the state time restarts after it, keeping the estimate'}
+               'gyro_gap': 'gyro gap: the state time restarts after it, keeping the estimate',
+               'odometry_gap': 'odometry gap: its integration restarts after it'}
 
 
 @dataclass(frozen=True)
@@ -109,6 +110,9 @@ class Limits:
     unit_tolerance: float = 1e-3    # a bearing with | ‖b‖ - 1 | above this is not a unit vector
     sensor_timeout: float = 0.5     # own bearings older than this [s] are not used
     neighbour_timeout: float = 0.5  # a neighbour silent for longer [s] is stale: not used
+    # Link methods: a step waits for a neighbour's input until its own sensors are this far
+    # [s] ahead (the estimate is then late by as much; a longer delay is a lost input).
+    link_wait: float = 0.25
     max_gyro_gap: float = 0.5       # after a longer gyro gap [s] the state time restarts
     jump_back: float = 1.0          # a stamp this much [s] before the newest: clock jumped back
     max_future: float = 1.0         # stamps further ahead [s] than the newest gyro: rejected
@@ -253,6 +257,8 @@ class TimedAgent:
             return 'future_stamp'
         end = self.odometry.end
         if stamp <= end:
+            if self.odometry.empty and stamp >= end - 1e-9:
+                return None   # the sample that closed a gap: the restart began at its stamp
             return 'out_of_order'
         if stamp - end > lim.max_gyro_gap:
             self.odometry.reset(stamp)

@@ -461,6 +461,15 @@ class Estimator(ABC, Generic[G, S]):
         """Why the spectrum ``eig`` (ascending) breaks the method's hypothesis, or None."""
         return None
 
+    def carry(self, values: Mapping[str, Array], own_delta_R: Array, other_delta_R: Array,
+              other_displacement: Array) -> dict[str, Array] | None:
+        """A neighbour's channel ``values`` formed at ``t_s`` carried to ``t > t_s`` by the
+        motion over ``[t_s, t]`` alone (the receiver's gyro increment ``own_delta_R``, the
+        sender's ``other_delta_R`` and ``other_displacement`` in its frame at ``t_s``): what
+        they would be at t if no correction had happened meanwhile. None: the method cannot
+        (its node then leaves a late value out)."""
+        return None
+
     # The names of the per-agent diagnostic 'stage' (an index), for methods that report one.
     stages: ClassVar[tuple[str, ...]] = ()
 

@@ -71,6 +71,7 @@ relation to the world no stage determines.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, ClassVar, Literal
 
 import numpy as np
@@ -92,9 +93,9 @@ P_HAT = Channel('p_hat', per='agent', frame='estimation', doc='p̂_j, the positi
 MEAS = Channel('meas', per='edge', frame='body', sensor=Sensor.RELATIVE_POSITIONS,
                doc='ʲp_ji, j\'s measurement of the listener i (body frame of j) [m]; zeros if '
                    'j does not sense i')
-RELYAW = Channel('relyaw', per='edge', frame='body', shape=(2,), owner_only=True,
-                 doc='unit(ẑ_ji), the relative yaw of the pair j owns, [re, im]; zeros if j '
-                     'does not own it (yet)')
+RELYAW = Channel('relyaw', per='edge', frame='body', shape=(2,), owner_only=True, unit=True,
+                 doc='unit(ẑ_ji), the relative yaw of the pair j owns, [re, im] (a node sends '
+                     'it only to the other robot of each pair it owns)')
 
 # |ẑ| below this has no usable angle (Remark 3): its unit value is taken as 1.
 MIN_MODULUS = 1e-12
@@ -111,6 +112,9 @@ EXCITATION_WINDOW_S = 1.0
 RELATIVE_DONE_M = 1e-3
 YAW_DONE = 1e-3
 POSITION_DONE_M = 1e-2
+# The position residual before the first correction: not known, not converged (finite: a
+# state holds finite values only).
+UNKNOWN_RESIDUAL = 1e300
 # Stage 3's Euler correction diverges when h₃ k_p λ_max(L̄) reaches this (§7).
 EULER_LIMIT = 2.0
 
@@ -160,6 +164,7 @@ class DeCarliState(State):
 
     z_hat: Complex            # (N,) ẑ_i, unnormalised
     d_own: Complex            # (N,) δ'_i of the last step (the regressor of reversed edges)
+    p_residual: Array         # (N,) |Σ of (21)'s edge residuals| at the last correction [m]
     P_out: Complex            # (N, D) ⁱp̂_ij, horizontal (owned pairs)
     Pz_out: Array             # (N, D) its vertical part
     P_in: Complex             # (N, D) ʲp̂_ji (owned two-way pairs)
@@ -217,7 +222,8 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
                                 else bool if name.startswith('ready') else float)
                  for name in DeCarliState.LINK_FIELDS}
         return DeCarliState(R_hat=rot_z(psi), p_hat=np.array(p_hat, dtype=float),
-                            z_hat=np.exp(1j * psi), d_own=np.zeros(n, complex), **links)
+                            z_hat=np.exp(1j * psi), d_own=np.zeros(n, complex),
+                            p_residual=np.full(n, UNKNOWN_RESIDUAL), **links)
 
     def propagate(self, x: DeCarliState, delta_R: Array,
                   displacement: Array | None = None) -> DeCarliState:
@@ -251,6 +257,24 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         yaw = tick % self.every(self.gains.yaw_rate, h) == 0
         position = tick % self.every(self.gains.position_rate, h) == 0
         return {'z_hat': yaw or position, 'relyaw': yaw, 'p_hat': position}.get(channel, True)
+
+    def carry(self, values: Mapping[str, Array], own_delta_R: Array, other_delta_R: Array,
+              other_displacement: Array) -> dict[str, Array] | None:
+        """j's values of ``t_s`` at t (§8, timing pitfalls): ``ẑ_j`` turned by j's yaw
+        increment, ``p̂_j`` dead-reckoned with ``R̂_j(t_s) δ_j``, the owner's relative yaw
+        turned by ``Δψ_i - Δψ_j``; exact when no correction happens over ``[t_s, t]``."""
+        out: dict[str, Array] = {}
+        dpsi_j, dpsi_i = float(yaw_of(other_delta_R)), float(yaw_of(own_delta_R))
+        if 'z_hat' in values:
+            out['z_hat'] = as_pair(np.exp(1j * dpsi_j) * as_complex(values['z_hat']))
+        if 'p_hat' in values:
+            if 'z_hat' not in values:
+                return None
+            psi = float(np.angle(as_complex(values['z_hat'])))
+            out['p_hat'] = values['p_hat'] + rot_z(np.array(psi)) @ other_displacement
+        if 'relyaw' in values:
+            out['relyaw'] = as_pair(np.exp(1j * (dpsi_i - dpsi_j)) * as_complex(values['relyaw']))
+        return out
 
     # --- the step
     def step(self, x: DeCarliState, h: float, inputs: StepInputs,
@@ -300,17 +324,17 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         out.z_pair[ag[new], sl[new]] = unit(np.conj(x.z_hat[ag[new]]) * z_j[new])
         out.ready_pair[ag[new], sl[new]] = True
 
-        # 1. Stage 3's correction (21), from the state at t (its residual every step, for
-        # the diagnostics).
-        R_i = x.R_hat[ag]
-        R_j = rot_z(np.angle(z_j))
-        diff = x.p_hat[ag] - rec['p_hat']
-        term = fresh[:, None] * (
-            y_ok[:, None] * (diff + np.einsum('kab,kb->ka', R_i, y))
-            + m_ok[:, None] * (diff - np.einsum('kab,kb->ka', R_j, meas)))
-        correction = edges.sum_by_agent(term)
+        # 1. Stage 3's correction (21), from the state at t.
+        correction = np.zeros((n, 3))
         if tick % self.every(g.position_rate, h) == 0:
+            R_j = rot_z(np.angle(z_j))
+            diff = x.p_hat[ag] - rec['p_hat']
+            term = fresh[:, None] * (
+                y_ok[:, None] * (diff + np.einsum('kab,kb->ka', x.R_hat[ag], y))
+                + m_ok[:, None] * (diff - np.einsum('kab,kb->ka', R_j, meas)))
+            correction = edges.sum_by_agent(term)
             out.p_hat = x.p_hat - h3 * g.k_p * correction
+            out.p_residual = np.linalg.norm(correction, axis=1)
 
         # 2. Stage 2: the Jacobi step of (13) over the excited pairs.
         pair_u = np.where(owns, unit(out.z_pair[ag, sl]), np.conj(unit(as_complex(rec['relyaw']))))
@@ -365,7 +389,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         target = as_complex(yaw_target)
         yaw_residual = np.abs(target - n_active * x.z_hat) / np.maximum(
             n_active * np.abs(x.z_hat), MIN_MODULUS)
-        position_residual = np.linalg.norm(correction, axis=1)
+        position_residual = out.p_residual
         stage = np.select([n_active == 0, residual > RELATIVE_DONE_M, yaw_residual > YAW_DONE,
                            position_residual > POSITION_DONE_M], [0, 1, 2, 3], 4)
         diagnostics = {'innovation': correction, 'z_modulus': np.abs(out.z_hat),

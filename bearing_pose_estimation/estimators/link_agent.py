@@ -15,8 +15,15 @@ So a step waits until every neighbour's inputs for it are here, or known not to 
 - a channel value of j stamped t is lost once j has sent a newer one;
 - j is silent (nothing newer than ``t - neighbour_timeout``), or its odometry is that far
   behind: j is left out of the step;
-- :meth:`LinkAgentEstimator.advance` with ``impatient=True`` (the node's wall-clock patience)
-  leaves out whatever is still missing.
+- this robot's own sensors are ``link_wait`` (:class:`agent.Limits`) ahead of the step: it
+  stops waiting and takes what is here (a late neighbour delays the estimate by up to that
+  much, no more; what comes later than that is lost);
+- what is late or lost is replaced, when the method can, by j's newest values carried to t
+  with j's odometry (:meth:`base.Estimator.carry`; counted in ``carried``): exact at the
+  method's fixed point, so a slow link costs only transient accuracy;
+- :meth:`LinkAgentEstimator.advance` with ``impatient=True`` (the node's wall-clock patience,
+  for when nothing moves at all: two robots that lost each other's values under a lockstep
+  clock) leaves out whatever is still missing.
 
 What is left out is passed to the step as missing (:class:`base.LinkInputs`): the method
 decides (De Carli: an edge without j's odometry sits the step out and its relative estimates
@@ -35,14 +42,16 @@ from numpy.typing import NDArray
 
 from ..core.odometry import OdometryBuffer
 from .agent import AgentEstimator, Limits, StepInfo, TimedAgent, estimator_for
-from .base import Edges, Estimator, LinkInputs, StepInputs
+from .agent import _vector_problem as _unit_problem
+from .base import Channel, Edges, Estimator, LinkInputs, StepInputs
 
 if TYPE_CHECKING:
     from ..scenario.model import Scenario
 
 Array = NDArray[np.float64]
-# Samples of relative positions and channel values kept per source.
-_HISTORY = 16
+# Samples of relative positions and channel values kept per source: enough for a step that
+# waits link_wait (0.25 s: 50 samples at 200 Hz) and then looks back.
+_HISTORY = 256
 # Relative positions beyond this [m] are absurd (a camera with depth sees metres).
 MAX_RANGE_M = 1e4
 
@@ -144,6 +153,7 @@ class LinkAgentEstimator(TimedAgent):
         self._owns = np.array([lk.owns for lk in self.links], dtype=bool)
         self.missing: Counter[str] = Counter()   # inputs left out of a step, by what
         self.waits: Counter[str] = Counter()     # attempts that waited, by what was awaited
+        self.carried = 0   # neighbour values of an earlier instant carried to the step's
         self.impatient = False
         self._pending: StepInputs | None = None
         self._pending_k = -1
@@ -176,7 +186,8 @@ class LinkAgentEstimator(TimedAgent):
         for j, v in zip(np.asarray(ids).tolist(), np.asarray(vectors, dtype=float)):
             link = self._by_id.get(int(j))
             if link is None or not link.senses:
-                if self.known_ids is not None and int(j) not in self.known_ids:
+                if int(j) == self.agent_id or (self.known_ids is not None
+                                               and int(j) not in self.known_ids):
                     rejected.append('unknown_id')
                 continue
             problem = self._vector_problem(v)
@@ -248,15 +259,22 @@ class LinkAgentEstimator(TimedAgent):
             if channel.per == 'edge':
                 value = value.get(self.agent_id) if isinstance(value, dict) else None
                 if value is None:
-                    continue   # j has nothing for us in it (e.g. a pair it does not own)
+                    continue   # nothing for us: a pair j does not own, or not yet
             v = np.asarray(value, dtype=float)
             if v.shape != channel.shape:
                 return 'malformed'
             mine[name] = v
+        if not mine:
+            return 'not_seen'
         if not (np.isfinite(stamp) and all(np.all(np.isfinite(v)) for v in mine.values())):
             return 'non_finite'
         if any(float(np.max(np.abs(v))) > MAX_RANGE_M for v in mine.values()):
             return 'absurd_value'
+        for name, v in mine.items():
+            if self.channels[name].unit:
+                problem = _unit_problem(v, self.limits.unit_tolerance)
+                if problem is not None:
+                    return problem
         if stamp > self.gyro.end + self.limits.max_future:
             return 'future_stamp'
         for name, v in mine.items():
@@ -291,11 +309,12 @@ class LinkAgentEstimator(TimedAgent):
         input, before :meth:`_gather` builds the inputs."""
         h, tol = self.h, 1e-9
         own_late = self.gyro.end - t > self.limits.sensor_timeout
+        behind = self.gyro.end - t > self.limits.link_wait
         for link in self.links:
             if link.senses and not own_late and not (link.measured
                                                      and link.measured[-1][0] >= t - tol):
                 return 'own_measurement'
-            if link.name in stale:
+            if link.name in stale or behind:
                 continue
             odo = link.odometry
             if not odo.covers(t, t + h) and odo.end >= t - self.limits.neighbour_timeout:
@@ -343,15 +362,26 @@ class LinkAgentEstimator(TimedAgent):
                 v, _ = _interpolated(link.theirs, t, _rotation_of(link.odometry))
                 if v is not None:
                     theirs[e], flags['their_measured'][e] = v, True
-            fresh = True
-            for name in due:
-                if link.owns and self.channels[name].owner_only:
-                    continue
-                v, _ = link.value_at(name, t)
+            wanted = [name for name in due
+                      if not (link.owns and self.channels[name].owner_only)]
+            values: dict[str, Array | None] = {name: link.value_at(name, t)[0]
+                                               for name in wanted}
+            # The link is fresh when j's own values are here; an owner-only value that is
+            # missing only leaves the pair out of what needs it (zeros).
+            core = [name for name in wanted if not self.channels[name].owner_only]
+            fresh = all(values[name] is not None for name in core)
+            if not fresh:   # late or lost: j's newest values carried to t, if the method can
+                carried = self._carried(link, core, t)
+                if carried is not None:
+                    values.update(carried)
+                    fresh = True
+                    self.carried += 1
+            for name in wanted:
+                if values[name] is None and self.channels[name].owner_only:
+                    values.update(self._carried(link, [name], t) or {})
+            for name, v in values.items():
                 if v is not None:
                     received[name][e] = v
-                else:
-                    fresh = False
             # Values not due this step: the newest (unused by the step, kept finite).
             for c in est.sends:
                 if c.name not in due and c.sensor is None and link.history.get(c.name):
@@ -382,6 +412,29 @@ class LinkAgentEstimator(TimedAgent):
     def own_inputs_ready(self) -> bool:
         """Own gyro (and live odometry) cover the next step: only neighbours may be missing."""
         return super().steps_ready() > 0
+
+    def _carried(self, link: Link, wanted: list[str], t: float) -> dict[str, Array] | None:
+        """j's channels ``wanted`` at ``t`` from its newest instant ``t_s < t`` that has them
+        all, carried over ``[t_s, t]`` by the method (:meth:`base.Estimator.carry`) with j's
+        odometry and this robot's gyro; None when nothing can be carried."""
+        if not wanted:
+            return None
+        for stamp, first in reversed(link.history.get(wanted[0], ())):
+            if stamp >= t - 1e-9:
+                continue
+            values = {wanted[0]: first}
+            for name in wanted[1:]:
+                v, _ = link.value_at(name, stamp)
+                if v is None:
+                    break
+                values[name] = v
+            else:
+                if not (link.odometry.covers(stamp, t) and self.gyro.covers(stamp, t)):
+                    return None
+                return self.estimator.carry(values, self.gyro.increment(stamp, t),
+                                            link.odometry.rotation(stamp, t),
+                                            link.odometry.displacement(stamp, t))
+        return None
 
     def steps_ready(self) -> int:
         """1 when the next step's inputs are all here (or known not to come), else 0."""
@@ -432,8 +485,13 @@ class LinkAgentEstimator(TimedAgent):
         n = len(self.links)
         sent = self.estimator.outbox(self.x, np.zeros(n, dtype=np.intp), np.zeros((n, 3)),
                                      slot=np.arange(n, dtype=np.intp))
-        return {name: ({lk.agent_id: sent[name][e] for e, lk in enumerate(self.links)}
-                       if c.per == 'edge' else sent[name][0])
+
+        def per_edge(name: str, c: Channel) -> dict[int, Array]:
+            # An owner-only value goes to the pairs this robot owns, once it has one.
+            return {lk.agent_id: sent[name][e] for e, lk in enumerate(self.links)
+                    if not c.owner_only or (lk.owns and np.any(sent[name][e]))}
+
+        return {name: per_edge(name, c) if c.per == 'edge' else sent[name][0]
                 for name, c in self.channels.items() if c.sensor is None}
 
     def bearings_at(self, t: float) -> bool:

@@ -114,7 +114,10 @@ class EstimatorNode(Node):
                                 'a neighbour silent for longer is stale and not used [s]',
                                 0.0, 1e6),
             max_rate=p('max_rate', d.max_rate, 'gyro rates above this are rejected [rad/s]',
-                       0.0, 1e6))
+                       0.0, 1e6),
+            link_wait=p('link_wait', d.link_wait, 'methods that talk over communication '
+                        'links: a step waits for a neighbour\'s input until the own sensors '
+                        'are this far ahead [s]', 0.0, 1e6))
         self.imu_frame = p('imu_frame', wire.body_frame(self.agent),
                            'expected Imu frame_id; empty: any')
         self.bearings_frame = p('bearings_frame', wire.body_frame(self.agent),
@@ -199,7 +202,8 @@ class EstimatorNode(Node):
         self._delayed: list[tuple[float, int, Callable[[], None]]] = []  # (release, seq, fn)
         self._seq = 0
         self._diag_steps = (0, time.monotonic())
-        self._stuck: tuple[int, float] | None = None   # (k, wall time) a step began to wait
+        # (k, gyro end, wall time) when a step began to wait with its sensors standing still.
+        self._stuck: tuple[int, float, float] | None = None
 
         qos_in, qos_est = wire.SENSOR_QOS, wire.ESTIMATE_QOS
         self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE, qos_est)
@@ -481,16 +485,19 @@ class EstimatorNode(Node):
                     self._deferred = self.est.k
 
     def on_patience(self) -> None:
-        """A step that waits longer than ``neighbour_wait`` (wall time) for a neighbour's
-        input goes on without it (e.g. two agents that lost each other's values)."""
+        """A step that waits for a neighbour's input while nothing moves (its own sensors
+        stopped too: a lockstep clock waiting for this agent) for ``neighbour_wait`` of wall
+        time goes on without it (e.g. two agents that lost each other's values). While the
+        own sensors advance, the estimator's own rule applies (it waits at most
+        ``neighbour_timeout`` of their time)."""
         est = self.est
         if not isinstance(est, LinkAgentEstimator) or not est.own_inputs_ready():
             self._stuck = None
             return
         now = time.monotonic()
-        if self._stuck is None or self._stuck[0] != est.k:
-            self._stuck = (est.k, now)
-        elif now - self._stuck[1] >= self.neighbour_wait:
+        if self._stuck is None or self._stuck[:2] != (est.k, est.gyro.end):
+            self._stuck = (est.k, est.gyro.end, now)
+        elif now - self._stuck[2] >= self.neighbour_wait:
             if est.advance(1, impatient=True):
                 self.events['impatient_steps'] += 1
                 self._stuck = None

@@ -3,8 +3,14 @@ the links between agents, in one process and deterministic.
 
 It runs the same :class:`estimators.agent.AgentEstimator` the estimator node runs, fed exactly
 as the simulator node feeds it (:class:`.world.World`: interval-average gyro, bearings, leaders'
-known pose). Neighbour messages are exchanged at the estimators' ``publish_rate``. netsim only
-drives the estimators: every check, rejection and time rule is the estimator's own. Faults:
+known pose). Neighbour messages are exchanged at the estimators' ``publish_rate``. Methods that
+talk over communication links (:class:`estimators.link_agent.LinkAgentEstimator`, De Carli et
+al.) exchange theirs after each step whose instant a neighbour's next step reads (what their
+node publishes), plus each robot's odometry and relative positions, which its neighbours read
+from its sensor topics (neighbour messages too: the link faults apply). The world never waits
+for them (a simulator without lockstep): a robot whose neighbour input is late waits at most
+the estimator's ``neighbour_timeout`` of its own sensors' time. netsim only drives the estimators: every check, rejection and
+time rule is the estimator's own. Faults:
 
 - :class:`LinkFaults`: each neighbour message is dropped with ``drop_rate`` and delivered
   ``delay`` seconds late (what the node's ``inject_*`` parameters do);
@@ -38,8 +44,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits, estimator_for
+from ..core.errors import ScenarioError
+from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits
 from ..estimators.base import Channel
+from ..estimators.link_agent import LinkAgentEstimator, agent_for
 from ..scenario.model import Scenario, initial_estimates
 from ..studies.results import PoseErrors, Recording, pose_errors
 from .world import World
@@ -107,31 +115,35 @@ class FaultCase:
 
 
 def fault_cases(at: float = 20.0, length: float = 5.0, late_join: float = 10.0,
-                garbage: float = 0.1) -> list[FaultCase]:
-    """The fault matrix on the paper's 8-agent scenario, the reference (no fault) first.
+                garbage: float = 0.1, victim: str = 'agent_4', late: str = 'agent_7',
+                delay: float = 0.2) -> list[FaultCase]:
+    """The fault matrix, the reference (no fault) first; by default on the paper's 8-agent
+    scenario.
 
     ``at``, ``length``: when the outages and the clock jump happen [s]; ``late_join``: when
-    agent_7 starts [s]; ``garbage``: the fraction of inputs corrupted. The clock jump keeps
-    the records aligned with the estimators' steps when ``at`` is a multiple of the step. The
-    bench uses the defaults; the tests shrink the times to run fast.
+    ``late`` starts [s]; ``victim``: the agent cut off, paused or restarted; ``garbage``: the
+    fraction of inputs corrupted; ``delay``: how late the delayed rows' messages are [s]. The clock jump keeps the records aligned with the
+    estimators' steps when ``at`` is a multiple of the step. The bench uses the defaults; the
+    tests shrink the times to run fast.
     """
     end = at + length
     return [
         FaultCase('reference', 'none (reference)'),
         FaultCase('loss', '30 % of neighbour messages lost',
                   links=LinkFaults(drop_rate=0.3, seed=1)),
-        FaultCase('delay', 'neighbour messages 200 ms late', links=LinkFaults(delay=0.2)),
-        FaultCase('loss_delay', '30 % lost and 200 ms late',
-                  links=LinkFaults(drop_rate=0.3, delay=0.2, seed=1)),
-        FaultCase('partition', f'agent_4 cut off the network {at:g}-{end:g} s (partition; its '
-                  'own sensors keep running)',
-                  outages=(Outage('agent_4', at, end, restart=False, network_only=True),)),
-        FaultCase('pause', f'agent_4 paused {at:g}-{end:g} s (no input, no output)',
-                  outages=(Outage('agent_4', at, end, restart=False),)),
-        FaultCase('restart', f'agent_4 killed at {at:g} s, restarted at {end:g} s',
-                  outages=(Outage('agent_4', at, end, restart=True),)),
-        FaultCase('late_join', f'agent_7 joins late, at {late_join:g} s',
-                  outages=(Outage('agent_7', 0.0, late_join),)),
+        FaultCase('delay', f'neighbour messages {1000 * delay:g} ms late',
+                  links=LinkFaults(delay=delay)),
+        FaultCase('loss_delay', f'30 % lost and {1000 * delay:g} ms late',
+                  links=LinkFaults(drop_rate=0.3, delay=delay, seed=1)),
+        FaultCase('partition', f'{victim} cut off the network {at:g}-{end:g} s (partition; '
+                  'its own sensors keep running)',
+                  outages=(Outage(victim, at, end, restart=False, network_only=True),)),
+        FaultCase('pause', f'{victim} paused {at:g}-{end:g} s (no input, no output)',
+                  outages=(Outage(victim, at, end, restart=False),)),
+        FaultCase('restart', f'{victim} killed at {at:g} s, restarted at {end:g} s',
+                  outages=(Outage(victim, at, end, restart=True),)),
+        FaultCase('late_join', f'{late} joins late, at {late_join:g} s',
+                  outages=(Outage(late, 0.0, late_join),)),
         FaultCase('clock_jump', f'simulated clock jumps back to 0 at {at:g} s (simulator '
                   'restart)', clock_jump=ClockJump(at)),
         FaultCase('garbage', f'{100 * garbage:g} % of the inputs followed by a garbage copy '
@@ -156,9 +168,15 @@ class _Corruptor:
     NEIGHBOUR = ('nan_value', 'inf_value', 'zero', 'not_unit', 'unknown_sender',
                  'none_for_me', 'future_stamp')
 
+    # Relative positions: the bearings' kinds that a receiver can tell from a measurement
+    # (a relative position three times longer is still a plausible one).
+    RELATIVE = tuple(k for k in BEARINGS if k != 'not_unit')
+
     def __init__(self, garbage: Garbage, channels: tuple[Channel, ...]) -> None:
-        self.agent_channel = next((c.name for c in channels if c.per == 'agent'), None)
-        self.edge_channel = next((c.name for c in channels if c.per == 'edge'), None)
+        sent = [c for c in channels if c.sensor is None]   # sensor readings go elsewhere
+        self.agent_channel = next((c.name for c in sent if c.per == 'agent'), None)
+        self.edge_channel = next((c.name for c in sent if c.per == 'edge'), None)
+        self.edge_shape = next((c.shape for c in sent if c.per == 'edge'), (3,))
         self.fraction = garbage.fraction
         self.replace = garbage.replace
         self.rng = np.random.default_rng(garbage.seed)
@@ -191,8 +209,9 @@ class _Corruptor:
         return stamp, w
 
     def bearings(self, own_id: int, stamp: float, ids: NDArray[np.integer],
-                 b: Array) -> tuple[float, NDArray[np.integer], Array] | None:
-        kind = self._kind(self.BEARINGS)
+                 b: Array, kinds: tuple[str, ...] = BEARINGS
+                 ) -> tuple[float, NDArray[np.integer], Array] | None:
+        kind = self._kind(kinds)
         if kind is None:
             return None
         ids, b = ids.copy(), b.copy()
@@ -220,16 +239,16 @@ class _Corruptor:
         sender, stamp, values = msg
         values = dict(values)
         per_edge = dict(values.get(self.edge_channel, {}))
-        mine = per_edge.get(listener_id, np.array([1.0, 0.0, 0.0]))
+        mine = per_edge.get(listener_id, np.eye(self.edge_shape[0])[0])
         if kind in ('nan_value', 'inf_value'):
             bad = np.nan if kind == 'nan_value' else np.inf
             if self.agent_channel is not None:
                 values[self.agent_channel] = np.array(values[self.agent_channel], dtype=float)
                 values[self.agent_channel][0 if kind == 'nan_value' else -1] = bad
             else:
-                per_edge[listener_id] = np.full(3, bad)
+                per_edge[listener_id] = np.full(self.edge_shape, bad)
         elif kind == 'zero':
-            per_edge[listener_id] = np.zeros(3)
+            per_edge[listener_id] = np.zeros(self.edge_shape)
         elif kind == 'not_unit':
             per_edge[listener_id] = 3.0 * mine
         elif kind == 'unknown_sender':
@@ -297,6 +316,10 @@ class _Network:
     def __init__(self, scenario: Scenario, links: LinkFaults, outages: tuple[Outage, ...],
                  garbage: Garbage, limits: Limits) -> None:
         self.scenario, self.links, self.outages, self.limits = scenario, links, outages, limits
+        if scenario.formation is not None and scenario.formation.mode == 'paper':
+            raise ScenarioError(f'{scenario.source}: formation_control.mode: paper needs the '
+                                'estimates inside the truth; netsim\'s world, like the '
+                                'simulator node, cannot have them. Fix: mode: exogenous')
         self.world = World(scenario)
         self.rng = np.random.default_rng(links.seed)
         estimator = scenario.estimator()
@@ -304,8 +327,17 @@ class _Network:
         self.bad = _Corruptor(garbage, estimator.sends)
         self.names = [a.name for a in scenario.agents]
         self.initial = initial_estimates(scenario)  # drawn once for the whole fleet
-        self.agents: dict[str, AgentEstimator] = {
-            n: estimator_for(scenario, n, limits, self.initial) for n in self.names}
+        self.agents: dict[str, AgentEstimator | LinkAgentEstimator] = {
+            n: agent_for(scenario, n, limits, self.initial) for n in self.names}
+        self.link_method = estimator.links == 'communication'
+        # Who receives what an agent sends: those that sense it, or, for link methods, every
+        # communication neighbour.
+        self.receivers = {n: (sorted(set(scenario.listeners(n))
+                                     | {nb.name for nb in scenario.agent(n).neighbours},
+                                     key=scenario.index.__getitem__)
+                              if self.link_method else scenario.listeners(n))
+                          for n in self.names}
+        self.sent_k = dict.fromkeys(self.names, -1)
         self.per_step = int(round(scenario.step / self.world.dt))
         self.per_publish = self.per_step * scenario.publish_every
         self.in_flight: deque[tuple[float, str, tuple]] = deque()  # (deliver at, to, message)
@@ -328,7 +360,8 @@ class _Network:
 
     def restart(self, name: str) -> None:
         """A restarted process: a fresh estimator from its initial estimate."""
-        self.agents[name] = estimator_for(self.scenario, name, self.limits, self.initial)
+        self.agents[name] = agent_for(self.scenario, name, self.limits, self.initial)
+        self.sent_k[name] = -1
 
     # ------------------------------------------------------------------ inputs
     def feed_gyro(self, now: float) -> None:
@@ -344,54 +377,95 @@ class _Network:
         world, scenario = self.world, self.scenario
         every = world.sensor_every.get('odometry')
         if every is not None and world.due(every) and world.tick > 0:
-            for name, v, w in zip(self.names, *world.odometry()):
+            for i, (name, v, w) in enumerate(zip(self.names, *world.odometry())):
                 if not self.stopped(name, now):
                     self.tally.count([self.agents[name].add_odometry(world.t, v, w,
                                                                      now=world.t)], 0)
-        if world.due(world.bearing_every):
+                    if self.link_method:
+                        self.send(name, now, ('odometry', i + 1, world.t, v, w))
+        every = world.sensor_every.get('relative_positions')
+        if self.link_method and every is not None and world.due(every):
             for i, name in enumerate(self.names):
                 if self.stopped(name, now):
+                    continue
+                j, y = world.sensed('relative_positions', i)
+                good = (world.t, j + 1, y)
+                for args, bad in self.bad.inputs(good, self.bad.bearings(
+                        i + 1, *good, kinds=_Corruptor.RELATIVE)):
+                    agent = self.agents[name]
+                    assert isinstance(agent, LinkAgentEstimator)
+                    self.tally.count(agent.add_relative_positions(*args), bad * len(j))
+                self.send(name, now, ('measurements', i + 1, *good))
+        if not self.link_method and world.due(world.bearing_every):
+            for i, name in enumerate(self.names):
+                agent = self.agents[name]
+                if self.stopped(name, now) or not isinstance(agent, AgentEstimator):
                     continue
                 j, b = world.bearings(i)
                 good = (world.t, j + 1, b)
                 for args, bad in self.bad.inputs(
                         good, self.bad.bearings(scenario.agent_id(name), *good)):
-                    self.tally.count(self.agents[name].add_bearings(*args), bad * len(j))
+                    self.tally.count(agent.add_bearings(*args), bad * len(j))
         if world.due(world.truth_every):
             for name in scenario.leaders:
-                if self.stopped(name, now):
+                agent = self.agents[name]
+                if self.stopped(name, now) or not isinstance(agent, AgentEstimator):
                     continue
                 i = scenario.index[name]
                 for (R,), bad in self.bad.inputs((world.R[i],), self.bad.known_pose(world.R[i])):
-                    self.tally.count([self.agents[name].set_known_pose(world.t, R, world.p[i])],
-                                     bad)
+                    self.tally.count([agent.set_known_pose(world.t, R, world.p[i])], bad)
 
     # ------------------------------------------------------------------ links
-    def publish(self, now: float) -> None:
-        """Every estimator sends its p̂ and world bearings to its listeners."""
-        for name in self.names:
-            if self.offline(name, now):
+    def send(self, name: str, now: float, msg: tuple) -> None:
+        """``msg`` from ``name`` to everyone who receives from it, through the link faults."""
+        if self.offline(name, now):
+            return
+        for to in self.receivers[name]:
+            if self.links.drop_rate and self.rng.uniform() < self.links.drop_rate:
                 continue
+            self.in_flight.append((now + self.links.delay, to, msg))
+
+    def publish(self, now: float) -> None:
+        """Every estimator sends its channels (p̂ and world bearings for the leader-follower
+        methods) to its listeners."""
+        for name in self.names:
             ag = self.agents[name]
-            msg = (self.scenario.agent_id(name), ag.t, ag.outbox())
-            for listener in self.scenario.listeners(name):
-                if self.links.drop_rate and self.rng.uniform() < self.links.drop_rate:
-                    continue
-                self.in_flight.append((now + self.links.delay, listener, msg))
+            self.send(name, now, (self.scenario.agent_id(name), ag.t, ag.outbox()))
+
+    def publish_due(self, name: str, now: float) -> None:
+        """A link method's robot, after a step: its channels, when a neighbour's step at this
+        instant reads them."""
+        ag = self.agents[name]
+        if self.sent_k[name] == ag.k:
+            return
+        self.sent_k[name] = ag.k
+        if any(ag.estimator.due(c, ag.t, ag.h) for c in ag.channels):
+            self.send(name, now, (self.scenario.agent_id(name), ag.t, ag.outbox()))
 
     def deliver(self, now: float) -> None:
         while self.in_flight and self.in_flight[0][0] <= now + 1e-9:
             _, to, msg = self.in_flight.popleft()
-            if self.offline(to, now):
+            if self.offline(to, now) or self.stopped(to, now):
+                continue
+            agent = self.agents[to]
+            if msg[0] == 'odometry':
+                assert isinstance(agent, LinkAgentEstimator)
+                self.tally.count([agent.add_neighbour_odometry(*msg[1:])], 0)
+                continue
+            if msg[0] == 'measurements':
+                assert isinstance(agent, LinkAgentEstimator)
+                self.tally.count([agent.add_neighbour_measurements(*msg[1:])], 0)
                 continue
             corrupt = self.bad.neighbour(self.scenario.agent_id(to), msg)
             for args, bad in self.bad.inputs(msg, corrupt):
-                self.tally.count([self.agents[to].add_neighbour(*args)], bad)
+                self.tally.count([agent.add_neighbour(*args)], bad)
 
     # ------------------------------------------------------------------ stepping
     def step(self, now: float) -> None:
         """Every running estimator takes the steps its gyro data allows; count any
         non-finite estimate."""
+        if self.link_method:
+            return self.step_links(now)
         for name in self.names:
             if self.stopped(name, now):
                 continue
@@ -400,9 +474,28 @@ class _Network:
             if not (np.all(np.isfinite(ag.R_hat)) and np.all(np.isfinite(ag.p_hat))):
                 self.non_finite += 1
 
+    def step_links(self, now: float) -> None:
+        """A link method's robots step in turns, each sending what its neighbours wait for,
+        until none can go on."""
+        progress = True
+        while progress:
+            progress = False
+            for name in self.names:
+                ag = self.agents[name]
+                if self.stopped(name, now) or not isinstance(ag, LinkAgentEstimator):
+                    continue
+                if ag.advance(1):
+                    progress = True
+                    if not (np.all(np.isfinite(ag.R_hat)) and np.all(np.isfinite(ag.p_hat))):
+                        self.non_finite += 1
+                    self.publish_due(name, now)
+                    self.deliver(now)
+
     def start(self) -> None:
         self.sense(0.0)
         self.publish(0.0)
+        if self.link_method:
+            self.sent_k = dict.fromkeys(self.names, 0)
         self.deliver(0.0)
 
     def tick(self, now: float) -> None:
@@ -418,7 +511,7 @@ class _Network:
             self.truth[k] = (world.R.copy(), world.p.copy())
             self.truth.pop(k - int(round(1.0 / self.scenario.step)), None)
             self.step(now)
-        if world.tick % self.per_publish == 0:
+        if world.tick % self.per_publish == 0 and not self.link_method:
             self.publish(now)
             self.deliver(now)
 
