@@ -6,6 +6,11 @@ AgentEstimator as the node, fed like the simulator node feeds it) with one fault
 fault-free run at the same instants. Deterministic; prints a Markdown table.
 
     .venv/bin/python bench/fault_matrix.py [--duration 60] [--jobs N]
+    .venv/bin/python bench/fault_matrix.py --scenario config/de_carli_8_quadrotors.yaml \
+        --victim robot_4 --late robot_7 --at 5 --length 2 --late-join 3 --delay 0.05 --duration 20
+
+(a scenario whose formation controller runs in the paper's mode runs in the exogenous one: the
+simulated world, like the simulator node, cannot see the estimates).
 
 Columns (measures in netsim):
 - re-convergence: time after the fault ends until both mean errors are back at or below the
@@ -21,14 +26,15 @@ Columns (measures in netsim):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from bearing_pose_estimation.sim.netsim import (FaultCase, NetRun, convergence_cost, fault_cases,
-                                            mean_errors, reconvergence_time, run_case)
-from bearing_pose_estimation.scenario import load_scenario
+                                                reconvergence_time, run_case)
+from bearing_pose_estimation.scenario import Scenario, load_scenario
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
 RECORD_EVERY = 0.5  # [s]: the resolution of the re-convergence and cost columns
@@ -38,10 +44,19 @@ HEADER = ('| fault | mean att. error at end [rad] | mean pos. error at end [m] |
           '|---|---|---|---|---|---|---|---|---|')
 
 
-def run_row(case: FaultCase, duration: float) -> NetRun | str:
+def load(path: Path) -> Scenario:
+    """The scenario, its formation controller (if any) in the exogenous mode."""
+    scenario = load_scenario(path)
+    if scenario.formation is not None and scenario.formation.mode == 'paper':
+        scenario = dataclasses.replace(scenario, index={}, formation=dataclasses.replace(
+            scenario.formation, mode='exogenous'))
+    return scenario
+
+
+def run_row(case: FaultCase, duration: float, path: Path = PAPER) -> NetRun | str:
     """One row, in a worker: its run, or the exception that escaped the estimator logic."""
     try:
-        return run_case(load_scenario(PAPER), case, duration, RECORD_EVERY)
+        return run_case(load(path), case, duration, RECORD_EVERY)
     except Exception as exc:  # noqa: BLE001 - a crash is a measured outcome here
         return f'{type(exc).__name__}: {exc}'
 
@@ -51,7 +66,7 @@ def format_row(case: FaultCase, run: NetRun | str, ref: NetRun) -> str:
     if isinstance(run, str):
         return f'| {case.label} | crashed: {run} | | | | | | 1 | |'
     rec = run.recording
-    att, pos = mean_errors(rec)
+    att, pos = rec.mean_errors()
     reconv = 'n/a'
     if case.window is not None:
         t = reconvergence_time(rec, ref.recording, case.window[1])
@@ -72,11 +87,20 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--duration', type=float, default=60.0)
     ap.add_argument('--jobs', type=int, default=os.cpu_count() or 1)
+    ap.add_argument('--scenario', type=Path, default=PAPER)
+    ap.add_argument('--victim', default='agent_4', help='the agent cut off, paused, restarted')
+    ap.add_argument('--late', default='agent_7', help='the agent that joins late')
+    ap.add_argument('--at', type=float, default=20.0, help='when the faults start [s]')
+    ap.add_argument('--length', type=float, default=5.0, help='how long they last [s]')
+    ap.add_argument('--late-join', type=float, default=10.0, help='when --late starts [s]')
+    ap.add_argument('--delay', type=float, default=0.2, help='the delayed rows\' delay [s]')
     args = ap.parse_args()
-    cases = fault_cases()
+    cases = fault_cases(at=args.at, length=args.length, late_join=args.late_join,
+                        victim=args.victim, late=args.late, delay=args.delay)
     wall = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        runs = list(pool.map(run_row, cases, [args.duration] * len(cases)))
+        runs = list(pool.map(run_row, cases, [args.duration] * len(cases),
+                             [args.scenario] * len(cases)))
     wall = time.perf_counter() - wall
     ref = runs[0]
     if isinstance(ref, str):

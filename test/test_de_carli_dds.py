@@ -27,7 +27,7 @@ from ros_helpers import observer
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'de_carli_8_quadrotors.yaml'
 DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
-DURATION = 3.0
+DURATION = 2.0
 # Subscribed once the run is going: the simulator starts when every estimator's topics have
 # their expected subscribers, and an early observer would count as one of them.
 LATE_TOPICS = {'/robot_0/yaw_estimate': (wire.Vector3Stamped, wire.ESTIMATE_QOS),

@@ -105,6 +105,10 @@ def test_de_carli_fault_matrix_row(key, matrix_runs):
         assert run.inputs.garbage_injected > 1000
         assert {'non_finite', 'future_stamp', 'unknown_id', 'zero_vector', 'not_unit',
                 'absurd_value', 'absurd_rate', 'out_of_order'} <= set(run.inputs.garbage_rejected)
+    if key.startswith(('loss', 'delay')):   # lost or late values were carried forward
+        assert run.carried > 100
+    elif key in ('reference', 'garbage'):   # nothing was late
+        assert run.carried == 0
     if key == 'garbage':   # what garbage got in changed nothing: the very same estimates
         np.testing.assert_array_equal(rec.att_err, ref.recording.att_err)
         np.testing.assert_array_equal(rec.pos_err, ref.recording.pos_err)

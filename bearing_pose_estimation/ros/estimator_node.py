@@ -15,6 +15,15 @@ listeners need) every ``publish_rate`` period, on exact multiples of it, and its
 wait for the own bearings measured at it (listeners pair values of one instant,
 ``msg_defs/README.md``), and are skipped if the next step comes first.
 
+Methods whose robots talk over communication links (De Carli et al.) run
+:class:`estimators.link_agent.LinkAgentEstimator` instead: the node subscribes to its own
+``relative_positions`` (not ``bearings``), and, for each communication neighbour j, to j's
+``odom``, j's ``relative_positions`` where j senses this robot, and j's channel topics
+(``yaw_estimate``, ``relative_yaws``, ``estimate``); it publishes its estimate in
+``<fleet>/estimation`` at ``publish_rate`` and its channels when a neighbour's next step reads
+them; steps run as soon as every input of their instant is in (``link_wait``, ``neighbour_wait``
+bound the wait). These need ``scenario_file`` (the links come from the sensing graph).
+
 Bad input is rejected, counted by cause, warned about (throttled) and reported in the
 diagnostics; it never stops the node and never reaches the estimate.
 
@@ -27,7 +36,8 @@ boughellaba_tayebi; ``k_omega``, ``k_c``, ``k_p`` for tran_anderson_ahn): 0 mean
 scenario's value, or 100 Hz / 50 Hz / the method's default gains in explicit mode; a gain of
 another method is an error.
 ``start_time`` [s] (the scenario's t = 0 on the node's clock; negative: the first gyro stamp);
-the input limits ``sensor_timeout``, ``neighbour_timeout``, ``max_rate``; the expected frames
+the input limits ``sensor_timeout``, ``neighbour_timeout``, ``max_rate``, ``link_wait`` [s of
+the own sensors' time] and ``neighbour_wait`` [s of wall time]; the expected frames
 ``imu_frame``, ``bearings_frame``, ``odom_child_frame`` (empty: accept any);
 ``diagnostics_period`` [s]; and the fault
 injection for tests and studies: ``inject_drop_rate`` (probability of dropping each neighbour
@@ -340,6 +350,10 @@ class EstimatorNode(Node):
             return
         if not self.ready_timer.is_canceled():
             self.ready_timer.cancel()
+            if self.est.k == 0:
+                # Once more now that the clock runs: the simulator started it only after the
+                # monitor's readers matched, so this one reaches them (the ones before may not).
+                self._publish(world=False, force=True)
         cause = self.est.add_gyro(t, omega, now=self._now())
         if cause in TIME_EVENTS:
             self.events[cause] += 1

@@ -307,6 +307,7 @@ class NetRun:
     inputs: InputTally
     non_finite_estimates: int  # estimates with a NaN/inf, checked after every step
     non_finite_steps: int      # steps the estimators discarded as non-finite
+    carried: int = 0           # link methods: late or lost neighbour values carried forward
 
 
 class _Network:
@@ -561,7 +562,8 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
             rows.append(net.errors(followers))
     rec = Recording.of(times, [net.names[i] for i in followers], rows)
     return NetRun(rec, net.tally, non_finite_estimates=net.non_finite,
-                  non_finite_steps=sum(ag.non_finite_steps for ag in net.agents.values()))
+                  non_finite_steps=sum(ag.non_finite_steps for ag in net.agents.values()),
+                  carried=sum(getattr(ag, 'carried', 0) for ag in net.agents.values()))
 
 
 def run_network(scenario: Scenario, duration: float, record_every: float = 0.1,

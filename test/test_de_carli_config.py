@@ -1,0 +1,117 @@
+"""config/de_carli_8_quadrotors.yaml is the notes' explicit scenario
+(data/de-carli-2024-scenario.json, De Carli et al. Sec. IV) in the scenario format, number for
+number: graph, gains, rates, duration, controller, formation, yaw splines, initial state and
+estimates; the parsed scenario rebuilds the JSON's derived values (spline coefficients, ẑ(0),
+pair states, first relative-position estimates) to rounding."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bearing_pose_estimation.core.motion import YawSplines
+from bearing_pose_estimation.estimators.base import communication_links
+from bearing_pose_estimation.scenario import load_scenario, parse_scenario
+from bearing_pose_estimation.scenario.parse import read_scenario_data
+from bearing_pose_estimation.sim.batch import BatchSimulator
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / 'config' / 'de_carli_8_quadrotors.yaml'
+JSON = json.loads((ROOT / 'test' / 'data' / 'de-carli-2024-scenario.json').read_text())
+
+
+@pytest.fixture(scope='module')
+def scenario():
+    return load_scenario(CONFIG)
+
+
+def test_every_number_is_the_json_s(scenario):
+    s, d = scenario, JSON
+    assert len(s.agents) == d['n_robots']
+    edges = [[s.index[a.name], s.index[nb.name]] for a in s.agents for nb in a.neighbours]
+    assert sorted(edges) == sorted(d['sensing_edges'])
+    g = s.gains
+    assert (g.k_pe, g.k_psi, g.k_z, g.k_p) == tuple(d['gains'][k] for k in
+                                                     ('k_pe', 'k_psi', 'k_z', 'k_p'))
+    r = d['rates_hz']
+    assert (s.frequency, g.yaw_rate, g.position_rate) == (
+        r['relative_yaw_observer'], r['yaw_observer'], r['position_observer'])
+    assert s.duration == d['duration_s'] and s.formation.mode == d['motion_mode']
+    c = d['controller']
+    assert (s.formation.k_c, s.formation.nu_max) == (c['k_c'], c['nu_max_mps'])
+    assert [list(a.formation_position) for a in s.agents] == c['p_star_m']
+    y = d['yaw_trajectory']
+    for i, a in enumerate(s.agents):
+        assert list(a.yaw.knots) == y['knots_s'] and list(a.yaw.values) == y['knot_values_rad'][i]
+    assert [list(a.position) for a in s.agents] == d['initial_state']['p_m']
+    ie = d['initial_estimates']
+    assert [list(a.initial_position) for a in s.agents] == ie['p_hat_m']
+    psi_hat = [np.arctan2(a.initial_attitude[1, 0], a.initial_attitude[0, 0]) for a in s.agents]
+    np.testing.assert_allclose(psi_hat, ie['psi_hat_rad'], rtol=0, atol=1e-15)
+
+
+def test_the_derived_values_are_rebuilt(scenario):
+    """The spline's per-interval coefficients, ψ_i(0), ẑ(0), each pair's initial relative yaw
+    (the rule conj(ẑ_a(0)) ẑ_b(0), after the first step's rotation) and that every owned
+    edge's relative estimate started."""
+    d, y = JSON, JSON['yaw_trajectory']
+    splines = YawSplines([a.yaw for a in scenario.agents])
+    for t in (0.0, 0.7, 3.1, 19.99):
+        k = int(t // 2.0)
+        s = t - y['knots_s'][k]
+        expected = [np.polyval(y['coefficients'][i][k], s) for i in range(d['n_robots'])]
+        np.testing.assert_allclose(splines(t), expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(splines(0.0), d['initial_state']['psi_rad'], atol=1e-15)
+    sim = BatchSimulator(scenario)
+    z0 = np.array(d['initial_estimates']['z_hat']) @ [1.0, 1j]
+    np.testing.assert_allclose(sim.x.z_hat, z0, rtol=0, atol=1e-15)
+    sim.step()   # the pairs and the relative estimates start at the first step
+    links = sim.links
+    pairs = np.array(d['initial_estimates']['z_psi_hat']) @ [1.0, 1j]
+    for m, (a, b) in enumerate(d['communication_pairs']):
+        ends = {a, b}
+        e = next(k for k in range(len(links['agent'])) if links['owns'][k]
+                 and {int(links['agent'][k]), int(links['other'][k])} == ends)
+        owner, other = int(links['agent'][e]), int(links['other'][e])
+        # Rotated over the first step by the relative yaw increment, from the JSON's value.
+        first = pairs[m] if owner == a else np.conj(pairs[m])
+        dpsi = splines(sim.h) - splines(0.0)
+        first = first * np.exp(1j * (dpsi[other] - dpsi[owner]))
+        got = sim.x.z_pair[owner, sim.edges.slot[e]]
+        # The first correction's regressor is the previous step's displacement: 0.
+        assert abs(got - first) < 1e-12
+    assert np.all(sim.x.ready_out[links['agent'][links['owns']],
+                                  sim.edges.slot[links['owns']]])
+
+
+def test_the_relative_position_estimates_start_at_the_first_measurement(scenario):
+    rel = np.array(JSON['initial_estimates']['p_rel_hat_m'])
+    sim = BatchSimulator(scenario)
+    for k, (i, j) in enumerate(JSON['sensing_edges']):
+        measured = sim.truth.relative_positions(np.array([i]), np.array([j]))[0]
+        np.testing.assert_allclose(measured, rel[k], rtol=0, atol=1e-12)
+
+
+def test_the_communication_graph_is_the_json_s_pairs():
+    tail, head = np.array(JSON['sensing_edges']).T
+    links = communication_links(tail, head, JSON['n_robots'])
+    pairs = {tuple(sorted(p)) for p in zip(links['agent'].tolist(), links['other'].tolist())}
+    assert sorted(pairs) == [tuple(p) for p in JSON['communication_pairs']]
+    owned = {(int(a), int(b)) for a, b, o in zip(links['agent'], links['other'], links['owns'])
+             if o}
+    assert len(owned) == len(JSON['communication_pairs'])   # one owner per pair
+    assert (0, 1) in owned and (5, 6) in owned   # the two-way pairs: the lower id
+
+
+def test_the_yaml_is_not_the_json_s_duplicate_in_spirit():
+    """Hand edits stay possible: a changed knot value changes the run's yaw, and a yaw
+    spline with a knot out of order is refused with the field named."""
+    data = read_scenario_data(CONFIG)
+    data['agents'][0]['yaw']['values'][1] += 0.1
+    assert parse_scenario(data).agents[0].yaw.values[1] == pytest.approx(
+        JSON['yaw_trajectory']['knot_values_rad'][0][1] + 0.1)
+    data['yaw_knots'][2] = 1.0
+    with pytest.raises(Exception, match=r'yaw_knots|knots.*increase'):
+        parse_scenario(data)
