@@ -92,14 +92,17 @@ def close_approach_findings(scenario: Scenario, times: Array,
         if np.linalg.norm(positions[0, j] - positions[0, i]) < graph.COLLOCATED_M:
             continue  # reported as collocated
         a, b = scenario.agents[int(i)].name, scenario.agents[int(j)].name
-        fix = f'change the velocities or start positions of {a} or {b}'
+        driven = scenario.agents[int(j)].formation_position is not None
+        where = 'formation_position' if driven else 'velocity'
+        fix = (f'change the formation positions or start positions of {a} or {b}' if driven
+               else f'change the velocities or start positions of {a} or {b}')
         if dist < graph.COLLOCATED_M:
-            out.append(Finding('error', b, 'velocity', f'collides with {a} at t = {t:.2f} s '
+            out.append(Finding('error', b, where, f'collides with {a} at t = {t:.2f} s '
                                f'(closest distance {dist:.3g} m): '
                                + ('bearings between them are undefined' if bearings
                                   else 'they collide'), fix))
         else:
-            out.append(Finding('warning', b, 'velocity', f'comes within {dist:.3f} m of {a} '
+            out.append(Finding('warning', b, where, f'comes within {dist:.3f} m of {a} '
                                f'at t = {t:.2f} s (closer than {graph.CLOSE_APPROACH_M:g} m; '
                                f'{why})', fix))
     return out
