@@ -105,13 +105,72 @@ def test_the_communication_graph_is_the_json_s_pairs():
     assert (0, 1) in owned and (5, 6) in owned   # the two-way pairs: the lower id
 
 
-def test_the_yaml_is_not_the_json_s_duplicate_in_spirit():
-    """Hand edits stay possible: a changed knot value changes the run's yaw, and a yaw
-    spline with a knot out of order is refused with the field named."""
+def test_edits_take_effect_and_knots_out_of_order_are_refused():
+    """The file is a scenario like any other: a changed knot value is the scenario's, and
+    knots out of order are refused with the field named."""
     data = read_scenario_data(CONFIG)
     data['agents'][0]['yaw']['values'][1] += 0.1
     assert parse_scenario(data).agents[0].yaw.values[1] == pytest.approx(
         JSON['yaw_trajectory']['knot_values_rad'][0][1] + 0.1)
     data['yaw_knots'][2] = 1.0
-    with pytest.raises(Exception, match=r'yaw_knots|knots.*increase'):
+    with pytest.raises(Exception, match=r'robot_0\)\.yaw\.knots: the knots must increase'):
         parse_scenario(data)
+
+
+def _edited(edit) -> dict:
+    data = read_scenario_data(CONFIG)
+    edit(data)
+    return data
+
+
+@pytest.mark.parametrize('edit, field, problem', [
+    (lambda d: d['agents'][0]['yaw']['values'].pop(), r'agents\[0\] \(robot_0\)\.yaw\.values',
+     '31 values for 32 knots'),
+    (lambda d: d.pop('yaw_knots'), r'agents\[0\] \(robot_0\)\.yaw\.knots',
+     'no top-level `yaw_knots`'),
+    (lambda d: d['agents'][1].pop('yaw'), r'agents\[1\] \(robot_1\)\.yaw',
+     'every agent follows a yaw spline or none'),
+    (lambda d: d['agents'][2].update(attitude='identity'), r'robot_2\)\.attitude',
+     'a yaw spline sets the attitude'),
+    (lambda d: d.pop('formation_control'), r'robot_0\)\.formation_position',
+     'no `formation_control:` block'),
+    (lambda d: d['agents'][3].update(velocity={'world': [0.1, 0, 0]}),
+     r'robot_3\)\.velocity', 'the formation controller sets the velocity'),
+    (lambda d: d['formation_control'].update(mode='closed'), r'formation_control\.mode',
+     "unknown mode 'closed'"),
+    (lambda d: d['formation_control'].update(nu_max=0), r'formation_control\.nu_max',
+     'must be > 0'),
+    (lambda d: d['gains'].update(k_ij=1.0), r'gains\.k_ij', 'unknown key'),
+    (lambda d: d.update(leaders=['robot_0', 'robot_1']), 'leaders', 'has no leaders'),
+])
+def test_bad_fields_are_named_with_the_fix(edit, field, problem):
+    with pytest.raises(Exception, match=rf'{field}: .*{problem}.*Fix:'):
+        parse_scenario(_edited(edit))
+
+
+def test_check_refuses_what_breaks_the_method():
+    """A disconnected robot, a rate that does not divide the frequency, and a position gain
+    whose Euler correction diverges are errors naming the field; a static fleet (no motion at
+    all) gets one warning per pair."""
+    from bearing_pose_estimation.scenario import check_scenario
+
+    def cut(d):
+        d['agents'][7]['neighbours'] = []
+        for a in d['agents']:
+            a['neighbours'] = [n for n in a.get('neighbours', []) if n != 'robot_7']
+
+    errors = check_scenario(parse_scenario(_edited(cut))).errors
+    assert [(e.agent, e.field) for e in errors] == [('robot_7', 'neighbours')]
+    rate = check_scenario(parse_scenario(_edited(lambda d: d['gains'].update(yaw_rate=30.0))))
+    assert [(e.agent, e.field) for e in rate.errors] == [('gains', 'yaw_rate')]
+    unstable = check_scenario(parse_scenario(_edited(lambda d: d['gains'].update(k_p=20.0))))
+    assert [(e.agent, e.field) for e in unstable.errors] == [('gains', 'k_p')]
+    assert 'diverges' in unstable.errors[0].problem
+
+    def static(d):
+        d.pop('formation_control')
+        for a in d['agents']:
+            a.pop('formation_position')
+
+    report = check_scenario(parse_scenario(_edited(static)))
+    assert report.ok and sum('never excited' in w.problem for w in report.warnings) == 12

@@ -65,7 +65,7 @@ from .. import msg_defs as wire
 from ..core import so3
 from ..core.errors import ScenarioError
 from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits
-from ..estimators.base import Estimator, Sensor, format_gains, gain_fields
+from ..estimators.base import Channel, Estimator, Sensor, format_gains, gain_fields
 from ..estimators.link_agent import LinkAgentEstimator, agent_for
 from ..scenario.parse import load_scenario
 from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
@@ -272,7 +272,8 @@ class EstimatorNode(Node):
         warn_unknown_parameters(self)
 
     # --------------------------------------------------------------------------- set-up
-    def method_channel(self, name: str):   # noqa: ANN201 (a Channel)
+    def method_channel(self, name: str) -> Channel:
+        """The method's channel ``name``."""
         return next(c for c in self.method.sends if c.name == name)
 
     def _explicit_estimator(self, e: dict, limits: Limits,

@@ -436,6 +436,10 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
                                    'R_z(ψ(t)) and its rate', f'remove `{key}` or `yaw`')
             yaw = _yaw(ctx, m['yaw'], f'{where}.yaw', yaw_knots)
             attitude = rot_z(np.array(yaw.values[0]))
+            if velocity is not None and velocity.frame == 'body':
+                raise ctx.fail(f'{where}.velocity', 'a body-frame velocity with a yaw spline '
+                               'is not supported', 'give it in the world frame, `{world: '
+                               '[...]}`, or use formation_control')
         formation_position = None
         if 'formation_position' in m:
             if formation is None:
