@@ -617,6 +617,7 @@ class EstimatorNode(Node):
                 values[key] = f'{float(value):.4g}'
         for what, n in sorted(est.missing.items()):
             values[f'missing_{what}'] = str(n)
+        values['carried'] = str(est.carried)   # late or lost values carried forward
 
     def destroy_node(self) -> None:
         """Log what this estimator achieved: steps, the step rate in wall time, rejections."""
@@ -629,7 +630,7 @@ class EstimatorNode(Node):
                 f'{self.est.gyro.bridged}, odometry {self.est.odometry.bridged}; unpaired '
                 f'neighbour values: {self.est.unpaired}'
                 + (f'; waited for: {dict(self.est.waits) or 0}; left out: '
-                   f'{dict(+self.est.missing) or 0}'
+                   f'{dict(+self.est.missing) or 0}; carried: {self.est.carried}'
                    if isinstance(self.est, LinkAgentEstimator) else ''))
         super().destroy_node()
 
