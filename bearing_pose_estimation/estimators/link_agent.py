@@ -415,13 +415,16 @@ class LinkAgentEstimator(TimedAgent):
 
     def _carried(self, link: Link, wanted: list[str], t: float) -> dict[str, Array] | None:
         """j's channels ``wanted`` at ``t`` from its newest instant ``t_s < t`` that has them
-        all, carried over ``[t_s, t]`` by the method (:meth:`base.Estimator.carry`) with j's
-        odometry and this robot's gyro; None when nothing can be carried."""
+        all, no older than ``neighbour_timeout``, carried over ``[t_s, t]`` by the method
+        (:meth:`base.Estimator.carry`) with j's odometry and this robot's gyro; None when
+        nothing can be carried."""
         if not wanted:
             return None
         for stamp, first in reversed(link.history.get(wanted[0], ())):
             if stamp >= t - 1e-9:
                 continue
+            if stamp < t - self.limits.neighbour_timeout:
+                return None   # too old: j's estimator is silent (its sensors may not be)
             values = {wanted[0]: first}
             for name in wanted[1:]:
                 v, _ = link.value_at(name, stamp)
