@@ -32,6 +32,9 @@ def se3_step(R: Array, p: Array, omega: Array, v: Array,
              duration: float) -> tuple[Array, Array]:
     """The pose ``(R, p)`` (``(..., 3, 3)``, ``(..., 3)``) carried over ``duration`` by the
     constant body twist ``(v, ω)``: ``p + R J(ω Δ) v Δ``, ``R exp(ω Δ)``."""
+    if np.ndim(R) == 2:   # one pose (a buffer's segments): plain products are cheaper
+        return R @ so3.exp(omega * duration), p + R @ so3.jacobian_apply(omega * duration,
+                                                                          v * duration)
     p = p + np.einsum('...ab,...b->...a', R, so3.jacobian_apply(omega * duration, v * duration))
     return so3.matmul(R, so3.exp(omega * duration)), p
 

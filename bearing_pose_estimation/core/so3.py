@@ -107,6 +107,8 @@ def jacobian_apply(phi: ArrayLike, v: ArrayLike) -> Array:
     translation of the SE(3) exponential of the twist ``(v, φ)``, i.e. the displacement of a
     body moving with constant body velocity ``v/s`` and rate ``φ/s`` for ``s`` seconds."""
     phi, v = np.asarray(phi, dtype=float), np.asarray(v, dtype=float)
+    if phi.shape == (3,) and v.shape == (3,):
+        return _jacobian_apply_one(phi, v)
     theta2 = np.sum(phi * phi, axis=-1)
     theta = np.sqrt(theta2)
     small = theta < _SERIES_ANGLE
@@ -117,6 +119,25 @@ def jacobian_apply(phi: ArrayLike, v: ArrayLike) -> Array:
                  (safe - np.sin(safe)) / safe ** 3)
     pv = cross(phi, v)
     return v + b[..., None] * pv + c[..., None] * cross(phi, pv)
+
+
+def _jacobian_apply_one(phi: Array, v: Array) -> Array:
+    """:func:`jacobian_apply` of one pair of vectors with scalar math (the same series and
+    formula): several times faster, which matters where one agent integrates its neighbours'
+    odometry sample by sample."""
+    x, y, z = float(phi[0]), float(phi[1]), float(phi[2])
+    v0, v1, v2 = float(v[0]), float(v[1]), float(v[2])
+    theta2 = x * x + y * y + z * z
+    if math.sqrt(theta2) < _SERIES_ANGLE:
+        b = 0.5 - theta2 / 24.0 + theta2 ** 2 / 720.0
+        c = 1.0 / 6.0 - theta2 / 120.0 + theta2 ** 2 / 5040.0
+    else:
+        theta = math.sqrt(theta2)
+        b = (1.0 - math.cos(theta)) / theta ** 2
+        c = (theta - math.sin(theta)) / theta ** 3
+    p0, p1, p2 = y * v2 - z * v1, z * v0 - x * v2, x * v1 - y * v0          # φ × v
+    q0, q1, q2 = y * p2 - z * p1, z * p0 - x * p2, x * p1 - y * p0          # φ × (φ × v)
+    return np.array([v0 + b * p0 + c * q0, v1 + b * p1 + c * q1, v2 + b * p2 + c * q2])
 
 
 def jacobian_inv_apply(phi: ArrayLike, v: ArrayLike) -> Array:

@@ -235,8 +235,9 @@ class State:
             getattr(self, f.name)[idx] = getattr(other, f.name)
 
     def is_finite(self) -> bool:
-        return all(bool(np.all(np.isfinite(getattr(self, f.name))))
-                   for f in dataclasses.fields(self))
+        values = (getattr(self, f.name) for f in dataclasses.fields(self))
+        return all(bool(np.isfinite(v).all()) for v in values
+                   if v.dtype.kind in 'fc')   # bool flags are always finite
 
 
 @dataclass(frozen=True)
