@@ -237,6 +237,11 @@ class YawSplines:
         return out
 
 
+def yaw_of(R: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The yaw of rotations ``(..., 3, 3)`` (exact for rotations about z)."""
+    return np.arctan2(R[..., 1, 0], R[..., 0, 0])
+
+
 def rot_z(psi: NDArray[np.float64]) -> NDArray[np.float64]:
     """``R_z(ψ)`` for each angle, ``(..., 3, 3)``."""
     c, s = np.cos(psi), np.sin(psi)

@@ -493,6 +493,13 @@ class Estimator(ABC, Generic[G, S]):
         return []
 
 
+def owns_pair(i: Any, j: Any, senses: Any, sensed_by: Any) -> Any:
+    """Whether agent i keeps the shared state of its pair with j (§8 of the De Carli notes):
+    the sensing agent of a one-way pair, the lower index (or id) of a two-way one. Scalars or
+    arrays."""
+    return np.where(np.logical_and(senses, sensed_by), np.less(i, j), senses)
+
+
 def communication_links(tail: Index, head: Index, n: int) -> dict[str, NDArray[Any]]:
     """The links of ``links = 'communication'`` methods from the sensing edges ``tail → head``
     of ``n`` agents: one per communication neighbour j of each agent i, grouped by agent, j
@@ -511,7 +518,7 @@ def communication_links(tail: Index, head: Index, n: int) -> dict[str, NDArray[A
     sensed_by = np.array([(j, i) in sensed for i, j in zip(agent, other)], dtype=bool)
     where = {(i, j): e for e, (i, j) in enumerate(zip(agent, other))}
     return {'agent': agent_a, 'other': other_a, 'senses': senses, 'sensed_by': sensed_by,
-            'owns': np.where(senses & sensed_by, agent_a < other_a, senses),
+            'owns': owns_pair(agent_a, other_a, senses, sensed_by),
             'reverse': np.array([where[(j, i)] for i, j in zip(agent, other)], dtype=np.intp)}
 
 

@@ -78,7 +78,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse.csgraph import connected_components
 
-from ..core.motion import rot_z
+from ..core.motion import rot_z, yaw_of
 from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, Index,
                    Roles, Sensor, State, StepInputs, gain)
 
@@ -123,11 +123,6 @@ def unit(z: Complex) -> Complex:
     """``z/|z|`` (Remark 3), and 1 where ``|z|`` is below :data:`MIN_MODULUS`."""
     r = np.abs(z)
     return np.where(r > MIN_MODULUS, z / np.where(r > MIN_MODULUS, r, 1.0), 1.0 + 0j)
-
-
-def yaw_of(R: Array) -> Array:
-    """The yaw of rotations ``(..., 3, 3)`` (exact for rotations about z)."""
-    return np.arctan2(R[..., 1, 0], R[..., 0, 0])
 
 
 def as_complex(v: Array) -> Complex:
@@ -423,7 +418,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         report = CheckReport()
         names = [a.name for a in scenario.agents]
         n = len(names)
-        tail, head = sensing_edges(scenario)
+        tail, head = scenario.sensing_edges()
         adjacency = np.zeros((n, n))
         adjacency[tail, head] = adjacency[head, tail] = 1.0
         count, label = connected_components(adjacency, directed=False)
@@ -479,16 +474,6 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
                 if energy[list(sensed)].sum() < EXCITATION_M2_S]
 
 
-def sensing_edges(scenario: Scenario) -> tuple[Index, Index]:
-    """``(tail, head)`` of every sensing edge (i measures its neighbour j)."""
-    tail, head = [], []
-    for i, a in enumerate(scenario.agents):
-        for nb in a.neighbours:
-            tail.append(i)
-            head.append(scenario.index[nb.name])
-    return np.array(tail, dtype=np.intp), np.array(head, dtype=np.intp)
-
-
 def edge_laplacian(tail: Index, head: Index, n: int) -> Array:
     """``L̄ = E Eᵀ`` (24, corrected: off-diagonals -1 or -2) of the sensing edges."""
     incidence = np.zeros((n, len(tail)))
@@ -499,7 +484,7 @@ def edge_laplacian(tail: Index, head: Index, n: int) -> Array:
 
 def pairs_and_sensed(scenario: Scenario) -> list[tuple[int, int, set[int]]]:
     """Every communication pair ``(a, b)``, ``a < b``, with the robots its edges sense."""
-    tail, head = sensing_edges(scenario)
+    tail, head = scenario.sensing_edges()
     pairs: dict[tuple[int, int], set[int]] = {}
     for i, j in zip(tail.tolist(), head.tolist()):
         pairs.setdefault((min(i, j), max(i, j)), set()).add(j)

@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from ..core.odometry import OdometryBuffer
 from .agent import AgentEstimator, Limits, StepInfo, TimedAgent, estimator_for
 from .agent import _vector_problem as _unit_problem
-from .base import Channel, Edges, Estimator, LinkInputs, StepInputs
+from .base import Channel, Edges, Estimator, LinkInputs, StepInputs, owns_pair
 
 if TYPE_CHECKING:
     from ..scenario.model import Scenario
@@ -144,7 +144,7 @@ class LinkAgentEstimator(TimedAgent):
         super().__init__(estimator, agent_id, step, R0, p0, t0=t0, gyro_horizon=gyro_horizon,
                          known_ids=known_ids, limits=limits)
         self.links = [Link(name, int(j), bool(s), bool(b),
-                           owns=bool(j > agent_id) if (s and b) else bool(s),
+                           owns=bool(owns_pair(agent_id, j, s, b)),
                            odometry=OdometryBuffer(t0, gyro_horizon))
                       for name, j, s, b in links]
         self._by_id = {link.agent_id: link for link in self.links}

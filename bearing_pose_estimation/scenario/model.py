@@ -246,6 +246,13 @@ class Scenario:
         """Agents that have ``name`` as a neighbour (they receive what it sends)."""
         return [a.name for a in self.agents if any(n.name == name for n in a.neighbours)]
 
+    def sensing_edges(self) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        """``(tail, head)`` agent indices of every sensing edge (agent i measures its
+        neighbour j), agents in order, each one's neighbours in order."""
+        edges = np.array([(i, self.index[nb.name]) for i, a in enumerate(self.agents)
+                          for nb in a.neighbours], dtype=np.intp).reshape(-1, 2)
+        return edges[:, 0].copy(), edges[:, 1].copy()
+
     def sensing_targets(self, name: str) -> list[str]:
         """Agents that ``name`` measures bearings to: its neighbours and its listeners
         (sensing is two-way on every edge)."""

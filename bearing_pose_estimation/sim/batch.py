@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.formation import formation_error
+from ..core.motion import yaw_of
 from ..estimators.base import Edges, LinkInputs, State, StepInputs, communication_links, route
 from ..scenario.model import Scenario, initial_estimates
 from ..studies.results import PoseErrors, Recording, pose_errors, to_world
@@ -181,7 +182,7 @@ class BatchSimulator(OnTruth):
     def step(self) -> None:
         """Advance truth and every estimator by one step ``h``."""
         if self.truth.control is not None and self.truth.control.mode == 'paper':
-            self.truth.controller_yaws = np.arctan2(self.x.R_hat[:, 1, 0], self.x.R_hat[:, 0, 0])
+            self.truth.controller_yaws = yaw_of(self.x.R_hat)
         inputs = self.inputs()
         self.truth.advance()
         self.x, _ = self.estimator.step(self.x, self.h, inputs,

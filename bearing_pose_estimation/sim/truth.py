@@ -59,12 +59,7 @@ class Truth:
         if self.control is not None and self._controlled.any():
             self._p_star = np.stack([a.formation_position if a.formation_position is not None
                                      else np.zeros(3) for a in agents])
-            tail, head = [], []
-            for i, a in enumerate(agents):
-                for nb in a.neighbours:
-                    tail.append(i)
-                    head.append(scenario.index[nb.name])
-            self._tail, self._head = np.array(tail, np.intp), np.array(head, np.intp)
+            self._tail, self._head = scenario.sensing_edges()
             self._control_every = max(1, int(round(1.0 / (self.control.rate * self.dt))))
         else:
             self.control = None

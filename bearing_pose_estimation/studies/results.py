@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core import so3
+from ..core.motion import rot_z, yaw_of
 from ..estimators.base import EstimateFrame
 
 Array = NDArray[np.float64]
@@ -42,15 +43,6 @@ class PoseErrors(NamedTuple):
     pos_err_paper: Array
 
 
-def _yaw(R: Array) -> Array:
-    return np.arctan2(R[..., 1, 0], R[..., 0, 0])
-
-
-def _rot_z(a: float) -> Array:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def to_world(frame: EstimateFrame, R: Array, p: Array, R_hat: Array, p_hat: Array,
              anchor: int | None = None) -> tuple[Array, Array]:
     """Estimates ``R_hat`` ``(N, 3, 3)``, ``p_hat`` ``(N, 3)`` of the whole fleet, expressed in
@@ -59,8 +51,8 @@ def to_world(frame: EstimateFrame, R: Array, p: Array, R_hat: Array, p_hat: Arra
     if frame is EstimateFrame.WORLD:
         return R_hat, p_hat
     if frame is EstimateFrame.COMMON_YAW_TRANSLATION:
-        a = float(np.angle(np.sum(np.exp(1j * (_yaw(R_hat) - _yaw(R))))))
-        Rz = _rot_z(a)
+        a = float(np.angle(np.sum(np.exp(1j * (yaw_of(R_hat) - yaw_of(R))))))
+        Rz = rot_z(np.array(a))
         t = np.mean(p_hat - p @ Rz.T, axis=0)
         return Rz.T @ R_hat, (p_hat - t) @ Rz
     if frame is EstimateFrame.ANCHOR_BODY:
