@@ -80,6 +80,14 @@ SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
 ESTIMATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.VOLATILE)
+# The estimate writer keeps its last 20 samples for readers that match late (transient local):
+# a recorder whose reader the writer discovers after t = 0 still receives the t = 0 estimate.
+# Volatile readers (neighbours, RViz, ESTIMATE_QOS) match it unchanged.
+ESTIMATE_PUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
+                              reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# The recorder's reader asks for that history.
+ESTIMATE_RECORD_QOS = ESTIMATE_PUB_QOS
 # Simulator outputs (sensors, truth, clock) are published reliably: on loopback nothing is lost
 # to a best-effort subscriber unless its queue overflows.
 SIM_PUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,

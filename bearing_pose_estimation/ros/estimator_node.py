@@ -216,7 +216,8 @@ class EstimatorNode(Node):
         self._stuck: tuple[int, float, float] | None = None
 
         qos_in, qos_est = wire.SENSOR_QOS, wire.ESTIMATE_QOS
-        self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE, qos_est)
+        self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE,
+                                                 wire.ESTIMATE_PUB_QOS)
         # The channels that need a message of their own (the others ride on the estimate).
         self.wires = {c.name: wire.channel(c.name) for c in self.method.sends}
         self.pub_channels = {name: (self.create_publisher(w.type, w.topic, qos_est), w.encode)

@@ -75,7 +75,7 @@ class MonitorNode(Node):
                                      partial(self._on_pose, self._truth, k), wire.SIM_PUB_QOS)
         for k, name in enumerate(self.followers):
             self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE),
-                                     partial(self._on_pose, self._est, k), wire.ESTIMATE_QOS)
+                                     partial(self._on_pose, self._est, k), wire.ESTIMATE_RECORD_QOS)
         # Ready once every subscription has matched its publisher on this side: the
         # simulator's graph view alone (someone subscribed) does not mean the writers know
         # this reader yet, and the first records would be lost.
