@@ -146,18 +146,34 @@ def test_roles_are_what_each_method_declares():
         leaders = data.pop('leaders')
         with pytest.raises(ScenarioError, match=r'anchor: .*needs one anchor.*Fix: add'):
             parse_scenario(data)
-        data['anchor'] = 'agent_9'
-        with pytest.raises(ScenarioError, match=r"anchor: 'agent_9' is not an agent"):
-            parse_scenario(data)
         data['anchor'] = 'agent_1'
+        with pytest.raises(ScenarioError, match=r'anchor: expected a mapping.*Fix:'):
+            parse_scenario(data)
+        data['anchor'] = {'agent': 'agent_9', 'ranged': ['agent_2', 'agent_3']}
+        with pytest.raises(ScenarioError, match=r"anchor\.agent: 'agent_9' is not an agent"):
+            parse_scenario(data)
+        data['anchor'] = {'agent': 'agent_1', 'ranged': ['agent_2', 'agent_2']}
+        with pytest.raises(ScenarioError, match=r'anchor\.ranged: expected two distinct.*Fix:'):
+            parse_scenario(data)
+        data['anchor'] = {'agent': 'agent_1', 'ranged': ['agent_2', 'agent_1']}
+        with pytest.raises(ScenarioError, match=r'anchor\.ranged\[1\]: .*other than the anchor'):
+            parse_scenario(data)
+        data['anchor'] = {'agent': 'agent_1', 'ranged': ['agent_2', 'agent_3'], 'pinned': 'no'}
+        with pytest.raises(ScenarioError, match=r'anchor\.pinned: expected true or false'):
+            parse_scenario(data)
+        data['anchor']['pinned'] = True
         s = parse_scenario(data)
         assert s.anchor == 'agent_1' and s.anchor_index == 0 and s.leaders == ()
+        assert s.ranged == ('agent_2', 'agent_3') and s.anchor_pinned
         assert [a.name for a in s.followers] == [f'agent_{k}' for k in range(2, 9)]
+        data['anchor']['pinned'] = False   # the anchor estimates its own pose too
+        assert [a.name for a in parse_scenario(data).followers] == [
+            f'agent_{k}' for k in range(1, 9)]
         data['leaders'] = leaders
         with pytest.raises(ScenarioError, match=r'leaders: .*has no leaders.*Fix: remove'):
             parse_scenario(data)
         paper = yaml.safe_load(PAPER.read_text())
-        paper['anchor'] = 'agent_1'
+        paper['anchor'] = {'agent': 'agent_1', 'ranged': ['agent_2', 'agent_3']}
         with pytest.raises(ScenarioError, match=r'anchor: Boughellaba & Tayebi has no anchor'):
             parse_scenario(paper)
     finally:

@@ -118,3 +118,13 @@ def test_quaternion_conversions_match_scipy():
         np.testing.assert_allclose(q, ref, atol=1e-12)
         np.testing.assert_allclose(so3.from_quat(q), R, atol=1e-14)
         np.testing.assert_allclose(so3.from_quat(3.0 * q), R, atol=1e-14)  # normalises
+
+
+def test_log_small_is_log_to_rounding_at_every_angle():
+    rng = np.random.default_rng(0)
+    for angle in (0.0, 1e-9, 1e-5, 1e-3, 0.1, 1.0, 2.9, 3.1, np.pi):
+        phi = rng.normal(size=(50, 3))
+        phi *= angle / np.linalg.norm(phi, axis=1, keepdims=True)
+        R = so3.exp(phi)
+        np.testing.assert_allclose(so3.log_small(R), so3.log(R), rtol=0,
+                                   atol=1e-15 * max(angle, 1.0) + (1e-8 if angle > 3 else 0))

@@ -325,6 +325,9 @@ def _refuse_paper_mode_over_dds(scenario: Scenario) -> None:
         raise ScenarioError(f'{scenario.source}: formation_control.mode is paper (the '
                             'controller uses the estimated yaws), which a simulator node '
                             'cannot run. Fix: pass --formation-mode exogenous (the true yaws)')
+    problem = scenario.not_distributable()
+    if problem:
+        raise ScenarioError(f'{scenario.source}: {problem}')
 
 
 def cmd_run(args: argparse.Namespace) -> int:

@@ -70,9 +70,11 @@ ZERO = VectorProfile()
 @dataclass(frozen=True)
 class LinearVelocity:
     """The translational velocity of one agent [m/s]: ``value`` in the world frame
-    (``dp/dt = v``) or in the body frame (``dp/dt = R v``)."""
+    (``dp/dt = v``), in the body frame (``dp/dt = R v``), or ``anchor_estimate``: a velocity
+    wanted in the anchor's body frame that the agent applies through its own attitude estimate,
+    ``u = Q̂ᵀ v`` (Presenza et al., Sec. V, case 2: the truth depends on the estimates)."""
 
-    frame: Literal['world', 'body'] = 'world'
+    frame: Literal['world', 'body', 'anchor_estimate'] = 'world'
     value: VectorProfile = ZERO
 
 
@@ -162,6 +164,19 @@ def body_displacement(omega: ProfileSet, v_body: ProfileSet, t: float,
         tau = node * h
         dR = magnus_increment(omega, t, tau)
         out += (weight * h) * np.einsum('nab,nb->na', dR, v_body(t + tau))
+    return out
+
+
+def held_body_displacement(omega: ProfileSet, t: float, h: float,
+                           u: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``∫_0^h ΔR(τ) dτ · u`` ``(N, 3)``: the displacement over ``[t, t+h]`` of agents whose
+    body-frame velocity ``u`` ``(N, 3)`` is held, in their body frame at t (3-point
+    Gauss-Legendre with the Magnus increment to each node, as :func:`body_displacement`)."""
+    if omega.is_zero:
+        return h * u
+    out = np.zeros_like(u)
+    for node, weight in zip(_GL3_NODES, _GL3_WEIGHTS):
+        out += (weight * h) * np.einsum('nab,nb->na', magnus_increment(omega, t, node * h), u)
     return out
 
 

@@ -12,9 +12,11 @@ from ..core.errors import ScenarioError
 from .base import Estimator
 from .boughellaba_tayebi import BoughellabaTayebi
 from .de_carli import DeCarli
+from .presenza import Presenza
 from .tran_anderson_ahn import TranAndersonAhn
 
-_BUILT_IN: tuple[type[Estimator], ...] = (BoughellabaTayebi, TranAndersonAhn, DeCarli)
+_BUILT_IN: tuple[type[Estimator], ...] = (BoughellabaTayebi, TranAndersonAhn, DeCarli,
+                                        Presenza)
 _REGISTRY: dict[str, type[Estimator]] = {}
 # The method of a scenario that names none, and of an estimator node without a scenario file.
 DEFAULT_METHOD = BoughellabaTayebi.method

@@ -93,8 +93,10 @@ class Channel:
     in; ``unit`` values are unit vectors (validated on reception); ``sensor``: the value is
     j's own measurement of i by that sensor, which travels on j's sensor topic (a node pairs it
     at its instant like its own measurements); ``owner_only``: a per-edge value only the owner
-    of the pair's shared state sends (a receiver that owns the pair expects none). The wire
-    encoding of each channel name lives in ``msg_defs``."""
+    of the pair's shared state sends (a receiver that owns the pair expects none); ``round``
+    2: formed from what the sender received in round 1 of the same step
+    (:meth:`Estimator.reply`, two-round methods). The wire encoding of each channel name lives
+    in ``msg_defs``."""
 
     name: str
     per: Literal['agent', 'edge']
@@ -104,6 +106,7 @@ class Channel:
     doc: str = ''
     sensor: Sensor | None = None
     owner_only: bool = False
+    round: int = 1
 
 
 # ----------------------------------------------------------------------------- gains
@@ -277,6 +280,28 @@ class LinkInputs:
 
 
 @dataclass(frozen=True)
+class AnchorInputs:
+    """What the step of a method with an anchor (``roles.anchor``) knows of it: per agent,
+    ``is_anchor`` ``(N,)`` and the anchor's gyro increment and odometry displacement over the
+    step as every robot receives them (``delta_R`` ``(N, 3, 3)``, ``displacement`` ``(N, 3)``,
+    in the anchor's body frame at the step's start); per edge ``i → j``, ``ranges`` ``(E,)``:
+    i is the anchor and measures j's relative position (j is a ranged robot), ``ranged_by``
+    ``(E,)``: j is the anchor and ranges i; ``pinned``: the anchor holds ``(I, 0)``."""
+
+    is_anchor: NDArray[np.bool_]
+    delta_R: Array
+    displacement: Array
+    ranges: NDArray[np.bool_]
+    ranged_by: NDArray[np.bool_]
+    pinned: bool = False
+
+    def rows(self, i: int, sel: Index) -> AnchorInputs:
+        return AnchorInputs(self.is_anchor[i:i + 1], self.delta_R[i:i + 1],
+                            self.displacement[i:i + 1], self.ranges[sel], self.ranged_by[sel],
+                            self.pinned)
+
+
+@dataclass(frozen=True)
 class StepInputs:
     """What one step consumes for N agents and their E sensing edges, all at the step's start
     time t (own bearings already rotated to t, neighbours' values as they sent them).
@@ -307,6 +332,8 @@ class StepInputs:
     p_own: Array | None = None          # (E, 3) the owner's p̂_i at the received stamp [m]
     links: LinkInputs | None = None     # links = 'communication' methods only
     t: float = 0.0                      # the step's start time [s] (multirate methods)
+    bearing_rates: Array | None = None  # (E, 3) own d/dt b^i_ij (body frame) [1/s]
+    anchor: AnchorInputs | None = None  # methods with an anchor only
 
     def agent(self, i: int) -> StepInputs:
         """The inputs of agent ``i`` alone (``n_agents = 1``): what its node would pass."""
@@ -320,7 +347,10 @@ class StepInputs:
                           received={c: v[sel] for c, v in self.received.items()},
                           displacement=(None if self.displacement is None
                                         else self.displacement[i:i + 1]),
-                          p_own=None if self.p_own is None else self.p_own[sel])
+                          p_own=None if self.p_own is None else self.p_own[sel],
+                          bearing_rates=(None if self.bearing_rates is None
+                                         else self.bearing_rates[sel]),
+                          anchor=None if self.anchor is None else self.anchor.rows(i, sel))
 
 
 # ----------------------------------------------------------------------------- findings
@@ -345,6 +375,7 @@ class CheckReport:
     findings: list[Finding] = field(default_factory=list)
     spectra: dict[str, Array] = field(default_factory=dict)  # ascending eigenvalues per agent
     spectra_of: str = ''    # which matrix, e.g. 'M_i = Σ_j k_ij b_ij b_ijᵀ'
+    margins: dict[str, float] = field(default_factory=dict)   # fleet-wide numbers, by name
 
     @property
     def errors(self) -> list[Finding]:
@@ -367,6 +398,9 @@ class CheckReport:
                     lines.append(f'  ... {len(self.spectra) - max_spectra} more')
                     break
                 lines.append(f'  {name}: {{{", ".join(f"{e:.4g}" for e in eig)}}}')
+        if self.margins:
+            lines.append('margins:')
+            lines += [f'  {name}: {value:.4g}' for name, value in self.margins.items()]
         return '\n'.join(lines)
 
 
@@ -391,6 +425,11 @@ class Estimator(ABC, Generic[G, S]):
     # per communication neighbour, both ways (StepInputs.links).
     links: ClassVar[Literal['sensing', 'communication']] = 'sensing'
     reference_scenario: ClassVar[str]      # the file in config/ with the paper's simulation
+    # How far the truth drifts from a fixed point of the step when the fleet moves, over 300
+    # steps of the reference scenario [m, rad]: 0 up to rounding for methods that dead-reckon
+    # with the exact odometry increments; first-order methods (Presenza et al.'s free robots
+    # move with the velocity reconstructed at the step's start) set their own.
+    moving_fixed_point_atol: ClassVar[float] = 1e-12
 
     def __init__(self, gains: G) -> None:
         self.gains = gains
@@ -440,6 +479,16 @@ class Estimator(ABC, Generic[G, S]):
         diagnostics (``'innovation'``: what drove the correction, ``(N, 3)``).
         ``reorthonormalize``: pull rotations back onto SO(3) (the batch simulator does it every
         few steps only)."""
+
+    # 2: every step exchanges two rounds of messages, what ``outbox`` forms and then what
+    # ``reply`` forms from the first round (channels with ``round = 2``).
+    rounds: ClassVar[int] = 1
+
+    def reply(self, x: S, h: float, inputs: StepInputs) -> dict[str, Array]:
+        """Two-round methods: the round-2 channels, per edge ``(E, ...)``, that each edge's
+        agent sends the edge's other end, formed from its state, its own measurements and the
+        round-1 values it received (``inputs`` as :meth:`step` gets them, without round 2)."""
+        raise NotImplementedError(f'{self.method} exchanges one round of messages')
 
     def due(self, channel: str, t: float, h: float) -> bool:
         """The step at ``t`` reads ``channel`` (multirate methods read some only at their
@@ -500,17 +549,20 @@ def owns_pair(i: Any, j: Any, senses: Any, sensed_by: Any) -> Any:
     return np.where(np.logical_and(senses, sensed_by), np.less(i, j), senses)
 
 
-def communication_links(tail: Index, head: Index, n: int) -> dict[str, NDArray[Any]]:
+def communication_links(tail: Index, head: Index, n: int,
+                        also: Sequence[tuple[int, int]] = ()) -> dict[str, NDArray[Any]]:
     """The links of ``links = 'communication'`` methods from the sensing edges ``tail → head``
-    of ``n`` agents: one per communication neighbour j of each agent i, grouped by agent, j
+    of ``n`` agents (and the pairs ``also``, e.g. the anchor's ranged robots, linked without
+    sensing): one per communication neighbour j of each agent i, grouped by agent, j
     ascending: ``agent``, ``other``, ``senses`` (i senses j), ``sensed_by`` (j senses i),
     ``owns`` (i keeps the pair's shared state: the sensing agent of a one-way pair, the lower
     index of a two-way one) and ``reverse`` (the index of the link j → i)."""
     sensed = set(zip(np.asarray(tail).tolist(), np.asarray(head).tolist()))
+    linked = sensed | {(int(i), int(j)) for i, j in also}
     agent: list[int] = []
     other: list[int] = []
     for i in range(n):
-        for j in sorted({b for a, b in sensed if a == i} | {a for a, b in sensed if b == i}):
+        for j in sorted({b for a, b in linked if a == i} | {a for a, b in linked if b == i}):
             agent.append(i)
             other.append(j)
     agent_a, other_a = np.array(agent, dtype=np.intp), np.array(other, dtype=np.intp)

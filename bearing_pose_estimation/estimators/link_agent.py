@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core.errors import ScenarioError
 from ..core.odometry import OdometryBuffer
 from .agent import AgentEstimator, Limits, StepInfo, TimedAgent, estimator_for
 from .agent import _vector_problem as _unit_problem
@@ -538,6 +539,9 @@ def agent_for(scenario: Scenario, name: str, limits: Limits = Limits(),
               initial: tuple[Array, Array] | None = None) -> AgentEstimator | LinkAgentEstimator:
     """The agent logic of ``name`` for the scenario's method: :class:`LinkAgentEstimator` for
     ``links = 'communication'`` methods, :class:`agent.AgentEstimator` for the others."""
+    problem = scenario.not_distributable()
+    if problem:
+        raise ScenarioError(f'{scenario.source}: {problem}')
     if scenario.estimator().links == 'communication':
         return link_estimator_for(scenario, name, limits, initial)
     return estimator_for(scenario, name, limits, initial)

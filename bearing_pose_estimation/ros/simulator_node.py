@@ -76,6 +76,9 @@ class SimulatorNode(Node):
                                 'the estimated yaws) needs the estimates inside the truth, '
                                 'which a simulator node cannot have. Fix: mode: exogenous (or '
                                 'bearing-pose run --formation-mode exogenous)')
+        problem = s.not_distributable()
+        if problem:
+            raise ScenarioError(f'{s.source}: {problem}')
         self.world = World(s)
         self.monitor_watches = set(watched(s))   # the agents whose truth the monitor reads
         self.names = [a.name for a in s.agents]

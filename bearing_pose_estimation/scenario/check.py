@@ -64,7 +64,7 @@ def sample_truth(scenario: Scenario, step: float = SAMPLE_STEP_S) -> tuple[Array
     coarse = max(step, scenario.duration * n / MAX_AGENT_SAMPLES)
     n_samples = max(1, math.ceil(scenario.duration / coarse - 1e-9))
     h = scenario.duration / n_samples
-    body = any(a.velocity is not None and a.velocity.frame == 'body'
+    body = any(a.velocity is not None and a.velocity.frame != 'world'
                and not a.velocity.value.is_zero for a in scenario.agents)
     sub = max(1, math.ceil(h / step - 1e-9)) if body else 1
     truth = Truth(scenario, h / sub)

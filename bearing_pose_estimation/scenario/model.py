@@ -157,6 +157,8 @@ class Scenario:
     agents: tuple[Agent, ...]
     leaders: tuple[str, ...]
     anchor: str | None = None   # the agent whose body frame the estimates use (anchor methods)
+    ranged: tuple[str, ...] = ()   # the agents whose relative position the anchor measures
+    anchor_pinned: bool = False    # the anchor holds (I, 0) instead of estimating its pose
     method: str = estimators.DEFAULT_METHOD   # the registry key (`estimators.methods()`)
     gains: Any = None          # the method's own Gains dataclass; None: its defaults
     description: str = ''
@@ -198,9 +200,9 @@ class Scenario:
 
     @property
     def followers(self) -> tuple[Agent, ...]:
-        """The agents that estimate their pose: all but the leaders and the anchor."""
-        return tuple(a for a in self.agents
-                     if a.name not in self.leaders and a.name != self.anchor)
+        """The agents that estimate their pose: all but the leaders and a pinned anchor."""
+        return tuple(a for a in self.agents if a.name not in self.leaders
+                     and not (a.name == self.anchor and self.anchor_pinned))
 
     @property
     def anchor_index(self) -> int | None:
@@ -235,6 +237,22 @@ class Scenario:
         return (sensor in self.sensors.listed or sensor in needs
                 or (sensor == 'odometry' and self.moves))
 
+    def not_distributable(self) -> str | None:
+        """Why the nodes (and netsim) cannot run this scenario, with the fix; None if they
+        can. (Formation control's paper mode is refused where it is chosen.)"""
+        cls = estimators.get(self.method)
+        if cls.rounds == 2:
+            return (f'{cls.title} exchange two rounds of messages per step, which the '
+                    'estimator node does not do yet (issue 13). Fix: run it with '
+                    '`bearing-pose simulate` (the batch simulator)')
+        closed = [a.name for a in self.agents
+                  if a.velocity is not None and a.velocity.frame == 'anchor_estimate']
+        if closed:
+            return (f'{closed[0]}.velocity is anchor_estimate: the command goes through the '
+                    'robot\'s attitude estimate, which a simulator node cannot see. Fix: run '
+                    'it with `bearing-pose simulate`, or give the velocity in the body frame')
+        return None
+
     def agent(self, name: str) -> Agent:
         return self.agents[self.index[name]]
 
@@ -260,17 +278,32 @@ class Scenario:
         return sorted(targets, key=self.index.__getitem__)
 
 
-def initial_estimates(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``(R̂(0) (N,3,3), p̂(0) (N,3))`` for all agents: leaders exact, followers explicit or
-    drawn from the scenario's seeded ``initial_estimates.random`` block."""
-    n = len(scenario.agents)
+def initial_truth(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The true poses at t = 0 in the method's estimate frame, ``(R (N,3,3), p (N,3))``: the
+    world frame, or the anchor's body frame (``Q_i = R_aᵀ R_i``, ``q_i = R_aᵀ (p_i - p_a)``)
+    for methods with an anchor."""
     R0 = np.stack([a.attitude for a in scenario.agents])
     p0 = np.stack([a.position for a in scenario.agents])
+    if scenario.anchor is not None:
+        a = scenario.index[scenario.anchor]
+        Ra, pa = R0[a].copy(), p0[a].copy()
+        R0 = np.einsum('ba,nbc->nac', Ra, R0)
+        p0 = (p0 - pa) @ Ra
+    return R0, p0
+
+
+def initial_estimates(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(R̂(0) (N,3,3), p̂(0) (N,3))`` for all agents, in the method's estimate frame
+    (:func:`initial_truth`): leaders exact, the anchor at ``(I, 0)`` unless given, followers
+    explicit or drawn from the scenario's seeded ``initial_estimates.random`` block."""
+    n = len(scenario.agents)
+    R0, p0 = initial_truth(scenario)
     ri = scenario.random_init
     rng = np.random.default_rng(ri.seed if ri else 0)
     for i, a in enumerate(scenario.agents):
         if a.name in scenario.leaders or (a.name == scenario.anchor
-                                          and a.initial_position is None):
+                                          and (a.initial_position is None
+                                               or scenario.anchor_pinned)):
             continue
         if a.initial_position is not None:
             p0[i], R0[i] = a.initial_position, a.initial_attitude
@@ -279,7 +312,7 @@ def initial_estimates(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[
             u = rng.normal(size=3)
             u /= np.linalg.norm(u)
             theta = np.radians(ri.max_angle_deg) * rng.uniform()
-            R0[i] = a.attitude @ so3.exp(theta * u)
-            p0[i] = a.position + ri.position_std * rng.normal(size=3)
+            R0[i] = R0[i] @ so3.exp(theta * u)
+            p0[i] = p0[i] + ri.position_std * rng.normal(size=3)
     assert R0.shape == (n, 3, 3)
     return R0, p0

@@ -166,15 +166,36 @@ def _angular_velocity(ctx: _Ctx, value: Any, where: str) -> AngularVelocity:
 
 
 def _velocity(ctx: _Ctx, value: Any, where: str) -> LinearVelocity:
-    """``{world: [x, y, z]}`` (dp/dt = v) or ``{body: [x, y, z]}`` (dp/dt = R v) [m/s]."""
-    m = _mapping(ctx, value, where, {'world', 'body'})
+    """``{world: [x, y, z]}`` (dp/dt = v), ``{body: [x, y, z]}`` (dp/dt = R v) or
+    ``{anchor_estimate: [x, y, z]}`` (a velocity v wanted in the anchor's frame, applied as the
+    body command ``u = Q̂ᵀ v`` with the agent's own attitude estimate) [m/s]."""
+    m = _mapping(ctx, value, where, {'world', 'body', 'anchor_estimate'})
     if len(m) != 1:
-        raise ctx.fail(where, 'give the velocity in exactly one frame, `world` or `body`',
+        raise ctx.fail(where, 'give the velocity in exactly one frame, `world`, `body` or '
+                       '`anchor_estimate`',
                        'write e.g. {world: [0.3, 0, {sin: 0.5, amplitude: 0.1}]} or '
                        '{body: [1, 0, 0]}')
-    if 'world' in m:
-        return LinearVelocity(frame='world', value=_profile(ctx, m['world'], f'{where}.world'))
-    return LinearVelocity(frame='body', value=_profile(ctx, m['body'], f'{where}.body'))
+    (frame, raw), = m.items()
+    return LinearVelocity(frame=frame, value=_profile(ctx, raw, f'{where}.{frame}'))
+
+
+def _anchor(ctx: _Ctx, value: Any) -> tuple[str, tuple[str, ...], bool]:
+    """``{agent: agent_1, ranged: [agent_2, agent_3], pinned: false}``: the anchor, the two
+    agents whose relative position (bearing and range) it measures, and whether it holds
+    ``(I, 0)`` instead of estimating its own pose."""
+    m = _mapping(ctx, value, 'anchor', {'agent', 'ranged', 'pinned'}, {'agent', 'ranged'})
+    agent = _string(ctx, m['agent'], 'anchor.agent')
+    ranged = m['ranged']
+    if (not isinstance(ranged, list) or len(ranged) != 2
+            or not all(isinstance(r, str) for r in ranged) or ranged[0] == ranged[1]):
+        raise ctx.fail('anchor.ranged', f'expected two distinct agent names, got {ranged!r}',
+                       'name the two agents the anchor measures bearing and range to, e.g. '
+                       '`ranged: [agent_2, agent_3]`')
+    pinned = m.get('pinned', False)
+    if not isinstance(pinned, bool):
+        raise ctx.fail('anchor.pinned', f'expected true or false, got {pinned!r}',
+                       'write `pinned: false` (the anchor estimates its pose) or `true`')
+    return agent, (ranged[0], ranged[1]), pinned
 
 
 def _numbers(ctx: _Ctx, value: Any, where: str, minimum: int) -> tuple[float, ...]:
@@ -394,10 +415,12 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
                        'remove `leaders`')
     if cls.roles.anchor != ('anchor' in top):
         raise (ctx.fail('anchor', f'{cls.title} needs one anchor, the agent whose body frame '
-                        'the estimates are expressed in', 'add e.g. `anchor: agent_1`')
+                         'the estimates are expressed in', 'add e.g. `anchor: {agent: agent_1, '
+                        'ranged: [agent_2, agent_3]}`')
                if cls.roles.anchor else
                ctx.fail('anchor', f'{cls.title} has no anchor', 'remove `anchor`'))
-    anchor = _string(ctx, top['anchor'], 'anchor') if cls.roles.anchor else None
+    anchor, ranged, pinned = (_anchor(ctx, top['anchor']) if cls.roles.anchor
+                              else (None, (), False))
     if (not isinstance(leaders, list) or len(leaders) != n_leaders
             or not all(isinstance(x, str) for x in leaders) or len(set(leaders)) != n_leaders):
         example = ', '.join(f'agent_{k + 1}' for k in range(n_leaders))
@@ -496,8 +519,17 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
         raise ctx.fail('formation_control', 'the formation controller steers yaw-only robots',
                        'give every agent a `yaw: {values: [...]}` spline')
     if anchor is not None and anchor not in seen:
-        raise ctx.fail('anchor', f'{anchor!r} is not an agent',
+        raise ctx.fail('anchor.agent', f'{anchor!r} is not an agent',
                        f'use a name from `agents` ({", ".join(list(seen)[:5])}, ...)')
+    for k, rname in enumerate(ranged):
+        if rname not in seen or rname == anchor:
+            raise ctx.fail(f'anchor.ranged[{k}]', f'{rname!r} is not an agent other than the '
+                           'anchor', 'name two other agents from `agents`')
+    for idx, a in enumerate(agents):
+        if (a.velocity is not None and a.velocity.frame == 'anchor_estimate'
+                and anchor is None):
+            raise ctx.fail(f'agents[{idx}] ({a.name}).velocity.anchor_estimate', 'there is no '
+                           'anchor frame', 'give it in the world or body frame')
     for lname in leaders:
         if lname not in seen:
             raise ctx.fail('leaders', f'{lname!r} is not an agent',
@@ -514,6 +546,7 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
                 raise ctx.fail(w, f'{nb.name!r} is listed twice', 'list each neighbour once')
 
     return Scenario(name=name, agents=tuple(agents), leaders=tuple(leaders), anchor=anchor,
+                    ranged=ranged, anchor_pinned=pinned,
                     method=method,
                     gains=gains, description=str(top.get('description', '')),
                     frequency=frequency, publish_rate=publish_rate, duration=duration,

@@ -25,9 +25,18 @@ senses, what each neighbour sends formed from its state and its own measurement 
 formation controller's ``paper`` mode the truth moves with the estimated yaws (a closed loop).
 Their recordings add each pair's error (:meth:`Estimator.edge_errors`) and, under formation
 control, each robot's formation error (:func:`core.formation.formation_error`).
+
+Two-round methods (``rounds = 2``, Presenza et al.) step over the same links, the anchor's
+ranged robots linked too: own bearings and bearing rates of the robots each senses (directed
+sensing), the round-1 channels (:meth:`Estimator.outbox`; the anchor's relative positions of
+its ranged robots), then the round-2 channels each robot forms from them
+(:meth:`Estimator.reply`), and the anchor's gyro increment and odometry for every robot
+(:class:`estimators.base.AnchorInputs`). Agents with ``anchor_estimate`` velocities move with
+the commands their estimates give (:meth:`sim.truth.Truth.command`, a closed loop).
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import numpy as np
@@ -35,7 +44,8 @@ from numpy.typing import NDArray
 
 from ..core.formation import formation_error
 from ..core.motion import yaw_of
-from ..estimators.base import Edges, LinkInputs, State, StepInputs, communication_links, route
+from ..estimators.base import (AnchorInputs, Edges, EstimateFrame, LinkInputs, State, StepInputs,
+                               communication_links, route)
 from ..scenario.model import Scenario, initial_estimates
 from ..studies.results import PoseErrors, Recording, pose_errors, to_world
 from .noise import NoiseModel
@@ -70,9 +80,12 @@ class BatchSimulator(OnTruth):
                 nbr.append(scenario.index[nb.name])
                 k.append(nb.k)
         self.links = None
+        anchor = scenario.anchor_index
+        self._ranged = ([(anchor, scenario.index[r]) for r in scenario.ranged]
+                        if anchor is not None else [])
         if self.estimator.links == 'communication':
             self.links = communication_links(np.array(owner, np.intp), np.array(nbr, np.intp),
-                                             self.n)
+                                             self.n, also=self._ranged)
             owner, nbr = list(self.links['agent']), list(self.links['other'])
             k = [1.0] * len(owner)
         self.edge_nbr = np.array(nbr, dtype=np.intp)
@@ -104,6 +117,15 @@ class BatchSimulator(OnTruth):
     def p_hat(self, value: Array) -> None:
         self.x.p_hat = np.array(value, dtype=float)
 
+    def true_estimates(self) -> tuple[Array, Array]:
+        """The true poses now in the method's estimate frame, ``(R (N,3,3), p (N,3))``: the
+        world's, or the anchor's body frame for methods with an anchor."""
+        a = self.scenario.anchor_index
+        if a is None or self.estimator.frame is not EstimateFrame.ANCHOR_BODY:
+            return self.R.copy(), self.p.copy()
+        Ra = self.R[a]
+        return np.einsum('ba,nbc->nac', Ra, self.R), (self.p - self.p[a]) @ Ra
+
     def reset(self) -> None:
         """Back to t = 0: true attitudes, the scenario's initial estimates, and the noise
         generators (and gyro biases) re-seeded, so a run after reset repeats exactly."""
@@ -113,6 +135,8 @@ class BatchSimulator(OnTruth):
 
     def inputs(self) -> StepInputs:
         """What every agent's next step consumes, measured now (noise drawn)."""
+        if self.estimator.rounds == 2:
+            return self.two_round_inputs()
         if self.links is not None:
             return self.link_inputs()
         b_world = (self._ends_b_world if self._ends_b_world is not None
@@ -155,6 +179,57 @@ class BatchSimulator(OnTruth):
                           received=route(sent, self.estimator.sends, other),
                           displacement=displacement, links=links, t=self.t)
 
+    def two_round_inputs(self) -> StepInputs:
+        """:meth:`inputs` of a two-round method (module docstring)."""
+        assert self.links is not None
+        agent, other = self.edges.agent, self.edge_nbr
+        senses, sensed_by = self.links['senses'], self.links['sensed_by']
+        pairs = set(self._ranged)
+        ranges = np.array([(int(i), int(j)) in pairs for i, j in zip(agent, other)], bool)
+        ranged_by = ranges[self.links['reverse']]
+        sensing = np.flatnonzero(senses)
+        bearings = np.zeros((len(agent), 3))
+        rates = np.zeros((len(agent), 3))
+        if len(sensing):
+            owner, target = agent[sensing], other[sensing]
+            b = self.truth.body_bearings(owner, self.truth.world_bearings(owner, target))
+            bearings[sensing] = self.noise.bearings(b, self.t)
+            rates[sensing] = self.noise.sensor('bearing_rates',
+                                               self.truth.bearing_rates(owner, target))
+        # The anchor's measurement of each ranged robot, on the anchor → robot link.
+        measured = np.zeros((len(agent), 3))
+        if ranged_by.any():
+            theirs = np.flatnonzero(ranged_by)
+            measured[theirs] = self.noise.sensor('relative_positions',
+                                                 self.truth.relative_positions(
+                                                     other[theirs], agent[theirs]))
+        assert self.edges.slot is not None
+        sent = self.estimator.outbox(self.x, other, measured,
+                                     slot=self.edges.slot[self.links['reverse']])
+        delta_R = self.gyro_increment(self.truth.increment())
+        samples = self.h * self.scenario.sensors.odometry.rate
+        displacement = self.noise.odometry_displacement(self.truth.displacement(), self.h,
+                                                        samples)
+        a = self.scenario.anchor_index
+        assert a is not None
+        is_anchor = np.arange(self.n) == a
+        anchor = AnchorInputs(is_anchor=is_anchor, delta_R=np.repeat(delta_R[a:a + 1], self.n, 0),
+                              displacement=np.repeat(displacement[a:a + 1], self.n, 0),
+                              ranges=ranges, ranged_by=ranged_by,
+                              pinned=self.scenario.anchor_pinned)
+        links = LinkInputs(senses=senses, sensed_by=sensed_by, owns=self.links['owns'],
+                           relative_positions=np.zeros((len(agent), 3)),
+                           other_delta_R=delta_R[other], other_displacement=displacement[other])
+        first = [c for c in self.estimator.sends if c.round == 1]
+        inputs = StepInputs(delta_R=delta_R, edges=self.edges, bearings=bearings,
+                            received=route(sent, first, other), displacement=displacement,
+                            links=links, t=self.t, bearing_rates=rates, anchor=anchor)
+        second = self.estimator.reply(self.x, self.h, inputs)
+        reverse = self.links['reverse']
+        received = dict(inputs.received)
+        received.update({name: v[reverse] for name, v in second.items()})
+        return dataclasses.replace(inputs, received=received)
+
     def extra_errors(self) -> dict[str, float]:
         """The recording's columns beyond the pose errors, now: each pair's error (one
         column per owned link, ``<label>_<a>_<b>``) and, under formation control, each robot's
@@ -183,6 +258,8 @@ class BatchSimulator(OnTruth):
         """Advance truth and every estimator by one step ``h``."""
         if self.truth.control is not None and self.truth.control.mode == 'paper':
             self.truth.controller_yaws = yaw_of(self.x.R_hat)
+        if not self.truth.v_anchor.is_zero:   # u_i = Q̂_iᵀ v_i(t), held over the step
+            self.truth.command(self.x.R_hat)
         inputs = self.inputs()
         self.truth.advance()
         self.x, _ = self.estimator.step(self.x, self.h, inputs,

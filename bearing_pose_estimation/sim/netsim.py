@@ -321,6 +321,9 @@ class _Network:
             raise ScenarioError(f'{scenario.source}: formation_control.mode: paper needs the '
                                 'estimates inside the truth; netsim\'s world, like the '
                                 'simulator node, cannot have them. Fix: mode: exogenous')
+        problem = scenario.not_distributable()
+        if problem:
+            raise ScenarioError(f'{scenario.source}: {problem}')
         self.world = World(scenario)
         self.rng = np.random.default_rng(links.seed)
         estimator = scenario.estimator()

@@ -14,6 +14,12 @@ the note's §7); the displacement of a held velocity is integrated by 3-point Ga
 In the ``paper`` mode the controller uses the estimated yaws: the batch simulator sets
 :attr:`Truth.controller_yaws` before each step (unset, the true yaws are used).
 
+Agents with an ``anchor_estimate`` velocity (Presenza et al., case 2) apply the body command
+``u_i = Q̂_iᵀ v_i(t)`` with their attitude estimate ``Q̂_i`` in the anchor frame, evaluated at
+the step's start and held over it: the batch simulator calls :meth:`Truth.command` with the
+estimates before each step (otherwise the true ``Q_i = R_aᵀ R_i`` are used, the loop once
+converged).
+
 The sensors are defined from it (:meth:`Truth.body_bearings` and the methods below):
 bearings ``b^i_ij = R_iᵀ (p_j - p_i)/‖p_j - p_i‖``, relative positions
 ``ⁱp_ij = R_iᵀ (p_j - p_i)``, ranges ``‖p_j - p_i‖``, bearing rates ``d b^i_ij/dt``, and
@@ -26,8 +32,8 @@ from numpy.typing import NDArray
 
 from ..core import so3
 from ..core import formation
-from ..core.motion import (ZERO, ProfileSet, YawSplines, body_displacement, magnus_increment,
-                           rot_z)
+from ..core.motion import (ZERO, ProfileSet, YawSplines, body_displacement,
+                           held_body_displacement, magnus_increment, rot_z)
 from ..scenario.model import Scenario
 
 Array = NDArray[np.float64]
@@ -52,6 +58,8 @@ class Truth:
                                and a.velocity.frame == frame else ZERO for a in agents])
 
         self.v_world, self.v_body = velocities('world'), velocities('body')
+        self.v_anchor = velocities('anchor_estimate')   # u_i = Q̂_iᵀ v_i(t), held per step
+        self.anchor = scenario.anchor_index
         self.yaws = (YawSplines([a.yaw for a in agents if a.yaw is not None])
                      if scenario.yaw_only else None)   # the parser: all agents or none
         self.control = scenario.formation
@@ -63,7 +71,8 @@ class Truth:
             self._control_every = max(1, int(round(1.0 / (self.control.rate * self.dt))))
         else:
             self.control = None
-        self.moves = not (self.v_world.is_zero and self.v_body.is_zero) or self.control is not None
+        self.moves = (not (self.v_world.is_zero and self.v_body.is_zero and self.v_anchor.is_zero)
+                      or self.control is not None)
         # The yaws the controller uses (paper mode: the estimates); None: the true yaws.
         self.controller_yaws: Array | None = None
         # Constant rates (common in generated fleets): the increment never changes.
@@ -80,6 +89,8 @@ class Truth:
         self._next_delta: tuple[int, Array] | None = None  # the displacement from step k
         self.v_control = np.zeros_like(self.p)   # the controller's held body velocities
         self.controller_yaws = None
+        self.u_command = np.zeros_like(self.p)   # anchor_estimate agents' held body commands
+        self._commanded_at = -1                  # the step whose commands are set
 
     @property
     def t(self) -> float:
@@ -110,6 +121,8 @@ class Truth:
             delta = np.einsum('nba,nb->na', self.R, self.v_world.integral(self.t, self.dt))
             if not self.v_body.is_zero:
                 delta += body_displacement(self.omega, self.v_body, self.t, self.dt)
+            if not self.v_anchor.is_zero:
+                delta += held_body_displacement(self.omega, self.t, self.dt, self.commands())
             if self.control is not None:
                 if self.k % self._control_every == 0:
                     self.v_control = self.controller_velocity()
@@ -129,6 +142,23 @@ class Truth:
         return formation.body_velocity(self.p, used, psi, self._p_star, self._tail,
                                        self._head, self.control.k_c, self.control.nu_max,
                                        self._controlled)
+
+    def command(self, Q_hat: Array | None = None) -> None:
+        """Set the held body commands of the ``anchor_estimate`` agents for the step from
+        now, ``u_i = Q̂_iᵀ v_i(t)``, with the attitude estimates ``Q_hat`` ``(N, 3, 3)`` in
+        the anchor frame (None: the true ``R_aᵀ R_i``)."""
+        if Q_hat is None:
+            assert self.anchor is not None
+            Q_hat = np.einsum('ba,nbc->nac', self.R[self.anchor], self.R)
+        self.u_command = np.einsum('nba,nb->na', Q_hat, self.v_anchor(self.t))
+        self._commanded_at = self.k
+
+    def commands(self) -> Array:
+        """The held body commands ``(N, 3)`` [m/s] now (the true attitudes' unless
+        :meth:`command` set them for this step)."""
+        if self._commanded_at != self.k:
+            self.command()
+        return self.u_command
 
     @property
     def p_star(self) -> Array | None:
@@ -162,6 +192,8 @@ class Truth:
         v = self.v_world(self.t)
         if not self.v_body.is_zero:
             v = v + np.einsum('nab,nb->na', self.R, self.v_body(self.t))
+        if not self.v_anchor.is_zero:
+            v = v + np.einsum('nab,nb->na', self.R, self.commands())
         if self.control is not None:
             if self.k % self._control_every == 0 and (self._next_delta is None
                                                        or self._next_delta[0] != self.k):

@@ -1,0 +1,448 @@
+"""Presenza, Colombo, Mas & Giribet (2026): bearing-only pose estimation of a moving fleet via
+angle rigidity, in the anchor's moving body frame (``method: presenza``).
+
+Equations, corrections, gains and discretisation: ``../shared/estimators/presenza-2026.md``
+(§n), the paper's numbers in parentheses. Every robot i keeps ``q̂_i`` (position in the anchor
+frame, ``p_hat``) and ``Q̂_i`` (body → anchor frame, ``R_hat``). Robot i measures the body
+bearings ``β_ij`` of its out-neighbours ``j ∈ O_i`` (the scenario's ``neighbours``: sensing is
+directed here) and the bearing rates ``β̇_ij``; the anchor ``a`` also measures the relative
+positions ``q_b, q_c`` of its two ranged robots. **Sensing robots** have two or more
+out-neighbours; the others are **free robots**: their positions come from the angles the
+sensing robots measure of them, their attitudes from the velocity the sensing robots
+reconstruct from bearing rates (11).
+
+Links (``links = 'communication'``): one per communication neighbour (i senses j, j senses i,
+or the anchor ranges the other). Two rounds of messages per step (``rounds = 2``, §10):
+
+1. ``q_hat`` (per robot): ``q̂_j``; ``q_ranged`` (per link, on the anchor's
+   ``relative_positions`` topic): ``q_i`` measured by the anchor of its ranged robot i;
+2. from each sensing robot j to each ``i ∈ O_j``, formed from round 1 (:meth:`Presenza.reply`):
+   ``angle_gradient`` ``g_{j→i} = Σ_{k∈O_j\\{i}} α̃_jik χ̂_jik`` (6), ``angle_hessian`` its
+   Gauss-Newton block ``Σ_k χ̂_jik χ̂_jikᵀ`` (§9), ``anchor_bearing`` ``𝔟̂_ji = Q̂_j β_ji`` and
+   ``velocity_term`` ``n_ji = Π(𝔟̂_ji) υ̂_j + ‖q̂_i - q̂_j‖ (Q̂_j (β̇_ji + ω_j × β_ji) - ω_a ×
+   𝔟̂_ji)`` (11, with the estimated distance, §4.2).
+
+Every robot also receives the anchor's gyro increment and odometry over the step
+(:class:`base.AnchorInputs`).
+
+One step ``h``, everything on the right at the step's start:
+
+- ``ζ_i`` (6): own angle terms ``-Σ α̃_ijk (χ̂_ijk + χ̂_ikj)``, the received ``g_{j→i}`` and the
+  anchor term ``κ_s (δ_ia q̂_a + δ_ib (q̂_b - q_b) + δ_ic (q̂_c - q_c))``;
+- sensing robots (12): ``Ω_i = Σ_j β_ij × (Q̂_iᵀ q̂_ij)``, ``K̂_i = Σ_j ‖q̂_ij‖ Π(β_ij)``;
+- free robots (11), (13): ``P̂_i = Σ_j Π(𝔟̂_ji)``, ``υ̂_i = P̂_i⁻¹ Σ_j n_ji``,
+  ``γ̂_i = υ̂_i + u_a + ω_a × q̂_i`` (the anchor-frame velocity ``Q_i u_i``; held while
+  ``λ_min(P̂_i) < min_lambda_P``), ``Ω_i = u_i × (Q̂_iᵀ γ̂_i)``, ``K̂_i = S(u_i)ᵀ S(u_i)``;
+- corrections, preconditioned with weight ``w`` (``preconditioning``; 0: the paper's explicit
+  update, 1: §9's semi-implicit scheme, stable at any step), ``D̂_i`` the diagonal block of the
+  Gauss-Newton Hessian::
+
+      Δq_i = -h κ_q (I + 2 w h κ_q D̂_i)⁻¹ ζ_i
+      φ_i  =  h κ_Q (I + w h κ_Q K̂_i)⁻¹ Ω_i       (κ_Q: κ_Q^s sensing, κ_Q^f free)
+
+- prediction with the odometry increments, exact for the truth over the step (the anchor
+  frame moves by ``ΔR_a``, ``δ_a``): sensing robots move by ``Q̂_i δ_i`` (10), free robots by
+  ``h γ̂_i`` (18: they do not use their own ``Q̂_i``, which keeps the cascade)::
+
+      q̂_i ← ΔR_aᵀ (q̂_i + Δq_i + [Q̂_i δ_i | h γ̂_i] - δ_a)
+      Q̂_i ← ΔR_aᵀ Q̂_i exp(φ_i) ΔR_i
+
+  As ``h → 0`` this is (16)-(19). Velocities inside the terms (``u_i``, ``ω_i``, ``u_a``,
+  ``ω_a``) are the step averages ``δ/h``, ``log(ΔR)/h``.
+
+The anchor runs as a sensing robot (its estimate leaves ``(I, 0)`` and returns, as in the
+paper) or, ``anchor.pinned``, holds ``(I, 0)``. Estimates are in the anchor's body frame
+(``EstimateFrame.ANCHOR_BODY``): no alignment when measuring errors (§11).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core import angles, so3
+from .base import (AnchorInputs, Array, Channel, CheckReport, Edges, EstimateFrame, Estimator,
+                   Finding, Index, Roles, Sensor, State, StepInputs, gain)
+
+if TYPE_CHECKING:
+    from ..scenario.model import Scenario
+
+Q_HAT = Channel('q_hat', per='agent', frame='anchor', doc='q̂_j, the position estimate in the '
+                'anchor frame [m]')
+Q_RANGED = Channel('q_ranged', per='edge', frame='body', sensor=Sensor.RELATIVE_POSITIONS,
+                   doc='q_i = R_aᵀ (p_i - p_a), the anchor j\'s measurement of its ranged robot '
+                       'i (its body frame) [m]; zeros otherwise')
+GRADIENT = Channel('angle_gradient', per='edge', frame='anchor', round=2,
+                   doc='g_{j→i} = Σ_{k∈O_j\\{i}} α̃_jik χ̂_jik, sensing robot j\'s angle terms '
+                       'of the listener i\'s gradient (6) [1/m]; zeros otherwise')
+HESSIAN = Channel('angle_hessian', per='edge', frame='anchor', round=2, shape=(6,),
+                  doc='Σ_k χ̂_jik χ̂_jikᵀ, its Gauss-Newton block (§9) [1/m²], as xx, yy, zz, '
+                      'xy, xz, yz')
+ANCHOR_BEARING = Channel('anchor_bearing', per='edge', frame='anchor', round=2,
+                         doc='𝔟̂_ji = Q̂_j β_ji, j\'s bearing of the listener in the anchor '
+                             'frame (11); zeros when j is not a sensing robot that sees it')
+VELOCITY_TERM = Channel('velocity_term', per='edge', frame='anchor', round=2,
+                        doc='n_ji, j\'s term of the listener\'s velocity reconstruction (11) '
+                            '[m/s]')
+
+# Distances below this are treated as this (an estimate collapsed onto a neighbour's).
+MIN_DISTANCE_M = 1e-9
+# A received anchor_bearing counts when its norm is within this of 1 (zeros: not sent).
+UNIT_SLACK = 0.5
+# Margins below these break the method's assumptions (A3, A5, L2 of §3; dimensionless).
+MIN_PROJECTOR_MARGIN = 1e-6
+# The explicit update is stable while h λ_max < 2 (§9).
+EULER_LIMIT = 2.0
+_SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+@dataclass(frozen=True)
+class PresenzaGains:
+    """Gains of (16)-(19) (§7: κ_Q has different units in the two attitude loops)."""
+
+    kappa_q: float = gain(500.0, 'position gain kappa_q of (16), (18) on the angle part of the '
+                                 'gradient [m^2/s]')
+    kappa_s: float = gain(0.02, 'anchor-term weight kappa_s of the cost (5) [1/m^2]; its rate '
+                                'is kappa_q kappa_s [1/s]')
+    kappa_Q_sensing: float = gain(2.0, 'attitude gain kappa_Q of the sensing robots (17) '
+                                       '[1/(m s)]')
+    kappa_Q_free: float = gain(2.0, 'attitude gain kappa_Q of the free robots (19) [s/m^2]')
+    preconditioning: float = gain(1.0, 'weight w of the local preconditioner (notes §9): 0 is '
+                                  'the paper\'s explicit update (needs ~100 Hz with its gains), '
+                                  '1 the semi-implicit scheme, stable at camera rates',
+                                  zero_allowed=True)
+    min_lambda_P: float = gain(1e-3, 'a free robot holds its last reconstructed velocity while '
+                                     'lambda_min(P_hat_i) of (11) is below this',
+                               zero_allowed=True)
+
+
+@dataclass
+class PresenzaState(State):
+    """``R_hat`` is ``Q̂_i`` (body → anchor frame), ``p_hat`` is ``q̂_i`` [m]."""
+
+    gamma_hat: Array   # (N, 3) the last anchor-frame velocity Q_i u_i of (13) [m/s]
+
+
+@lru_cache(maxsize=64)
+def _pairs(agent: bytes, senses: bytes) -> tuple[Index, Index]:
+    """The angles of every robot: pairs of its sensing links ``(e1, e2)``, ``e1 < e2``."""
+    a = np.frombuffer(agent, dtype=np.intp)
+    s = np.frombuffer(senses, dtype=bool)
+    e1: list[int] = []
+    e2: list[int] = []
+    for i in np.unique(a):
+        mine = np.flatnonzero((a == i) & s)
+        for x in range(len(mine)):
+            e1.extend([int(mine[x])] * (len(mine) - x - 1))
+            e2.extend(int(m) for m in mine[x + 1:])
+    return np.array(e1, dtype=np.intp), np.array(e2, dtype=np.intp)
+
+
+def _outer(a: Array, b: Array) -> Array:
+    return a[:, :, None] * b[:, None, :]
+
+
+def _unpack(v: Array) -> Array:
+    """``(M, 6)`` xx, yy, zz, xy, xz, yz → symmetric ``(M, 3, 3)``."""
+    out = np.empty((v.shape[0], 3, 3))
+    for c, (r, s) in enumerate(_SYM):
+        out[:, r, s] = out[:, s, r] = v[:, c]
+    return out
+
+
+def _pack(m: Array) -> Array:
+    return np.stack([m[:, r, s] for r, s in _SYM], axis=1)
+
+
+class Presenza(Estimator[PresenzaGains, PresenzaState]):
+    """Presenza, Colombo, Mas & Giribet (2026): module docstring."""
+
+    method: ClassVar[str] = 'presenza'
+    title: ClassVar[str] = 'Presenza et al.'
+    Gains: ClassVar[type] = PresenzaGains
+    roles: ClassVar[Roles] = Roles(anchor=True)
+    sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.BEARINGS,
+                                                      Sensor.ODOMETRY, Sensor.BEARING_RATES,
+                                                      Sensor.RELATIVE_POSITIONS})
+    sends: ClassVar[tuple[Channel, ...]] = (Q_HAT, Q_RANGED, GRADIENT, HESSIAN, ANCHOR_BEARING,
+                                            VELOCITY_TERM)
+    frame: ClassVar[EstimateFrame] = EstimateFrame.ANCHOR_BODY
+    edge_gains: ClassVar[bool] = False
+    links = 'communication'
+    rounds: ClassVar[int] = 2
+    reference_scenario: ClassVar[str] = 'presenza_case1.yaml'
+    # The free robots dead-reckon with the velocity reconstructed from the bearing rates at the
+    # step's start (18) and every robot's terms use step-average velocities: first order in h
+    # under motion (~1e-5 after 300 steps of 1 ms in the contract's moving fleet).
+    moving_fixed_point_atol: ClassVar[float] = 1e-4
+
+    # --- state and messages
+    def initial_state(self, R_hat: Array, p_hat: Array) -> PresenzaState:
+        return PresenzaState(R_hat=np.array(R_hat, dtype=float),
+                             p_hat=np.array(p_hat, dtype=float),
+                             gamma_hat=np.zeros((len(p_hat), 3)))
+
+    def outbox(self, x: PresenzaState, sender: Index, bearings: Array,
+               slot: Index | None = None) -> dict[str, Array]:
+        """Round 1: ``q̂_j`` and, per link, the anchor's measured relative position of the
+        listener (``bearings``: zeros where the sender does not range it)."""
+        return {'q_hat': x.p_hat.copy(), 'q_ranged': np.array(bearings, dtype=float)}
+
+    @staticmethod
+    def _structure(x: PresenzaState, inputs: StepInputs
+                   ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_],
+                              AnchorInputs]:
+        """Per link ``senses``, ``sensed_by``; per robot ``sensing`` (two or more
+        out-neighbours); the anchor inputs."""
+        links, anchor = inputs.links, inputs.anchor
+        assert links is not None and anchor is not None, 'Presenza et al. step over links'
+        n = x.p_hat.shape[0]
+        count = np.bincount(inputs.edges.agent[links.senses], minlength=n)
+        return links.senses, links.sensed_by, count >= 2, anchor
+
+    @staticmethod
+    def _motion(h: float, inputs: StepInputs, n: int) -> tuple[Array, Array, Array, Array,
+                                                                Array, Array]:
+        """Own ``ω_i``, ``u_i``, the anchor's ``ω_a``, ``u_a`` (step averages, ``(N, 3)``) and
+        the anchor's increments ``ΔR_a``, ``δ_a``."""
+        anchor = inputs.anchor
+        assert anchor is not None
+        delta = inputs.displacement if inputs.displacement is not None else np.zeros((n, 3))
+        return (so3.log_small(inputs.delta_R) / h, delta / h, so3.log_small(anchor.delta_R) / h,
+                anchor.displacement / h, anchor.delta_R, anchor.displacement)
+
+    def _angle_terms(self, x: PresenzaState, inputs: StepInputs, senses: NDArray[np.bool_]
+                     ) -> tuple[Array, Array, Array, Array]:
+        """Each robot's own angle terms of ``ζ_i`` and ``D̂_i`` ``(N, 3)``, ``(N, 3, 3)``, and
+        per link what it sends the other end (``g``, its Gauss-Newton block)."""
+        n, n_edges = x.p_hat.shape[0], len(inputs.edges)
+        agent = inputs.edges.agent
+        e1, e2 = _pairs(agent.tobytes(), np.ascontiguousarray(senses).tobytes())
+        zeta, D = np.zeros((n, 3)), np.zeros((n, 3, 3))
+        g_out, D_out = np.zeros((n_edges, 3)), np.zeros((n_edges, 3, 3))
+        if not len(e1):
+            return zeta, D, g_out, D_out
+        q_other = inputs.received['q_hat']
+        i = agent[e1]
+        d1, d2 = q_other[e1] - x.p_hat[i], q_other[e2] - x.p_hat[i]
+        r1 = np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), MIN_DISTANCE_M)
+        r2 = np.maximum(np.linalg.norm(d2, axis=1, keepdims=True), MIN_DISTANCE_M)
+        u1, u2 = d1 / r1, d2 / r2
+        c = np.sum(u1 * u2, axis=1, keepdims=True)
+        b = inputs.bearings
+        err = c - np.sum(b[e1] * b[e2], axis=1, keepdims=True)     # α̃_ijk
+        chi_jk, chi_kj = (u2 - c * u1) / r1, (u1 - c * u2) / r2
+        g_own = -(chi_jk + chi_kj)
+        np.add.at(zeta, i, err * g_own)
+        np.add.at(D, i, _outer(g_own, g_own))
+        np.add.at(g_out, e1, err * chi_jk)
+        np.add.at(g_out, e2, err * chi_kj)
+        np.add.at(D_out, e1, _outer(chi_jk, chi_jk))
+        np.add.at(D_out, e2, _outer(chi_kj, chi_kj))
+        return zeta, D, g_out, D_out
+
+    def reply(self, x: PresenzaState, h: float, inputs: StepInputs) -> dict[str, Array]:
+        """Round 2, from each sensing robot to each out-neighbour (zeros on other links)."""
+        senses, _, sensing, _ = self._structure(x, inputs)
+        agent = inputs.edges.agent
+        n = x.p_hat.shape[0]
+        _, g_out, D_out = self._angle_terms(x, inputs, senses)[1:]
+        send = (senses & sensing[agent])[:, None]
+        omega, u, omega_a, u_a, _, _ = self._motion(h, inputs, n)
+        Q = x.R_hat[agent]
+        beta = inputs.bearings
+        b_hat = np.einsum('eab,eb->ea', Q, beta)                   # 𝔟̂ = Q̂_j β_ji
+        upsilon = (np.einsum('nab,nb->na', x.R_hat, u) - u_a
+                   - so3.cross(omega_a, x.p_hat))[agent]          # (10)
+        dist = np.linalg.norm(inputs.received['q_hat'] - x.p_hat[agent], axis=1, keepdims=True)
+        if inputs.bearing_rates is None:
+            velocity, b_sent = np.zeros_like(b_hat), np.zeros_like(b_hat)
+        else:
+            derotated = inputs.bearing_rates + so3.cross(omega[agent], beta)
+            velocity = (upsilon - b_hat * np.sum(b_hat * upsilon, axis=1, keepdims=True)
+                        + dist * (np.einsum('eab,eb->ea', Q, derotated)
+                                  - so3.cross(omega_a[agent], b_hat)))
+            b_sent = b_hat
+        return {'angle_gradient': np.where(send, g_out, 0.0),
+                'angle_hessian': np.where(send, _pack(D_out), 0.0),
+                'anchor_bearing': np.where(send, b_sent, 0.0),
+                'velocity_term': np.where(send, velocity, 0.0)}
+
+    def step(self, x: PresenzaState, h: float, inputs: StepInputs,
+             reorthonormalize: bool = True) -> tuple[PresenzaState, dict[str, Array]]:
+        g = self.gains
+        senses, sensed_by, sensing, anchor = self._structure(x, inputs)
+        edges, r = inputs.edges, inputs.received
+        agent = edges.agent
+        n = x.p_hat.shape[0]
+        omega, u, omega_a, u_a, dR_a, delta_a = self._motion(h, inputs, n)
+        delta = u * h
+        zeta, D, _, _ = self._angle_terms(x, inputs, senses)
+        # Received angle terms and the anchor term (6), (5).
+        into = sensed_by[:, None]
+        zeta += edges.sum_by_agent(np.where(into, r['angle_gradient'], 0.0))
+        D += self._sum_blocks(edges, np.where(into, r['angle_hessian'], 0.0))
+        ranged_by = anchor.ranged_by[:, None]
+        zeta += g.kappa_s * (anchor.is_anchor[:, None] * x.p_hat
+                             + edges.sum_by_agent(np.where(
+                                 ranged_by, x.p_hat[agent] - r['q_ranged'], 0.0)))
+        anchored = anchor.is_anchor | (edges.sum_by_agent(ranged_by.astype(float))[:, 0] > 0)
+        D += g.kappa_s * anchored[:, None, None] * np.eye(3)
+        # Sensing robots' innovation (12).
+        d_own = np.where(senses[:, None], r['q_hat'] - x.p_hat[agent], 0.0)
+        beta = inputs.bearings
+        Q_T_d = np.einsum('eba,eb->ea', x.R_hat[agent], d_own)
+        Omega = edges.sum_by_agent(np.where(senses[:, None], so3.cross(beta, Q_T_d), 0.0))
+        dist = np.linalg.norm(d_own, axis=1)[:, None, None]
+        K = self._sum_blocks(edges, _pack(np.where(
+            senses[:, None, None], dist * (np.eye(3) - _outer(beta, beta)), 0.0)))
+        # Free robots' velocity reconstruction (11) and innovation (13).
+        b_in = r['anchor_bearing']
+        valid = sensed_by & (np.abs(np.linalg.norm(b_in, axis=1) - 1.0) < UNIT_SLACK)
+        P = self._sum_blocks(edges, _pack(np.where(valid[:, None, None],
+                                                   np.eye(3) - _outer(b_in, b_in), 0.0)))
+        nu = edges.sum_by_agent(np.where(valid[:, None], r['velocity_term'], 0.0))
+        lam_P = np.linalg.eigvalsh(P)[:, 0]
+        ok = (~sensing) & (lam_P > max(g.min_lambda_P, 1e-12))
+        upsilon_f = np.linalg.solve(np.where(ok[:, None, None], P, np.eye(3)),
+                                    nu[:, :, None])[:, :, 0]
+        gamma_new = upsilon_f + u_a + so3.cross(omega_a, x.p_hat)
+        gamma_own = np.einsum('nab,nb->na', x.R_hat, u)
+        gamma = np.where(sensing[:, None], gamma_own,
+                         np.where(ok[:, None], gamma_new, x.gamma_hat))
+        Q_T_gamma = np.einsum('nba,nb->na', x.R_hat, gamma)
+        free = ~sensing
+        Omega = np.where(free[:, None], so3.cross(u, Q_T_gamma), Omega)
+        K_free = (np.sum(u * u, axis=1)[:, None, None] * np.eye(3) - _outer(u, u))
+        K = np.where(free[:, None, None], K_free, K)
+        # Corrections, preconditioned (§9), then the prediction with the increments.
+        w = g.preconditioning
+        eye = np.eye(3)
+        dq = -h * g.kappa_q * np.linalg.solve(eye + 2.0 * w * h * g.kappa_q * D,
+                                              zeta[:, :, None])[:, :, 0]
+        kappa_Q = np.where(sensing, g.kappa_Q_sensing, g.kappa_Q_free)[:, None]
+        phi = h * kappa_Q * np.linalg.solve(eye + (w * h * kappa_Q)[:, :, None] * K,
+                                            Omega[:, :, None])[:, :, 0]
+        move = np.where(sensing[:, None], np.einsum('nab,nb->na', x.R_hat, delta), h * gamma)
+        dR_a_T = np.swapaxes(dR_a, -1, -2)
+        p_new = np.einsum('nab,nb->na', dR_a_T, x.p_hat + dq + move - delta_a)
+        R_new = so3.matmul(dR_a_T, x.R_hat, so3.exp(phi), inputs.delta_R)
+        if reorthonormalize:
+            R_new = so3.reorthonormalize(R_new)
+        gamma_next = np.einsum('nab,nb->na', dR_a_T, gamma)
+        if anchor.pinned:
+            hold = anchor.is_anchor
+            p_new[hold], R_new[hold] = 0.0, eye
+        out = PresenzaState(R_hat=R_new, p_hat=p_new, gamma_hat=gamma_next)
+        diag = {'innovation': Omega, 'zeta': zeta,
+                'lambda_P': np.where(sensing, 0.0, lam_P),
+                'reconstructed': (sensing | ok).astype(float)}
+        return out, diag
+
+    @staticmethod
+    def _sum_blocks(edges: Edges, packed: Array) -> Array:
+        """``Σ`` over each robot's links of packed symmetric blocks ``(E, 6)`` → ``(N, 3, 3)``."""
+        return _unpack(np.column_stack([edges.sum_by_agent(packed[:, :3]),
+                                        edges.sum_by_agent(packed[:, 3:])]))
+
+    # --- assumptions
+    def check(self, scenario: Scenario) -> CheckReport:
+        return check_angle_graph(self.gains, scenario)
+
+
+def _eig(bearings: Array) -> Array:
+    """Ascending eigenvalues of ``Σ Π(β)`` of unit vectors ``(M, 3)``."""
+    return np.asarray(np.linalg.eigvalsh(angles.projector_sum(bearings)), dtype=np.float64)
+
+
+def check_angle_graph(gains: PresenzaGains, scenario: Scenario) -> CheckReport:
+    """The method's assumptions at t = 0 (§2, §3): the anchor senses, its ranged robots are not
+    aligned from it (A3), enough angles and infinitesimal angle rigidity on normalised
+    positions (Definition 1), every sensing robot's bearings span (A5), every free robot seen
+    by two sensing robots along non-collinear bearings (L2), and the explicit update's step
+    limit (§9). The spectra are A5's and L2's matrices; the margins those of §2-§3."""
+    from ..scenario.model import initial_truth
+
+    report = CheckReport(spectra_of='Σ_j Π(β_ij) (sensing robots, A5) and P_i = Σ_j Π(𝔮_ji) '
+                                    '(free robots, L2)')
+    names = [a.name for a in scenario.agents]
+    n = len(names)
+    out = [[scenario.index[nb.name] for nb in a.neighbours] for a in scenario.agents]
+    sensing = [len(o) >= 2 for o in out]
+    _, q = initial_truth(scenario)
+    a = scenario.index[scenario.anchor] if scenario.anchor is not None else 0
+    ranged = [scenario.index[r] for r in scenario.ranged]
+
+    def unit(i: int, j: int) -> Array:
+        d = q[j] - q[i]
+        return d / max(float(np.linalg.norm(d)), 1e-300)
+
+    if not sensing[a]:
+        report.findings.append(Finding(
+            'error', names[a], 'neighbours', 'the anchor must be a sensing robot (two or more '
+            'bearings; Sec. III)', 'give the anchor at least two neighbours'))
+    if len(ranged) == 2:
+        m = angles.projector_sum(np.array([unit(a, r) for r in ranged]))
+        a3 = float(np.linalg.eigvalsh(m)[0])
+        report.margins['A3 λ_min(Π(β_ab) + Π(β_ac))'] = a3
+        if a3 < MIN_PROJECTOR_MARGIN:
+            report.findings.append(Finding(
+                'error', names[a], 'anchor.ranged', f'{names[ranged[0]]} and '
+                f'{names[ranged[1]]} are aligned seen from the anchor (A3 margin {a3:.3g})',
+                'range two robots in different directions'))
+    triples = angles.angle_triples(out)
+    report.margins['angles |A|'] = float(len(triples))
+    if len(triples) < 3 * n - 7:
+        report.findings.append(Finding(
+            'error', names[a], 'neighbours', f'{len(triples)} angles, fewer than 3N - 7 = '
+            f'{3 * n - 7}: the framework cannot be angle rigid', 'give the sensing robots more '
+            'neighbours (each pair of a robot\'s neighbours is one angle)'))
+    for i in range(n):
+        if sensing[i]:
+            eig = _eig(np.array([unit(i, j) for j in out[i]]))
+            report.spectra[names[i]] = eig
+            if eig[0] < MIN_PROJECTOR_MARGIN:
+                report.findings.append(Finding(
+                    'error', names[i], 'neighbours', f'its bearings are collinear (A5 margin '
+                    f'{eig[0]:.3g}): its attitude is not observable', 'give it a neighbour '
+                    'off the line of the others'))
+            continue
+        seen_by = [j for j in range(n) if sensing[j] and i in out[j]]
+        eig = _eig(np.array([unit(j, i) for j in seen_by])) if seen_by else np.zeros(3)
+        report.spectra[names[i]] = eig
+        if len(seen_by) < 2 or eig[0] < MIN_PROJECTOR_MARGIN:
+            who = ', '.join(names[j] for j in seen_by) or 'no sensing robot'
+            report.findings.append(Finding(
+                'error', names[i], 'neighbours', f'a free robot must be seen by two sensing '
+                f'robots along non-collinear bearings (Lemma 2; seen by {who}, L2 margin '
+                f'{eig[0]:.3g})', 'add it to the neighbours of another sensing robot'))
+    if len(triples) >= 3 * n - 7 and len(triples):
+        margin = angles.iar_margin(q, triples)
+        report.margins['angle rigidity σ_{3N-7}/σ_1 (normalised)'] = margin
+        lam = np.linalg.eigvalsh(angles.hessian(q, triples, gains.kappa_s, a, ranged))
+        report.margins['κ_q λ_1(H) [1/s]'] = gains.kappa_q * float(lam[0])
+        report.margins['κ_q λ_max(H) [1/s]'] = gains.kappa_q * float(lam[-1])
+        if margin < angles.IAR_TOLERANCE:
+            report.findings.append(Finding(
+                'error', names[a], 'neighbours', f'the framework is not infinitesimally angle '
+                f'rigid (σ_3N-7/σ_1 = {margin:.3g} on normalised positions)',
+                'add bearings (neighbours) until the angles fix the shape'))
+        elif gains.preconditioning == 0.0:
+            rate = gains.kappa_q * float(lam[-1])
+            sens = [i for i in range(n) if sensing[i]]
+            if sens:
+                k_max = max(float(np.linalg.eigvalsh(sum(
+                    np.linalg.norm(q[j] - q[i]) * (np.eye(3) - np.outer(unit(i, j), unit(i, j)))
+                    for j in out[i]))[-1]) for i in sens)
+                rate = max(rate, gains.kappa_Q_sensing * k_max)
+            limit = EULER_LIMIT / rate
+            report.margins['explicit update step limit [s]'] = limit
+            if scenario.step >= limit:
+                report.findings.append(Finding(
+                    'error', 'gains', 'preconditioning', f'the explicit update (w = 0) '
+                    f'diverges at h = {scenario.step:.3g} s: its limit is {limit:.3g} s (§9)',
+                    f'set gains.preconditioning: 1, or frequency above {1.0 / limit:.3g} Hz'))
+    return report
