@@ -252,6 +252,14 @@ class YawSplines:
         return out
 
 
+def in_anchor_frame(R: NDArray[np.float64], p: NDArray[np.float64], anchor: int
+                    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Poses ``R`` ``(N, 3, 3)`` (body → world), ``p`` ``(N, 3)`` in the body frame of agent
+    ``anchor``: ``(R_aᵀ R_i, R_aᵀ (p_i - p_a))``."""
+    Ra = R[anchor]
+    return np.einsum('ba,nbc->nac', Ra, R), (p - p[anchor]) @ Ra
+
+
 def yaw_of(R: NDArray[np.float64]) -> NDArray[np.float64]:
     """The yaw of rotations ``(..., 3, 3)`` (exact for rotations about z)."""
     return np.arctan2(R[..., 1, 0], R[..., 0, 0])

@@ -249,7 +249,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         senses, _, sensing, _ = self._structure(x, inputs)
         agent = inputs.edges.agent
         n = x.p_hat.shape[0]
-        _, g_out, D_out = self._angle_terms(x, inputs, senses)[1:]
+        _, _, g_out, D_out = self._angle_terms(x, inputs, senses)
         send = (senses & sensing[agent])[:, None]
         omega, u, omega_a, u_a, _, _ = self._motion(h, inputs, n)
         Q = x.R_hat[agent]
@@ -278,8 +278,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         edges, r = inputs.edges, inputs.received
         agent = edges.agent
         n = x.p_hat.shape[0]
-        omega, u, omega_a, u_a, dR_a, delta_a = self._motion(h, inputs, n)
-        delta = u * h
+        _, u, omega_a, u_a, dR_a, delta_a = self._motion(h, inputs, n)
         zeta, D, _, _ = self._angle_terms(x, inputs, senses)
         # Received angle terms and the anchor term (6), (5).
         into = sensed_by[:, None]
@@ -326,7 +325,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         kappa_Q = np.where(sensing, g.kappa_Q_sensing, g.kappa_Q_free)[:, None]
         phi = h * kappa_Q * np.linalg.solve(eye + (w * h * kappa_Q)[:, :, None] * K,
                                             Omega[:, :, None])[:, :, 0]
-        move = np.where(sensing[:, None], np.einsum('nab,nb->na', x.R_hat, delta), h * gamma)
+        move = np.where(sensing[:, None], np.einsum('nab,nb->na', x.R_hat, u * h), h * gamma)
         dR_a_T = np.swapaxes(dR_a, -1, -2)
         p_new = np.einsum('nab,nb->na', dR_a_T, x.p_hat + dq + move - delta_a)
         R_new = so3.matmul(dR_a_T, x.R_hat, so3.exp(phi), inputs.delta_R)

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from .. import estimators
 from ..core import so3
-from ..core.motion import AngularVelocity, LinearVelocity, YawSpline
+from ..core.motion import AngularVelocity, LinearVelocity, YawSpline, in_anchor_frame
 from ..estimators.base import Estimator
 
 
@@ -285,10 +285,7 @@ def initial_truth(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.f
     R0 = np.stack([a.attitude for a in scenario.agents])
     p0 = np.stack([a.position for a in scenario.agents])
     if scenario.anchor is not None:
-        a = scenario.index[scenario.anchor]
-        Ra, pa = R0[a].copy(), p0[a].copy()
-        R0 = np.einsum('ba,nbc->nac', Ra, R0)
-        p0 = (p0 - pa) @ Ra
+        return in_anchor_frame(R0, p0, scenario.index[scenario.anchor])
     return R0, p0
 
 

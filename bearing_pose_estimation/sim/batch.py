@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.formation import formation_error
-from ..core.motion import yaw_of
+from ..core.motion import in_anchor_frame, yaw_of
 from ..estimators.base import (AnchorInputs, Edges, EstimateFrame, LinkInputs, State, StepInputs,
                                communication_links, route)
 from ..scenario.model import Scenario, initial_estimates
@@ -123,8 +123,7 @@ class BatchSimulator(OnTruth):
         a = self.scenario.anchor_index
         if a is None or self.estimator.frame is not EstimateFrame.ANCHOR_BODY:
             return self.R.copy(), self.p.copy()
-        Ra = self.R[a]
-        return np.einsum('ba,nbc->nac', Ra, self.R), (self.p - self.p[a]) @ Ra
+        return in_anchor_frame(self.R, self.p, a)
 
     def reset(self) -> None:
         """Back to t = 0: true attitudes, the scenario's initial estimates, and the noise
@@ -148,9 +147,7 @@ class BatchSimulator(OnTruth):
         sent = self.estimator.outbox(self.x, self.edge_nbr, b_theirs)
         displacement = None
         if self.odometry:
-            samples = self.h * self.scenario.sensors.odometry.rate
-            displacement = self.noise.odometry_displacement(self.truth.displacement(), self.h,
-                                                            samples)
+            displacement = self.odometry_displacement()
         return StepInputs(delta_R=self.gyro_increment(self.truth.increment()), edges=self.edges,
                           bearings=b_own,
                           received=route(sent, self.estimator.sends, self.edge_nbr),
@@ -169,9 +166,7 @@ class BatchSimulator(OnTruth):
         sent = self.estimator.outbox(self.x, other, theirs,
                                      slot=self.edges.slot[self.links['reverse']])
         delta_R = self.gyro_increment(self.truth.increment())
-        samples = self.h * self.scenario.sensors.odometry.rate
-        displacement = self.noise.odometry_displacement(self.truth.displacement(), self.h,
-                                                        samples)
+        displacement = self.odometry_displacement()
         links = LinkInputs(senses=senses, sensed_by=sensed_by, owns=self.links['owns'],
                            relative_positions=y, other_delta_R=delta_R[other],
                            other_displacement=displacement[other])
@@ -207,9 +202,7 @@ class BatchSimulator(OnTruth):
         sent = self.estimator.outbox(self.x, other, measured,
                                      slot=self.edges.slot[self.links['reverse']])
         delta_R = self.gyro_increment(self.truth.increment())
-        samples = self.h * self.scenario.sensors.odometry.rate
-        displacement = self.noise.odometry_displacement(self.truth.displacement(), self.h,
-                                                        samples)
+        displacement = self.odometry_displacement()
         a = self.scenario.anchor_index
         assert a is not None
         is_anchor = np.arange(self.n) == a
@@ -247,6 +240,12 @@ class BatchSimulator(OnTruth):
             for name, err in zip(names, formation_error(self.p, self.truth.p_star)):
                 out[f'formation_err_{name}_m'] = float(err)
         return out
+
+    def odometry_displacement(self) -> Array:
+        """What odometry reports of the step, ``R(t)ᵀ (p(t+h) - p(t))`` ``(N, 3)`` [m], noise
+        averaged over the samples the step spans (``sensors.odometry.rate``)."""
+        samples = self.h * self.scenario.sensors.odometry.rate
+        return self.noise.odometry_displacement(self.truth.displacement(), self.h, samples)
 
     def gyro_increment(self, delta_R: Array) -> Array:
         """What the gyros report over the step: ``ΔR exp(h (bias + noise))`` (body frame),

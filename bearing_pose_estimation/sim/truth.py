@@ -33,7 +33,8 @@ from numpy.typing import NDArray
 from ..core import so3
 from ..core import formation
 from ..core.motion import (ZERO, ProfileSet, YawSplines, body_displacement,
-                           held_body_displacement, magnus_increment, rot_z)
+                           held_body_displacement, in_anchor_frame, magnus_increment,
+                           rot_z)
 from ..scenario.model import Scenario
 
 Array = NDArray[np.float64]
@@ -149,7 +150,7 @@ class Truth:
         the anchor frame (None: the true ``R_aᵀ R_i``)."""
         if Q_hat is None:
             assert self.anchor is not None
-            Q_hat = np.einsum('ba,nbc->nac', self.R[self.anchor], self.R)
+            Q_hat = in_anchor_frame(self.R, self.p, self.anchor)[0]
         self.u_command = np.einsum('nba,nb->na', Q_hat, self.v_anchor(self.t))
         self._commanded_at = self.k
 
