@@ -67,11 +67,9 @@ def main() -> None:
                 t0 = time.monotonic()
                 group.shutdown()
                 stop_s.append(time.monotonic() - t0)
-                codes = {name: group.returncode(name) for name in group.pids}
-            failed = {n: c for n, c in codes.items() if c != 0}
-            leaked = launch.leaked_shm(shm_before)
-            hung = [spec.name for spec in specs
-                    if 'DDS teardown did not finish' in Path(spec.log).read_text()]
+                failed = group.unclean()
+                hung = [n for n in group.pids if group.returncode(n) == launch.TEARDOWN_HUNG]
+            leaked = launch.leaked_shm(shm_before)  # after the group removed the hung ones'
             print(f'round {k}: {"ok" if not failed else f"FAILED {failed}"}, '
                   f'stopped in {stop_s[-1]:.2f} s'
                   + (f'; teardown watchdog fired in {hung}' if hung else '')

@@ -67,9 +67,8 @@ def _fleet(tmp_path, lockstep: bool = False, real_time_factor: float = 0.5,
             group.start(specs[name])
         yield group, obs, specs
         group.shutdown()
-        codes = {n: group.returncode(n) for n in group.pids}
-        logs = {n: launch.log_tail(specs[n].log, 30) for n, c in codes.items() if c != 0}
-        assert set(codes.values()) == {0}, (codes, logs)
+        bad = group.unclean()
+        assert bad == {}, (bad, {n: launch.log_tail(specs[n].log, 30) for n in bad})
     assert launch.leaked_shm(shm) == []
 
 

@@ -48,6 +48,9 @@ record = dict(pid=os.getpid(), argv=sys.argv, params=params, behaviour=behaviour
 def stop(signum, frame):
     if behaviour == 'monitor':
         write_outputs(partial=True)
+    if behaviour == 'teardown_hung':  # what node_main's watchdog does to a deadlocked teardown
+        Path(os.environ['STANDIN_SHM'], 'fastrtps_hung').write_text('')
+        os.kill(os.getpid(), signal.SIGALRM)
     sys.exit(1 if behaviour == 'unclean' else 0)  # unclean: a teardown that fails
 
 
@@ -258,6 +261,25 @@ def test_run_removes_the_shm_files_it_left(standins, tmp_path, monkeypatch, caps
     assert main(['run', str(PAPER), '--out', str(tmp_path / 'out'), '--duration', '5']) == 0
     assert 'removed 1 Fast DDS shared-memory file(s)' in capsys.readouterr().err
     assert sorted(p.name for p in shm.iterdir()) == ['fastrtps_someone_else']
+
+
+def test_a_teardown_ended_by_the_watchdog_counts_as_clean(standins, tmp_path, monkeypatch,
+                                                         capsys):
+    """A node whose DDS teardown deadlocked (Fast DDS, after its work was done) is ended by
+    its watchdog with SIGALRM: the run says so, removes what its participant left in /dev/shm,
+    and succeeds. Any other signal is a failure (below)."""
+    shm = tmp_path / 'shm'
+    shm.mkdir()
+    monkeypatch.setattr(launch, 'SHM_GLOB', str(shm / 'fastrtps_*'))
+    monkeypatch.setenv('STANDIN_SHM', str(shm))
+    monkeypatch.setenv('STANDIN_AGENT_4', 'teardown_hung')
+    assert main(['run', str(PAPER), '--out', str(tmp_path / 'out'), '--duration', '5']) == 0
+    err = capsys.readouterr().err
+    assert ('note: estimator agent_4 was ended by its teardown watchdog: its work was done, '
+            'then deleting its DDS participant hung') in err
+    assert 'removed 1 Fast DDS shared-memory file(s)' in err
+    assert list(shm.iterdir()) == []
+    assert_all_gone(records(standins))
 
 
 @pytest.mark.parametrize('culprit, behaviour, message', [

@@ -32,6 +32,13 @@ NODE_EXECUTABLES = ('estimator', 'estimators', 'simulator', 'monitor')
 BIN_DIR_ENV = 'BEARING_POSE_BIN_DIR'
 # Fast DDS shared-memory segments; a crashed or SIGKILLed participant leaves them behind.
 SHM_GLOB = '/dev/shm/fastrtps_*'
+# How a node ends whose DDS teardown hung after its work was done (ros.node_main's watchdog):
+# a Fast DDS deadlock in deleting the participant, eProsima/Fast-DDS#6502. Nothing else here
+# raises it, so the launcher tells it from a crash; the participant's files stay in /dev/shm
+# and the launcher removes them.
+TEARDOWN_WATCHDOG_SIGNAL = signal.SIGALRM
+TEARDOWN_HUNG = -TEARDOWN_WATCHDOG_SIGNAL
+CLEAN_EXITS = (0, TEARDOWN_HUNG)
 LOG_TAIL_LINES = 20
 POLL_S = 0.05
 
@@ -257,6 +264,9 @@ class _Child:
 
 def describe_exit(code: int) -> str:
     """Popen's return code in words (negative means killed by that signal)."""
+    if code == TEARDOWN_HUNG:
+        return ('was ended by its teardown watchdog: its work was done, then deleting its DDS '
+                'participant hung (a Fast DDS deadlock, eProsima/Fast-DDS#6502)')
     if code < 0:
         with contextlib.suppress(ValueError):
             return f'was killed by {signal.Signals(-code).name}'
@@ -327,6 +337,8 @@ class ProcessGroup:
         self._stderr = stderr
         self._children: dict[str, _Child] = {}
         self._lock = threading.Lock()
+        self._shm_before = shm_files()
+        self._hung_reported: set[str] = set()
 
     def __enter__(self) -> ProcessGroup:
         return self
@@ -399,6 +411,13 @@ class ProcessGroup:
     def returncode(self, name: str) -> int | None:
         return self._children[name].proc.poll()
 
+    def unclean(self) -> dict[str, int | None]:
+        """The children that did not end cleanly, with their codes (None: still running).
+        Clean is exit code 0, or the teardown watchdog's end (TEARDOWN_HUNG): the work was
+        done and :meth:`shutdown` removed what the hung participant left in /dev/shm."""
+        codes = {name: c.proc.poll() for name, c in self._children.items()}
+        return {name: code for name, code in codes.items() if code not in CLEAN_EXITS}
+
     def failure(self, name: str, reason: str) -> Failure:
         spec = self._children[name].spec
         return Failure(spec.label, reason, spec.log, log_tail(spec.log))
@@ -413,15 +432,15 @@ class ProcessGroup:
         while True:
             code = self.returncode(target)
             if code is not None:
-                return None if code == 0 else self.failure(target, describe_exit(code))
+                return None if code in CLEAN_EXITS else self.failure(target, describe_exit(code))
             for name in watch:
                 code = self.returncode(name)
-                if code not in (None, 0):
+                if code not in (None, *CLEAN_EXITS):
                     return self.failure(name, f'{describe_exit(code)} early')
-                if code == 0 and name not in noted:
+                if code is not None and name not in noted:
                     noted.add(name)
-                    print(f'note: {self._children[name].spec.label} exited (code 0) before '
-                          f'{target} finished', file=self._stderr or sys.stderr)
+                    print(f'note: {self._children[name].spec.label} exited (code {code}) '
+                          f'before {target} finished', file=self._stderr or sys.stderr)
             if time.monotonic() >= deadline:
                 return Failure(target, f'did not finish within the {timeout:g} s timeout',
                                timed_out=True)
@@ -477,6 +496,7 @@ class ProcessGroup:
         with _signals_deferred(replay=False):
             self._stop([self._children[name]], grace, term_grace)
         self._release(self._children[name])
+        self._after_hung_teardowns()
         return self.returncode(name)
 
     def shutdown(self, grace: float = 10.0, term_grace: float = 5.0) -> list[str]:
@@ -487,7 +507,23 @@ class ProcessGroup:
             killed = self._stop(list(reversed(self._children.values())), grace, term_grace)
             for child in self._children.values():
                 self._release(child)
+        self._after_hung_teardowns()
         return killed
+
+    def _after_hung_teardowns(self) -> None:
+        """Say which children the teardown watchdog ended (once each), and remove the Fast
+        DDS files their participants left: created since this group started, used by no live
+        process."""
+        hung = [c for name, c in self._children.items()
+                if c.proc.poll() == TEARDOWN_HUNG and name not in self._hung_reported]
+        if not hung:
+            return
+        err = self._stderr or sys.stderr
+        for child in hung:
+            self._hung_reported.add(child.spec.name)
+            print(f'note: {child.spec.label} {describe_exit(TEARDOWN_HUNG)}; counted as a clean '
+                  f'stop. Its stacks are in {child.spec.log}', file=err)
+        _clean_shm(self._shm_before, err)
 
     def _stop(self, children: list[_Child], grace: float, term_grace: float) -> list[str]:
         err = self._stderr or sys.stderr
@@ -609,7 +645,7 @@ def _failure_after_stop(cfg: RunConfig, specs: list[ProcessSpec], result: RunRes
     if cfg.out_dir / 'summary.json' not in result.files:
         return Failure('monitor', f'exited with code 0 but wrote no '
                        f'{cfg.out_dir / "summary.json"}')
-    unclean = [s for s in specs if result.exit_codes.get(s.name) not in (0, None)]
+    unclean = [s for s in specs if result.exit_codes.get(s.name) not in (*CLEAN_EXITS, None)]
     if unclean:
         s = unclean[0]
         more = f' (and {len(unclean) - 1} more process(es))' if len(unclean) > 1 else ''
@@ -628,10 +664,11 @@ def _remove(path: str) -> None:
         os.remove(path)
 
 
-def _clean_shm(before: set[str]) -> list[str]:
+def _clean_shm(before: set[str], err: IO[str] | None = None) -> list[str]:
     """Remove the Fast DDS files this run left in /dev/shm (created since ``before``, used by
     no live process: what a participant that was never released leaves, e.g. after the
     teardown watchdog ended a Fast DDS deadlock), saying so; return those that remain."""
+    err = err or sys.stderr
     leaked = leaked_shm(before)
     for f in leaked:
         _remove(f)
@@ -639,13 +676,13 @@ def _clean_shm(before: set[str]) -> list[str]:
     if len(remaining) < len(leaked):
         print(f'warning: removed {len(leaked) - len(remaining)} Fast DDS shared-memory file(s) '
               f'that a process of this run left in /dev/shm ({", ".join(leaked[:3])}): it did '
-              'not release its DDS participant; its log says why', file=sys.stderr)
+              'not release its DDS participant; its log says why', file=err)
     if remaining:
         fastdds = Path(sys.executable).parent / 'fastdds'
         tool = str(fastdds) if fastdds.exists() else 'fastdds'
         print(f'warning: could not remove {len(remaining)} of them ({", ".join(remaining[:3])}).'
               f' Fix: `{tool} shm clean` (removes only segments no process uses)',
-              file=sys.stderr)
+              file=err)
     return remaining
 
 

@@ -34,6 +34,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
 from .executor import DrainingExecutor
+from ..cli.launch import TEARDOWN_WATCHDOG_SIGNAL
 from ..core.errors import ScenarioError
 from ..scenario.model import Scenario
 from ..scenario.parse import load_scenario
@@ -242,9 +243,11 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
         watchdog.daemon = True
         watchdog.start()
         # The watchdog is a Python thread: a teardown that hangs holding the GIL (the Fast DDS
-        # deadlock seen on 2026-12-01 did) never lets it run. faulthandler's timer is a C
-        # thread: one second later it dumps the stacks and exits with code 1.
-        faulthandler.dump_traceback_later(TEARDOWN_TIMEOUT_S + 1.0, exit=True)
+        # deadlock does) never lets it run. The kernel's alarm needs no GIL: one second later
+        # faulthandler's C handler dumps the stacks, then SIGALRM's default action ends the
+        # process. The launcher knows that exit (launch.TEARDOWN_WATCHDOG_SIGNAL) from a crash.
+        faulthandler.register(TEARDOWN_WATCHDOG_SIGNAL, all_threads=True, chain=True)
+        signal.setitimer(signal.ITIMER_REAL, TEARDOWN_TIMEOUT_S + 1.0)
         if executor is not None:
             executor.shutdown(timeout_sec=2.0)
         for each in nodes:
@@ -253,24 +256,33 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
             except Exception as exc:  # noqa: BLE001
                 rclpy.logging.get_logger(name).warning(f'destroy_node failed: {exc!r}')
         rclpy.try_shutdown()  # releases the DDS participant: no files left in /dev/shm
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        faulthandler.unregister(TEARDOWN_WATCHDOG_SIGNAL)
         watchdog.cancel()
-        faulthandler.cancel_dump_traceback_later()
         stop.restore()
     return code
 
 
 # Destroying nodes takes well under a second. Fast DDS (2.14, in the Jazzy wheels) sometimes
-# deadlocks inside rcl_node_fini when many participants leave at once: about one process in
-# 200 in bench/shutdown_stress.py, always in rclpy's Node.destroy_node. Nothing can unblock it.
+# deadlocks inside rcl_node_fini (deleting the participant): about one process in 200 in
+# bench/shutdown_stress.py, always in rclpy's Node.destroy_node, holding the GIL. A timer
+# callback that needs a mutex the deleting thread holds, while that thread waits for the
+# callback to end (eProsima/Fast-DDS#6502, open). Nothing in Python can unblock it.
 TEARDOWN_TIMEOUT_S = 5.0
 
 
 def _teardown_hung(name: str, code: int) -> None:
-    """The watchdog's end: say what hung, with the stacks, and exit with the node's own code
-    (its work is done) instead of waiting for SIGKILL."""
+    """The watchdog's end: say what hung, with the stacks, and exit instead of waiting for
+    SIGKILL. A node whose work succeeded ends as the C-level watchdog would (by
+    TEARDOWN_WATCHDOG_SIGNAL), so the launcher counts it clean and removes the files its
+    participant left in /dev/shm; a failed one keeps its own exit code."""
     sys.stderr.write(f'[ERROR] [{name}]: DDS teardown did not finish in {TEARDOWN_TIMEOUT_S:g} s '
                      '(a Fast DDS deadlock in node destruction); exiting without it. Its files '
                      'may stay in /dev/shm: `fastdds shm clean` removes them. Stacks:\n')
     faulthandler.dump_traceback(all_threads=True)
     sys.stderr.flush()
-    os._exit(code)
+    if code != 0:
+        os._exit(code)
+    signal.setitimer(signal.ITIMER_REAL, 0.0)
+    faulthandler.unregister(TEARDOWN_WATCHDOG_SIGNAL)  # back to SIG_DFL; the stacks are out
+    os.kill(os.getpid(), TEARDOWN_WATCHDOG_SIGNAL)
