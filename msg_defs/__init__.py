@@ -38,6 +38,13 @@ ESTIMATE = 'estimate'              # geometry_msgs/PoseStamped, out: (R̂_i, p̂
 WORLD_BEARINGS = 'world_bearings'  # sensor_msgs/PointCloud2, out: R̂_i b^i_il for listeners l
 YAW_ESTIMATE = 'yaw_estimate'      # geometry_msgs/Vector3Stamped, out: ẑ_i = (x + ιy), De Carli
 RELATIVE_YAWS = 'relative_yaws'    # sensor_msgs/PointCloud2, out: unit(ẑ_ij) (x, y) per pair
+# Presenza et al.'s second round, sensing robot j → each robot i it sees (PointCloud2, one
+# point per i, in the anchor frame): g_{j→i} [1/m], its Gauss-Newton block (xx yy zz xy xz yz)
+# [1/m²], 𝔟̂_ji = Q̂_j β_ji, n_ji [m/s].
+ANGLE_GRADIENT = 'angle_gradient'
+ANGLE_HESSIAN = 'angle_hessian'
+ANCHOR_BEARING = 'anchor_bearing'
+VELOCITY_TERM = 'velocity_term'
 DIAGNOSTICS = '/diagnostics'       # diagnostic_msgs/DiagnosticArray, out: each node's health
 GROUND_TRUTH = 'ground_truth'      # geometry_msgs/PoseStamped, simulator: true pose
 CLOCK = '/clock'                   # rosgraph_msgs/Clock, simulator (use_sim_time)
@@ -437,6 +444,28 @@ def _encode_id_pairs(t: float, value: dict[int, Array], frame: str) -> PointClou
     return encode_vectors(t, frame, ids, np.column_stack([pairs, np.zeros(len(pairs))]))
 
 
+_HESSIAN_FIELDS = ('xx', 'yy', 'zz', 'xy', 'xz', 'yz')
+_HESSIAN_DTYPE, _HESSIAN_CLOUD = _cloud_layout(
+    {**{f: PointField.FLOAT64 for f in _HESSIAN_FIELDS}, 'agent_id': PointField.UINT32})
+
+
+def _decode_id_blocks(msg: PointCloud2) -> tuple[float, dict[int, Array]]:
+    """Symmetric 3x3 blocks per agent id, packed xx, yy, zz, xy, xz, yz (FLOAT64 fields)."""
+    t, data = _decode_cloud(msg, {**{f: PointField.FLOAT64 for f in _HESSIAN_FIELDS},
+                                  'agent_id': PointField.UINT32})
+    packed = np.stack([data[f] for f in _HESSIAN_FIELDS], axis=1).astype(float)
+    return t, dict(zip(data['agent_id'].astype(np.uint32).tolist(), packed))
+
+
+def _encode_id_blocks(t: float, value: dict[int, Array], frame: str) -> PointCloud2:
+    data = np.empty(len(value), dtype=_HESSIAN_DTYPE)
+    packed = np.array(list(value.values()), dtype=float).reshape(-1, 6)
+    for k, f in enumerate(_HESSIAN_FIELDS):
+        data[f] = packed[:, k]
+    data['agent_id'] = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
+    return _encode_cloud(t, frame, data, _HESSIAN_CLOUD)
+
+
 # Channel name -> wire. p_hat: the position of the sender's `estimate`; world_bearing: its
 # `world_bearings`, one point per listener; De Carli et al.'s z_hat (`yaw_estimate`, the
 # complex ẑ_j), relyaw (`relative_yaws`, one point per listener of a pair it owns, z = 0) and
@@ -451,13 +480,33 @@ CHANNELS = {
                           _encode_id_pairs),
     'meas': ChannelWire(RELATIVE_POSITIONS, PointCloud2, '{sender_body}', _decode_id_vectors,
                         None),
+    # Presenza et al.: q̂_j on the estimate (anchor frame); the anchor's relative positions of
+    # its ranged robots on its sensor topic; the second round on topics of their own.
+    'q_hat': ChannelWire(ESTIMATE, PoseStamped, '{estimate}', _decode_position, None),
+    'q_ranged': ChannelWire(RELATIVE_POSITIONS, PointCloud2, '{sender_body}',
+                            _decode_id_vectors, None),
+    'angle_gradient': ChannelWire(ANGLE_GRADIENT, PointCloud2, '{estimate}',
+                                  _decode_id_vectors, _encode_id_vectors),
+    'angle_hessian': ChannelWire(ANGLE_HESSIAN, PointCloud2, '{estimate}', _decode_id_blocks,
+                                 _encode_id_blocks),
+    'anchor_bearing': ChannelWire(ANCHOR_BEARING, PointCloud2, '{estimate}',
+                                  _decode_id_vectors, _encode_id_vectors),
+    'velocity_term': ChannelWire(VELOCITY_TERM, PointCloud2, '{estimate}', _decode_id_vectors,
+                                 _encode_id_vectors),
 }
 
 
-def estimate_frame(frame: str, fleet: str) -> str:
-    """The frame id of a method's estimates: ``world`` for world poses, else
-    :func:`estimation_frame` (``frame``: ``estimators.base.EstimateFrame`` value)."""
-    return WORLD_FRAME if frame == 'world' else estimation_frame(fleet)
+def estimate_frame(frame: str, fleet: str, anchor: str | None = None) -> str:
+    """The frame id of a method's estimates (``frame``: ``estimators.base.EstimateFrame``
+    value): ``world`` for world poses, the ``anchor``'s :func:`body_frame` for anchor-frame
+    estimates (Presenza et al.), else :func:`estimation_frame`."""
+    if frame == 'world':
+        return WORLD_FRAME
+    if frame == 'anchor_body':
+        if anchor is None:
+            raise WireError('anchor-frame estimates need the anchor\'s name')
+        return body_frame(anchor)
+    return estimation_frame(fleet)
 
 
 def channel(name: str) -> ChannelWire:

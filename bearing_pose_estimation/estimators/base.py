@@ -424,6 +424,9 @@ class Estimator(ABC, Generic[G, S]):
     # 'sensing': one edge per sensing edge i → j, j's channels flow to i; 'communication': one
     # per communication neighbour, both ways (StepInputs.links).
     links: ClassVar[Literal['sensing', 'communication']] = 'sensing'
+    # Sensing is directed: a robot measures its `neighbours` only (Presenza et al.'s
+    # out-neighbours), not its listeners too.
+    directed_sensing: ClassVar[bool] = False
     reference_scenario: ClassVar[str]      # the file in config/ with the paper's simulation
     # How far the truth drifts from a fixed point of the step when the fleet moves, over 300
     # steps of the reference scenario [m, rad]: 0 up to rounding for methods that dead-reckon

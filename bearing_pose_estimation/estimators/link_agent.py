@@ -164,6 +164,19 @@ class LinkAgentEstimator(TimedAgent):
         """The communication neighbours (the node subscribes to their topics)."""
         return self.links
 
+    def measures_me(self, link: Link) -> bool:
+        """j's sensor topic carries a measurement of this robot that the step reads."""
+        return link.sensed_by
+
+    def odometry_sources(self) -> list[tuple[str, int]]:
+        """Whose odometry this robot reads (``(name, id)``): every communication neighbour's
+        (the prediction of what it senses of j uses j's motion)."""
+        return [(lk.name, lk.agent_id) for lk in self.links]
+
+    def channel_sources(self, channel: str) -> list[Link]:
+        """The neighbours whose values of ``channel`` this robot reads: every one."""
+        return self.links
+
     def _clear_inputs(self, reset_estimate: bool) -> None:
         self._pending = None
         for link in self.links:
@@ -542,6 +555,9 @@ def agent_for(scenario: Scenario, name: str, limits: Limits = Limits(),
     problem = scenario.not_distributable()
     if problem:
         raise ScenarioError(f'{scenario.source}: {problem}')
+    if scenario.estimator().rounds == 2:
+        from .two_round_agent import two_round_agent_for
+        return two_round_agent_for(scenario, name, limits, initial)
     if scenario.estimator().links == 'communication':
         return link_estimator_for(scenario, name, limits, initial)
     return estimator_for(scenario, name, limits, initial)

@@ -172,6 +172,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
     frame: ClassVar[EstimateFrame] = EstimateFrame.ANCHOR_BODY
     edge_gains: ClassVar[bool] = False
     links = 'communication'
+    directed_sensing: ClassVar[bool] = True
     rounds: ClassVar[int] = 2
     reference_scenario: ClassVar[str] = 'presenza_case1.yaml'
     # The free robots dead-reckon with the velocity reconstructed from the bearing rates at the

@@ -67,8 +67,10 @@ from ..core.errors import ScenarioError
 from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits
 from ..estimators.base import Channel, Estimator, Sensor, format_gains, gain_fields
 from ..estimators.link_agent import LinkAgentEstimator, agent_for
+from ..estimators.two_round_agent import TwoRoundAgent
 from ..scenario.parse import load_scenario
 from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
+from .wiring import link_subscriptions
 
 # Used only without a scenario file.
 _EXPLICIT = ('agent_id', 'leader', 'neighbours', 'neighbour_ids', 'neighbour_gains',
@@ -175,7 +177,7 @@ class EstimatorNode(Node):
                                           'without a scenario_file, which is set')
             template = agent_for(scenario, self.agent, limits)
             self.expect_odometry = scenario.simulates('odometry')
-            fleet = scenario.name
+            fleet, anchor = scenario.name, scenario.anchor
             publish_rate = publish_rate or scenario.publish_rate
             method = scenario.method
             where, fix = "the scenario's method", 'the scenario file sets the method'
@@ -184,7 +186,7 @@ class EstimatorNode(Node):
             if estimators.get(method).links == 'communication':
                 raise ScenarioError(f'method {method} needs scenario_file: its communication '
                                     'links come from the sensing graph. Fix: set scenario_file')
-            fleet = 'fleet'
+            fleet, anchor = 'fleet', None
             self.expect_odometry = False   # used whenever it arrives
             template = self._explicit_estimator(
                 explicit, limits, estimators.build(method, estimators.get(method).Gains()))
@@ -196,7 +198,7 @@ class EstimatorNode(Node):
         self.gains = gains
         self.method = estimators.get(method)
         self.links = isinstance(template, LinkAgentEstimator)
-        self.estimate_frame = wire.estimate_frame(self.method.frame.value, fleet)
+        self.estimate_frame = wire.estimate_frame(self.method.frame.value, fleet, anchor)
         self.h = 1.0 / frequency if frequency > 0 else template.h
         # Publish on exact multiples of the publish period, so the monitor can pair estimates
         # with ground truth at identical stamps.
@@ -220,6 +222,10 @@ class EstimatorNode(Node):
                                                  wire.ESTIMATE_PUB_QOS)
         # The channels that need a message of their own (the others ride on the estimate).
         self.wires = {c.name: wire.channel(c.name) for c in self.method.sends}
+        if self.method.rounds == 2:
+            # Every step waits for these values, the first ones too: a reader that its writer
+            # discovers late still gets them (transient local, as the estimate's writer).
+            qos_est = wire.ESTIMATE_RECORD_QOS
         self.pub_channels = {name: (self.create_publisher(w.type, w.topic, qos_est), w.encode)
                              for name, w in self.wires.items() if w.encode is not None}
         self.pub_diag = self.create_publisher(DiagnosticArray, wire.DIAGNOSTICS, 10)
@@ -227,6 +233,9 @@ class EstimatorNode(Node):
         if self.method.uses(Sensor.BEARINGS):
             subs.append(self.create_subscription(wire.PointCloud2, wire.BEARINGS,
                                                  self.on_bearings, qos_in))
+        if self.method.uses(Sensor.BEARING_RATES):
+            subs.append(self.create_subscription(wire.PointCloud2, wire.BEARING_RATES,
+                                                 self.on_bearing_rates, qos_in))
         if self.method.uses(Sensor.RELATIVE_POSITIONS):
             subs.append(self.create_subscription(wire.PointCloud2, wire.RELATIVE_POSITIONS,
                                                  self.on_relative_positions, qos_in))
@@ -240,20 +249,27 @@ class EstimatorNode(Node):
             # sample costs nothing: the gyro carries the pose to the next one.
             subs.append(self.create_subscription(wire.PoseStamped, wire.KNOWN_POSE,
                                                  self.on_known_pose, qos_in))
-        for nb in template.neighbours:
-            for name, w in self.wires.items():
-                sensor = self.method_channel(name).sensor
-                if sensor is not None and not getattr(nb, 'sensed_by', False):
-                    continue   # nb does not measure this agent
+        if isinstance(template, LinkAgentEstimator):
+            for sub in link_subscriptions(template):
+                if sub.channel is None:   # its motion: what this robot senses of it, the anchor
+                    subs.append(self.create_subscription(
+                        wire.Odometry, wire.topic(sub.agent, wire.ODOM),
+                        partial(self._link, self.on_neighbour_odometry, sub.agent_id,
+                                sub.agent), qos_in))
+                    continue
+                w = self.wires[sub.channel]
+                sensor = self.method_channel(sub.channel).sensor
                 subs.append(self.create_subscription(
-                    w.type, wire.topic(nb.name, w.topic),
-                    partial(self._link, self.on_neighbour, nb.agent_id, name, nb.name),
-                    qos_in if sensor is not None else qos_est))
-            if self.links:   # the prediction of what this agent senses of nb uses nb's motion
-                subs.append(self.create_subscription(
-                    wire.Odometry, wire.topic(nb.name, wire.ODOM),
-                    partial(self._link, self.on_neighbour_odometry, nb.agent_id, nb.name),
-                    qos_in))
+                    w.type, wire.topic(sub.agent, w.topic),
+                    partial(self._link, self.on_neighbour, sub.agent_id, sub.channel,
+                            sub.agent), qos_in if sensor is not None else qos_est))
+        else:
+            for nb in template.neighbours:
+                for name, w in self.wires.items():
+                    subs.append(self.create_subscription(
+                        w.type, wire.topic(nb.name, w.topic),
+                        partial(self._link, self.on_neighbour, nb.agent_id, name, nb.name),
+                        qos_est))
         self._subs = subs
         self.timer = self.create_timer(self.h, self.on_timer)
         self.diag_timer = self.create_timer(diagnostics_period, self.publish_diagnostics)
@@ -305,6 +321,14 @@ class EstimatorNode(Node):
 
     def _make_estimator(self, t0: float) -> AgentEstimator | LinkAgentEstimator:
         t = self.template
+        if isinstance(t, TwoRoundAgent):
+            return TwoRoundAgent(self.method(self.gains), agent_id=t.agent_id,
+                                 links=[(lk.name, lk.agent_id, lk.senses, lk.sensed_by)
+                                        for lk in t.links],
+                                 step=self.h, R0=t.R0, p0=t.p0,
+                                 anchor=(t.anchor_name, t.anchor_id), ranges=t.ranges,
+                                 ranged=t.ranged, pinned=t.pinned, t0=t0,
+                                 known_ids=t.known_ids, limits=t.limits)
         if isinstance(t, LinkAgentEstimator):
             return LinkAgentEstimator(self.method(self.gains), agent_id=t.agent_id,
                                       links=[(lk.name, lk.agent_id, lk.senses, lk.sensed_by)
@@ -379,6 +403,15 @@ class EstimatorNode(Node):
             self._reject(cause, f'{n} relative position(s) at {t:.6f}', n)
         self.on_timer()
 
+    def on_bearing_rates(self, msg: wire.PointCloud2) -> None:
+        decoded = self._decoded(msg, wire.decode_vectors, self.bearings_frame, 'bearing_rates')
+        if decoded is None or not isinstance(self.est, TwoRoundAgent):
+            return
+        t, ids, vectors = decoded
+        for cause, n in Counter(self.est.add_bearing_rates(t, ids, vectors)).items():
+            self._reject(cause, f'{n} bearing rate(s) at {t:.6f}', n)
+        self.on_timer()
+
     def on_neighbour_odometry(self, agent_id: int, name: str, msg: wire.Odometry) -> None:
         est = self.est
         try:
@@ -396,9 +429,15 @@ class EstimatorNode(Node):
 
     def on_bearings(self, msg: wire.PointCloud2) -> None:
         decoded = self._decoded(msg, wire.decode_vectors, self.bearings_frame, 'bearings')
-        if decoded is None or not isinstance(self.est, AgentEstimator):
+        if decoded is None or self.est is None:
             return
         t, ids, vectors = decoded
+        if isinstance(self.est, TwoRoundAgent):
+            for cause, n in Counter(self.est.add_bearings(t, ids, vectors)).items():
+                self._reject(cause, f'{n} bearing(s) at {t:.6f}', n)
+            return self.on_timer()
+        if not isinstance(self.est, AgentEstimator):
+            return
         for cause, n in Counter(self.est.add_bearings(t, ids, vectors)).items():
             self._reject(cause, f'{n} bearing(s) at {t:.6f}', n)
         if self.est.k == 0 and self.est.gyro.end <= self.est.t0:
@@ -476,6 +515,8 @@ class EstimatorNode(Node):
             return
         if self._delayed:
             self._release_delayed()
+        if isinstance(self.est, TwoRoundAgent):
+            return self._two_rounds()
         while self.est.steps_ready() > 0:
             if self._wall_first_step is None:
                 self._wall_first_step = time.monotonic()
@@ -500,6 +541,30 @@ class EstimatorNode(Node):
                 if wait:
                     self._deferred = self.est.k
 
+    def _two_rounds(self, impatient: bool = False) -> None:
+        """A two-round method: send the current step's reply once its first round is in,
+        run it once the second is, repeat while inputs allow. ``impatient``: go on with what
+        is here (:meth:`on_patience`)."""
+        est = self.est
+        assert isinstance(est, TwoRoundAgent)
+        while True:
+            reply = est.pending_reply(impatient=impatient)
+            if reply is not None:
+                frame = self.estimate_frame
+                for name, value in reply.items():
+                    if value:
+                        pub, encode = self.pub_channels[name]
+                        pub.publish(encode(est.t, value, frame))
+            if not est.advance(1, impatient=impatient):
+                return
+            if impatient:
+                self.events['impatient_steps'] += 1
+                impatient = False
+            if self._wall_first_step is None:
+                self._wall_first_step = time.monotonic()
+            self._stuck = None
+            self._publish_links()
+
     def on_patience(self) -> None:
         """A step that waits for a neighbour's input while nothing moves (its own sensors
         stopped too: a lockstep clock waiting for this agent) for ``neighbour_wait`` of wall
@@ -514,7 +579,10 @@ class EstimatorNode(Node):
         if self._stuck is None or self._stuck[:2] != (est.k, est.gyro.end):
             self._stuck = (est.k, est.gyro.end, now)
         elif now - self._stuck[2] >= self.neighbour_wait:
-            if est.advance(1, impatient=True):
+            if isinstance(est, TwoRoundAgent):
+                self._stuck = None
+                self._two_rounds(impatient=True)
+            elif est.advance(1, impatient=True):
                 self.events['impatient_steps'] += 1
                 self._stuck = None
                 self._publish_links()
@@ -548,6 +616,8 @@ class EstimatorNode(Node):
         if world and self.pub_channels:
             sent = est.outbox()
             for name, (pub, encode) in self.pub_channels.items():
+                if name not in sent:
+                    continue   # a second round's channel: sent by _two_rounds
                 value = sent[name]
                 if not isinstance(value, dict) or value:  # nothing measured yet: nothing to say
                     pub.publish(encode(t, value,

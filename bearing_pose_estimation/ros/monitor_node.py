@@ -123,9 +123,10 @@ class MonitorNode(Node):
         else:
             R_hat = np.stack([est[k][0] for k in range(n)])
             p_hat = np.stack([est[k][1] for k in range(n)])
-            errors = pose_errors(self.frame, R, p, R_hat, p_hat)
+            errors = pose_errors(self.frame, R, p, R_hat, p_hat, anchor=s.anchor_index)
             if s.moves and n == len(s.agents):   # every agent estimates: the whole fleet
-                self.tracks.append((t, p, to_world(self.frame, R, p, R_hat, p_hat)[1]))
+                self.tracks.append((t, p, to_world(self.frame, R, p, R_hat, p_hat,
+                                                   s.anchor_index)[1]))
         self.rows.append((t, errors))
         del self._truth[ns], self._est[ns]
         self._recorded.add(ns)

@@ -26,6 +26,7 @@ the stamps are simulated time either way).
 from __future__ import annotations
 
 import time
+from collections import Counter
 from functools import partial
 
 import numpy as np
@@ -38,8 +39,10 @@ from std_msgs.msg import Empty
 from .. import msg_defs as wire
 from ..core.errors import ScenarioError
 from ..estimators.base import Sensor
+from ..estimators.link_agent import agent_for
 from .monitor_node import watched
 from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
+from .wiring import link_subscriptions
 from ..sim.world import World
 
 # Sim time advanced per wall-timer callback at most: keeps the node responsive to Ctrl-C and to
@@ -91,7 +94,11 @@ class SimulatorNode(Node):
         # Who listens to an agent: those that sense it, or, for methods that talk over
         # communication links, every agent it senses or that senses it.
         self.links = method.links == 'communication'
-        self.sensor_channels = {c.sensor.value for c in method.sends if c.sensor is not None}
+        # Link methods: how many subscriptions each (agent, topic) gets from the estimators of
+        # its neighbours (ros.wiring: what those nodes subscribe to).
+        self.link_subs: Counter[tuple[str, str]] = Counter(
+            (sub.agent, sub.topic) for name in self.names if self.links
+            for sub in link_subscriptions(agent_for(s, name)))
         self.pub_imu, self.pub_bearings, self.pub_truth = [], [], []
         for name in self.names:
             topic = lambda t, n=name: wire.topic(n, t)  # noqa: E731
@@ -156,22 +163,19 @@ class SimulatorNode(Node):
                 missing.append(wire.topic(name, wire.IMU))
             if self.uses_bearings and self.pub_bearings[k].get_subscription_count() < 1:
                 missing.append(wire.topic(name, wire.BEARINGS))
-            sensed = {nb.name for nb in s.agent(name).neighbours}
-            comm = sensed | set(s.listeners(name))
             for sensor in self.sensors_read:
-                # Link methods: every neighbour reads the odometry, those it senses the
-                # readings of a sensor that is a channel.
-                extra = (len(comm) if sensor == 'odometry' else
-                         len(sensed) if sensor in self.sensor_channels else 0)
-                if self.pub_sensors[sensor][k].get_subscription_count() < 1 + (
-                        extra if self.links else 0):
-                    missing.append(wire.topic(name, _SENSOR_TOPICS[sensor]))
+                # The agent's own estimator, and link neighbours that read it (odometry, a
+                # sensor whose readings are a channel).
+                topic = _SENSOR_TOPICS[sensor]
+                if self.pub_sensors[sensor][k].get_subscription_count() < 1 + self.link_subs[
+                        (name, topic)]:
+                    missing.append(wire.topic(name, topic))
             if self.pub_truth[k].get_subscription_count() < need_truth:
                 missing.append(wire.topic(name, wire.GROUND_TRUTH))
-            # Every listener subscribes to each channel topic of the agent; the simulator and
-            # the monitor to its estimate as well.
-            listeners = len(comm) if self.links else len(s.listeners(name))
-            wanted = dict.fromkeys(self.channel_topics, listeners)
+            # Every listener subscribes to each channel topic of the agent (link methods: the
+            # neighbours that read it); the simulator and the monitor to its estimate as well.
+            wanted = {topic: self.link_subs[(name, topic)] if self.links
+                      else len(s.listeners(name)) for topic in self.channel_topics}
             wanted[wire.ESTIMATE] = wanted.get(wire.ESTIMATE, 0) + 1 + monitored
             for topic, count in wanted.items():
                 if self.count_subscribers(wire.topic(name, topic)) < count:

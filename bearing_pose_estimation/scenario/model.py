@@ -240,11 +240,6 @@ class Scenario:
     def not_distributable(self) -> str | None:
         """Why the nodes (and netsim) cannot run this scenario, with the fix; None if they
         can. (Formation control's paper mode is refused where it is chosen.)"""
-        cls = estimators.get(self.method)
-        if cls.rounds == 2:
-            return (f'{cls.title} exchange two rounds of messages per step, which the '
-                    'estimator node does not do yet (issue 13). Fix: run it with '
-                    '`bearing-pose simulate` (the batch simulator)')
         closed = [a.name for a in self.agents
                   if a.velocity is not None and a.velocity.frame == 'anchor_estimate']
         if closed:
@@ -273,9 +268,20 @@ class Scenario:
 
     def sensing_targets(self, name: str) -> list[str]:
         """Agents that ``name`` measures bearings to: its neighbours and its listeners
-        (sensing is two-way on every edge)."""
-        targets = {n.name for n in self.agent(name).neighbours} | set(self.listeners(name))
+        (sensing is two-way on every edge), or its neighbours alone for a method whose sensing
+        is directed (Presenza et al.)."""
+        targets = {n.name for n in self.agent(name).neighbours}
+        if not estimators.get(self.method).directed_sensing:
+            targets |= set(self.listeners(name))
         return sorted(targets, key=self.index.__getitem__)
+
+    def sensor_targets(self, sensor: str, name: str) -> list[str]:
+        """Agents that ``name``'s ``sensor`` (``relative_positions``, ``bearing_rates``,
+        ``ranges``) measures: its :meth:`sensing_targets`, except that with an anchor the
+        relative positions are the anchor's of its ranged robots only."""
+        if sensor == 'relative_positions' and self.anchor is not None:
+            return list(self.ranged) if name == self.anchor else []
+        return self.sensing_targets(name)
 
 
 def initial_truth(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -324,6 +324,10 @@ class _Network:
         problem = scenario.not_distributable()
         if problem:
             raise ScenarioError(f'{scenario.source}: {problem}')
+        if scenario.estimator().rounds == 2:
+            raise ScenarioError(f'{scenario.source}: netsim does not exchange two rounds of '
+                                'messages per step yet (Presenza et al.). Fix: run it over '
+                                'DDS (`bearing-pose run`) or in the batch simulator')
         self.world = World(scenario)
         self.rng = np.random.default_rng(links.seed)
         estimator = scenario.estimator()

@@ -47,9 +47,14 @@ class World(OnTruth):
                              for name in scenario.sensors.NAMES if scenario.simulates(name)}
         self.truth = Truth(scenario, self.dt)
         self.names = [a.name for a in scenario.agents]
-        self.targets = [np.array([scenario.index[t] for t in scenario.sensing_targets(a.name)],
-                                 dtype=np.intp) for a in scenario.agents]
+        self.targets = [self._indices(scenario.sensing_targets(a.name)) for a in scenario.agents]
+        self.sensor_targets = {name: [self._indices(scenario.sensor_targets(name, a.name))
+                                      for a in scenario.agents]
+                               for name in scenario.sensors.NAMES if name != 'odometry'}
         self.reset()
+
+    def _indices(self, names: list[str]) -> NDArray[np.intp]:
+        return np.array([self.scenario.index[t] for t in names], dtype=np.intp)
 
     def reset(self) -> None:
         """Back to t = 0, with the noise generators (and gyro biases) re-seeded."""
@@ -108,7 +113,7 @@ class World(OnTruth):
         """Agent i's measured ``relative_positions`` ``(n, 3)`` [m], ``bearing_rates``
         ``(n, 3)`` [1/s] or ``ranges`` ``(n,)`` [m] now, to the agents it senses: (0-based
         target indices, values)."""
-        j = self.targets[i]
+        j = self.sensor_targets[name][i]
         owner = np.full(j.shape, i, dtype=np.intp)
         measure = {'relative_positions': self.truth.relative_positions,
                    'bearing_rates': self.truth.bearing_rates,

@@ -1,0 +1,430 @@
+"""One robot of a two-round method (Presenza et al., ``rounds = 2``), independent of ROS: the
+logic of its estimator node.
+
+The step ``[t, t+h]`` runs in two rounds of messages (:meth:`base.Estimator.reply`):
+
+1. **Round 1** needs this robot's gyro and odometry over the step, its bearings and bearing
+   rates of the robots it senses at ``t``, the anchor's odometry over the step (every robot
+   moves with the anchor's frame), each sensed robot's ``q̂_j`` at ``t`` (its estimate) and, for
+   a ranged robot, the anchor's relative position of it at ``t``. Once they are here,
+   :meth:`TwoRoundAgent.pending_reply` forms what this robot sends each robot it senses
+   (gradient terms, the Gauss-Newton block, the anchor-frame bearing, the velocity term);
+2. **Round 2**: the step then waits for those values of ``t`` from every robot that senses
+   this one, and runs.
+
+Timing is :class:`link_agent.LinkAgentEstimator`'s: a value is lost once its sender sent a
+newer one, a silent sender (``neighbour_timeout``) is left out, and the wait ends when the own
+sensors are ``link_wait`` ahead (or, ``impatient``, at once). What is missing then:
+
+- ``q̂_j``: j's newest estimate (no older than ``neighbour_timeout``) stands in for it
+  (``carried``): the angles see j where it was a moment ago; with none, the link's angles
+  and attitude terms sit the step out;
+- an own bearing or bearing rate: the link sits the step out (no angle, no attitude term);
+- the anchor's odometry: the step is not run until it comes or the anchor goes silent, then
+  the anchor is taken as still (the frame's motion is lost for those steps, counted);
+- a round-2 value: zeros, which the method reads as "not sent" (the listener's velocity
+  reconstruction and angle terms use the other sensing robots).
+
+Each cause is counted in :attr:`missing`.
+"""
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Collection
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.odometry import OdometryBuffer
+from .agent import Limits, _vector_problem
+from .base import AnchorInputs, Edges, Estimator, LinkInputs, StepInputs
+from .link_agent import _HISTORY, Link, LinkAgentEstimator, _interpolated
+
+if TYPE_CHECKING:
+    from ..scenario.model import Scenario
+
+Array = NDArray[np.float64]
+# A bearing rate above this [1/s] is absurd (a target crossing the view in 10 ms).
+MAX_BEARING_RATE = 100.0
+
+
+class TwoRoundAgent(LinkAgentEstimator):
+    """One robot of a two-round method fed by time-stamped inputs (module docstring).
+
+    Args:
+        links: ``(name, agent_id, senses, sensed_by)`` of each communication neighbour (it
+            senses j, j senses it, or one of them is the anchor that ranges the other), in the
+            batch simulator's order (ids ascending).
+        anchor: ``(name, agent_id)`` of the anchor; ``ranges``: the ids this robot ranges (it
+            is the anchor); ``ranged``: the anchor ranges this robot; ``pinned``: the anchor
+            holds ``(I, 0)``.
+        the rest: as :class:`link_agent.LinkAgentEstimator`.
+    """
+
+    def __init__(self, estimator: Estimator, agent_id: int,
+                 links: list[tuple[str, int, bool, bool]], step: float, R0: Array, p0: Array,
+                 anchor: tuple[str, int], ranges: Collection[int] = (),
+                 ranged: bool = False, pinned: bool = False, t0: float = 0.0,
+                 gyro_horizon: float = 2.0, known_ids: set[int] | None = None,
+                 limits: Limits = Limits()) -> None:
+        super().__init__(estimator, agent_id, links, step, R0, p0, t0=t0,
+                         gyro_horizon=gyro_horizon, known_ids=known_ids, limits=limits)
+        self.anchor_name, self.anchor_id = anchor
+        self.is_anchor = self.anchor_id == agent_id
+        self.pinned = pinned
+        self.ranged = ranged
+        self.ranges = frozenset(int(j) for j in ranges)
+        self._ranges = np.array([lk.agent_id in self.ranges for lk in self.links], dtype=bool)
+        self._ranged_by = np.array([ranged and lk.agent_id == self.anchor_id
+                                    for lk in self.links], dtype=bool)
+        self.anchor_odometry = None if self.is_anchor else OdometryBuffer(t0, gyro_horizon)
+        self.rates: dict[int, deque[tuple[float, Array]]] = {
+            lk.agent_id: deque(maxlen=_HISTORY) for lk in self.links if lk.senses}
+        self._first = [c.name for c in estimator.sends if c.round == 1 and c.sensor is None]
+        self._second = [c.name for c in estimator.sends if c.round == 2]
+        self._round1: StepInputs | None = None   # of step self._round1_k, replied
+        self._round1_k = -1
+        self._reply: dict[str, dict[int, Array]] | None = None
+        self.anchor_still_steps = 0   # steps run without the anchor's odometry
+
+    # ------------------------------------------------------------------------------ wiring
+    def measures_me(self, link: Link) -> bool:
+        """j's sensor topic carries a measurement of this robot that the step reads: the
+        anchor's relative position of a ranged robot."""
+        return bool(self.ranged and link.agent_id == self.anchor_id)
+
+    def odometry_sources(self) -> list[tuple[str, int]]:
+        """Whose odometry this robot reads: the anchor's (unless it is the anchor)."""
+        return [] if self.is_anchor else [(self.anchor_name, self.anchor_id)]
+
+    def channel_sources(self, channel: str) -> list[Link]:
+        """The neighbours whose values of ``channel`` the step reads: ``q̂_j`` of the robots
+        it senses, the anchor's range of this robot, round 2 from the robots that sense it."""
+        if channel in self._second:
+            return [lk for lk in self.links if lk.sensed_by]
+        if self.channels[channel].sensor is not None:
+            return [lk for lk in self.links if self.measures_me(lk)]
+        return [lk for lk in self.links if lk.senses]
+
+    def _clear_inputs(self, reset_estimate: bool) -> None:
+        super()._clear_inputs(reset_estimate)
+        for hist in getattr(self, 'rates', {}).values():
+            hist.clear()
+        if getattr(self, 'anchor_odometry', None) is not None and reset_estimate:
+            assert self.anchor_odometry is not None
+            self.anchor_odometry.reset(self.t0)
+        self._round1, self._round1_k, self._reply = None, -1, None
+
+    # ------------------------------------------------------------------------------ inputs
+    def add_bearings(self, stamp: float, ids: NDArray[np.integer], vectors: Array) -> list[str]:
+        """Own unit bearings ``β_ij`` (body frame) of the robots ``ids`` at ``stamp``; points of
+        robots this one does not sense are ignored. Returns the causes of rejected points."""
+        return self._add_own(stamp, ids, vectors, unit=True)
+
+    def add_bearing_rates(self, stamp: float, ids: NDArray[np.integer],
+                          vectors: Array) -> list[str]:
+        """Own bearing rates ``β̇_ij`` [1/s] (body frame) at ``stamp``."""
+        return self._add_own(stamp, ids, vectors, unit=False)
+
+    def add_relative_positions(self, stamp: float, ids: NDArray[np.integer],
+                               vectors: Array) -> list[str]:
+        """Unused: the anchor's ranges go to the ranged robots, its own step does not read
+        them."""
+        return []
+
+    def _add_own(self, stamp: float, ids: NDArray[np.integer], vectors: Array,
+                 unit: bool) -> list[str]:
+        if not np.isfinite(stamp):
+            return ['non_finite'] * len(ids)
+        if stamp > self.gyro.end + self.limits.max_future:
+            return ['future_stamp'] * len(ids)
+        rejected = []
+        for j, v in zip(np.asarray(ids).tolist(), np.asarray(vectors, dtype=float)):
+            link = self._by_id.get(int(j))
+            if link is None or not link.senses:
+                if int(j) == self.agent_id or (self.known_ids is not None
+                                               and int(j) not in self.known_ids):
+                    rejected.append('unknown_id')
+                continue
+            if unit:
+                problem = _vector_problem(v, self.limits.unit_tolerance)
+            elif v.shape != (3,) or not np.all(np.isfinite(v)):
+                problem = 'non_finite'
+            else:
+                problem = 'absurd_value' if np.max(np.abs(v)) > MAX_BEARING_RATE else None
+            hist = link.measured if unit else self.rates[link.agent_id]
+            if problem is None and hist and stamp <= hist[-1][0]:
+                problem = 'out_of_order'
+            if problem is None:
+                hist.append((float(stamp), v / np.linalg.norm(v) if unit else v.copy()))
+            else:
+                rejected.append(problem)
+        return rejected
+
+    def add_neighbour_measurements(self, agent_id: int, stamp: float,
+                                   ids: NDArray[np.integer], vectors: Array) -> str | None:
+        """The anchor's relative positions at ``stamp``: the point of this robot, if it is
+        ranged, is kept."""
+        link = self._by_id.get(agent_id)
+        if link is None:
+            return 'unknown_id'
+        if not self.measures_me(link) or not np.isfinite(stamp):
+            return None if np.isfinite(stamp) else 'non_finite'
+        mine = np.flatnonzero(np.asarray(ids) == self.agent_id)
+        if not mine.size:
+            return None
+        v = np.asarray(vectors, dtype=float)[mine[0]]
+        problem = self._vector_problem(v)
+        if problem is None and link.theirs and stamp <= link.theirs[-1][0]:
+            problem = 'out_of_order'
+        if problem is not None:
+            return problem
+        link.theirs.append((float(stamp), v.copy()))
+        return None
+
+    def add_neighbour_odometry(self, agent_id: int, stamp: float, v: Array,
+                               omega: Array) -> str | None:
+        """The anchor's odometry sample (the only neighbour odometry this method reads)."""
+        if agent_id != self.anchor_id or self.anchor_odometry is None:
+            return 'unknown_id'
+        v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
+        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(omega)) and np.isfinite(stamp)):
+            return 'non_finite'
+        if (float(np.linalg.norm(omega)) > self.limits.max_rate
+                or float(np.linalg.norm(v)) > self.limits.max_speed):
+            return 'absurd_rate'
+        odo = self.anchor_odometry
+        if stamp <= odo.end:
+            if stamp < odo.end - self.limits.jump_back:   # the anchor restarted its clock
+                odo.reset(stamp)
+                return None
+            return 'out_of_order'
+        if stamp - odo.end > self.limits.max_gyro_gap:
+            odo.reset(stamp)
+            return 'odometry_gap'
+        odo.add_twist(stamp, v, omega)
+        return None
+
+    # ------------------------------------------------------------------------------ stepping
+    def stale_neighbours(self, t: float) -> list[str]:
+        """Neighbours silent for longer than ``neighbour_timeout`` before ``t``, or since the
+        start (a link that only ranges sends nothing the other end reads: never stale)."""
+        limit = t - self.limits.neighbour_timeout
+        # Heard from since the start: a neighbour whose first values are on their way is not
+        # stale before neighbour_timeout has passed.
+        return [lk.name for lk in self.links
+                if (lk.senses or lk.sensed_by or self.measures_me(lk))
+                and max(lk.newest(), self.t0) < limit]
+
+    def _anchor_late(self, t: float) -> bool:
+        """The anchor's odometry will not cover the step: silent for ``neighbour_timeout``."""
+        odo = self.anchor_odometry
+        return odo is not None and odo.end < t - self.limits.neighbour_timeout
+
+    def _awaiting_round(self, t: float, first: bool) -> str | None:
+        """What round 1 (``first``) or round 2 of the step at ``t`` still waits for, or None."""
+        tol = 1e-9
+        own_late = self.gyro.end - t > self.limits.sensor_timeout
+        behind = self.gyro.end - t > self.limits.link_wait
+        stale = set(self.stale_neighbours(t))
+        if first:
+            odo = self.anchor_odometry
+            if (odo is not None and not behind and not odo.covers(t, t + self.h)
+                    and not self._anchor_late(t)):
+                return 'anchor_odometry'
+            for link in self.links:
+                if link.senses and not own_late:
+                    if not (link.measured and link.measured[-1][0] >= t - tol):
+                        return 'own_bearing'
+                    rates = self.rates[link.agent_id]
+                    if not (rates and rates[-1][0] >= t - tol):
+                        return 'own_bearing_rate'
+                if link.name in stale or behind:
+                    continue
+                if self.measures_me(link) and not (link.theirs and link.theirs[-1][0] >= t - tol):
+                    return 'anchor_range'
+                if link.senses:
+                    for name in self._first:
+                        if _waiting(link, name, t):
+                            return name
+            return None
+        if behind:
+            return None
+        for link in self.links:
+            if link.sensed_by and link.name not in stale:
+                for name in self._second:
+                    if _waiting(link, name, t):
+                        return name
+        return None
+
+    def _round1_inputs(self, t: float) -> StepInputs:
+        """Round 1's inputs of the step at ``t`` with whatever is here (module docstring for
+        what stands in for what is missing)."""
+        n, h = len(self.links), self.h
+        est = self.estimator
+        senses = self._senses.copy()
+        bearings, rates = np.zeros((n, 3)), np.zeros((n, 3))
+        received = {c.name: np.zeros((n,) + c.shape) for c in est.sends}
+        rotate = (lambda s_, t_: self.gyro.increment(t_, s_))
+        for e, link in enumerate(self.links):
+            if link.senses:
+                b, _ = _interpolated(link.measured, t, rotate)
+                rate, _ = _interpolated(self.rates[link.agent_id], t, rotate)
+                q, _ = link.value_at('q_hat', t)
+                if q is None:
+                    q = self._newest(link, 'q_hat', t)
+                    if q is not None:
+                        self.carried += 1
+                for what, value in (('own_bearing', b), ('own_bearing_rate', rate),
+                                    ('q_hat', q)):
+                    if value is None:
+                        self.missing[what] += 1
+                if b is None or rate is None or q is None:
+                    senses[e] = False   # the link's angles and attitude terms sit it out
+                    continue
+                bearings[e] = b / np.linalg.norm(b)
+                rates[e], received['q_hat'][e] = rate, q
+            if self._ranged_by[e]:
+                v, _ = _interpolated(link.theirs, t, lambda s_, t_: np.eye(3))
+                if v is None:
+                    self.missing['anchor_range'] += 1
+                else:
+                    received['q_ranged'][e] = v
+        delta_R = self.gyro.increment(t, t + h)[None]
+        displacement = np.zeros((1, 3))
+        if self.odometry.covers(t, t + h):
+            displacement = self.odometry.displacement(t, t + h)[None]
+        else:
+            self.odometry_missing_steps += 1
+        if self.is_anchor:
+            a_R, a_d = delta_R, displacement
+        elif self.anchor_odometry is not None and self.anchor_odometry.covers(t, t + h):
+            a_R = self.anchor_odometry.rotation(t, t + h)[None]
+            a_d = self.anchor_odometry.displacement(t, t + h)[None]
+        else:
+            self.anchor_still_steps += 1
+            a_R, a_d = np.eye(3)[None], np.zeros((1, 3))
+        ranged_by = self._ranged_by.copy()
+        if ranged_by.any() and not np.any(received['q_ranged'][ranged_by]):
+            ranged_by[:] = False   # the range did not come: no anchor term this step
+        anchor = AnchorInputs(is_anchor=np.array([self.is_anchor]), delta_R=a_R,
+                              displacement=a_d, ranges=self._ranges, ranged_by=ranged_by,
+                              pinned=self.pinned)
+        links = LinkInputs(senses=senses, sensed_by=self._sensed_by, owns=self._owns,
+                           relative_positions=np.zeros((n, 3)),
+                           other_delta_R=np.tile(np.eye(3), (n, 1, 1)),
+                           other_displacement=np.zeros((n, 3)))
+        return StepInputs(delta_R=delta_R,
+                          edges=Edges(agent=np.zeros(n, dtype=np.intp), k=np.ones(n),
+                                      n_agents=1, slot=np.arange(n, dtype=np.intp)),
+                          bearings=bearings, received=received, displacement=displacement,
+                          links=links, t=t, bearing_rates=rates, anchor=anchor)
+
+    def _newest(self, link: Link, name: str, t: float) -> Array | None:
+        """j's newest value of ``name`` before ``t``, no older than ``neighbour_timeout``."""
+        for stamp, value in reversed(link.history.get(name, ())):
+            if stamp < t - 1e-9:
+                return value if stamp >= t - self.limits.neighbour_timeout else None
+        return None
+
+    def pending_reply(self, impatient: bool = False) -> dict[str, dict[int, Array]] | None:
+        """Round 2 of the current step, once: ``{channel: {listener id: value}}`` for every
+        robot this one senses (zeros where it has nothing to say, so that listeners need not
+        wait), when round 1 is complete (``impatient``: with what is here); else None."""
+        if self._round1_k == self.k or not self.own_inputs_ready():
+            return None
+        t = self.t
+        awaited = None if impatient else self._awaiting_round(t, first=True)
+        if awaited is not None:
+            self.waits[awaited] += 1
+            return None
+        inputs = self._round1_inputs(t)
+        sent = self.estimator.reply(self.x, self.h, inputs)
+        self._round1, self._round1_k = inputs, self.k
+        self._reply = {name: {lk.agent_id: sent[name][e] for e, lk in enumerate(self.links)
+                              if lk.senses} for name in self._second}
+        return self._reply
+
+    def steps_ready(self) -> int:
+        """1 when the current step has replied and its round 2 is here (or given up on)."""
+        if self._round1_k != self.k:
+            return 0
+        awaited = None if self.impatient else self._awaiting_round(self.t, first=False)
+        if awaited is not None:
+            self.waits[awaited] += 1
+            return 0
+        return 1
+
+    def advance(self, max_steps: int | None = None, impatient: bool = False) -> int:
+        """Run the current step if both rounds are complete (``impatient``: with what is
+        here); return how many ran (0 or 1: each step needs its reply sent first)."""
+        self.impatient = impatient
+        ran = 0
+        if (max_steps is None or max_steps > 0) and self.steps_ready():
+            self._step()
+            ran = 1
+        self.impatient = False
+        return ran
+
+    def _step(self) -> None:
+        first = self._round1
+        assert first is not None and self._round1_k == self.k
+        t = self.t
+        received = dict(first.received)
+        for name in self._second:
+            c = self.channels[name]
+            values = np.zeros((len(self.links),) + c.shape)
+            for e, link in enumerate(self.links):
+                if not link.sensed_by:
+                    continue
+                v, _ = link.value_at(name, t)
+                if v is None:
+                    self.missing[name] += 1
+                else:
+                    values[e] = v
+            received[name] = values
+        inputs = replace(first, received=received)
+        self._pending = inputs
+        self._pending_k = self.k
+        super()._step()
+        self.last = replace(self.last, edges_used=int(np.count_nonzero(first.links.senses)
+                                                      if first.links is not None else 0))
+        self._round1, self._reply = None, None
+
+    # ------------------------------------------------------------------------------ outputs
+    def outbox(self) -> dict[str, object]:
+        """Round 1 at the state time: ``q_hat`` (on the estimate). Round 2 goes out through
+        :meth:`pending_reply`."""
+        return {'q_hat': self.x.p_hat[0].copy()}
+
+
+def _waiting(link: Link, name: str, t: float) -> bool:
+    """j's value of ``name`` at ``t`` may still come (not here, nothing newer either)."""
+    value, decided = link.value_at(name, t)
+    return value is None and not decided
+
+
+def two_round_agent_for(scenario: Scenario, name: str, limits: Limits = Limits(),
+                        initial: tuple[Array, Array] | None = None) -> TwoRoundAgent:
+    """The estimator of robot ``name`` as the scenario defines it: its communication links
+    (sensing either way, and the anchor's ranging) in the batch simulator's order."""
+    from ..scenario.model import initial_estimates
+
+    i = scenario.index[name]
+    anchor = scenario.anchor
+    assert anchor is not None, 'two-round methods have an anchor'
+    R0, p0 = initial if initial is not None else initial_estimates(scenario)
+    senses = {nb.name for nb in scenario.agents[i].neighbours}
+    sensed_by = set(scenario.listeners(name))
+    ranging = set(scenario.ranged) if name == anchor else (
+        {anchor} if name in scenario.ranged else set())
+    others = sorted(senses | sensed_by | ranging, key=scenario.index.__getitem__)
+    links = [(o, scenario.agent_id(o), o in senses, o in sensed_by) for o in others]
+    ranges = {scenario.agent_id(o) for o in scenario.ranged} if name == anchor else set()
+    return TwoRoundAgent(scenario.estimator(), agent_id=scenario.agent_id(name), links=links,
+                         step=scenario.step, R0=R0[i], p0=p0[i],
+                         anchor=(anchor, scenario.agent_id(anchor)), ranges=ranges,
+                         ranged=name in scenario.ranged, pinned=scenario.anchor_pinned,
+                         known_ids=set(range(1, len(scenario.agents) + 1)), limits=limits)

@@ -1,0 +1,120 @@
+"""Presenza et al. over DDS: the paper's case 1 at 30 Hz (every sensor at that rate, the
+preconditioned scheme), one process per robot plus the simulator and the monitor, observed
+from the test process. One fleet, several checks:
+
+- the errors track the batch simulator at the same rate and scheme within 5 % (the issue's
+  acceptance; in fact to the CSV's rounding: both rounds arrive for every step);
+- the wire: estimates in the anchor's body frame, the second round from each sensing robot to
+  the robots it sees, in the anchor frame, one point per listener;
+- /diagnostics: λ_min(P̂_i) of the free robots' velocity reconstruction, no input left out.
+"""
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+
+from bearing_pose_estimation import msg_defs as wire
+from bearing_pose_estimation.cli import launch
+from bearing_pose_estimation.scenario import load_scenario
+from bearing_pose_estimation.sim.batch import BatchSimulator
+from bearing_pose_estimation.studies.summary import read_metrics_csv
+
+from ros_helpers import observer
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from presenza_fleet import camera_rate_case1  # noqa: E402
+
+DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
+DURATION = 2.0
+# Subscribed once the run is going: the simulator waits for the estimators' own subscribers.
+LATE_TOPICS = {'/robot_1/angle_gradient': (wire.PointCloud2, wire.ESTIMATE_RECORD_QOS),
+               '/robot_1/angle_hessian': (wire.PointCloud2, wire.ESTIMATE_RECORD_QOS),
+               '/robot_2/estimate': (wire.PoseStamped, wire.ESTIMATE_RECORD_QOS)}
+
+
+@pytest.fixture(scope='module')
+def run(tmp_path_factory):
+    """The fleet's run to its end: (scenario file, output dir, observer's messages)."""
+    tmp = tmp_path_factory.mktemp('presenza_dds')
+    scenario_file = camera_rate_case1(tmp, rate=30.0, duration=DURATION)
+    scenario = load_scenario(scenario_file)
+    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp / 'out', duration=DURATION,
+                           domain_id=DOMAIN, plots=False)
+    cfg.logs_dir.mkdir(parents=True)
+    specs = launch.plan_processes(scenario, launch.write_params(scenario, cfg), cfg.logs_dir,
+                                  launch.find_executable)
+    shm = launch.shm_files()
+    with observer() as obs, launch.ProcessGroup(env=launch.dds_env(DOMAIN, tmp / 'ros')) as g:
+        obs.subscribe(DiagnosticArray, '/diagnostics', 50)
+        for spec in specs:
+            g.start(spec)
+        assert obs.spin_until(lambda: _status(obs.messages, 'robot_4').get(
+            'state_time_s', '-1') not in ('-1', 'n/a') and float(
+            _status(obs.messages, 'robot_4')['state_time_s']) > 0.2, 120.0), \
+            {n: launch.log_tail(cfg.logs_dir / f'{n}.log', 5) for n in scenario.index}
+        for name, (msg_type, qos) in LATE_TOPICS.items():
+            obs.subscribe(msg_type, name, qos)
+        assert obs.spin_until(lambda: g.returncode('monitor') is not None, 120.0), \
+            'the monitor did not finish'
+        assert g.returncode('monitor') in launch.CLEAN_EXITS
+        g.shutdown()
+        assert g.unclean() == {}
+    assert launch.leaked_shm(shm) == []
+    logs = {n: (cfg.logs_dir / f'{n}.log').read_text() for n in scenario.index}
+    return scenario_file, cfg.out_dir, obs.messages, logs
+
+
+def _status(messages, robot: str) -> dict[str, str]:
+    for msg in reversed(messages['/diagnostics']):
+        for st in msg.status:
+            if st.name.startswith(f'{robot}/') or st.name == robot:
+                return {kv.key: kv.value for kv in st.values}
+    return {}
+
+
+def test_the_fleet_tracks_the_batch_simulator_within_5_percent(run):
+    scenario_file, out, _, logs = run
+    dds = read_metrics_csv(out / 'metrics.csv')
+    rec = BatchSimulator(load_scenario(scenario_file)).run(DURATION, record_every=0.1)
+    np.testing.assert_allclose(dds.t, rec.t, atol=1e-9)
+    att_b, pos_b = rec.mean_errors()
+    att_d, pos_d = dds.mean_errors()
+    assert np.all(np.abs(pos_d - pos_b) <= 0.05 * pos_b)
+    assert np.all(np.abs(att_d - att_b) <= 0.05 * att_b)
+    assert pos_d[-1] < 0.5 * pos_d[0] and att_d[-1] < 0.5 * att_d[0]
+    for name, log in logs.items():   # every step had both rounds of every neighbour
+        assert 'left out: 0; carried: 0' in log, (name, log[-600:])
+
+
+def test_the_second_round_travels_in_the_anchor_frame_one_point_per_listener(run):
+    _, _, messages, _ = run
+    frame = wire.body_frame('robot_1')   # the anchor's
+    estimates = messages['/robot_2/estimate']
+    assert estimates and {m.header.frame_id for m in estimates} == {frame}
+    for topic in ('/robot_1/angle_gradient', '/robot_1/angle_hessian'):
+        msgs = messages[topic]
+        assert msgs and {m.header.frame_id for m in msgs} == {frame}
+    # Robot 1 senses robots 2..5: one point for each, every step (stamps 1/30 s apart).
+    _, ids, g = wire.decode_vectors(messages['/robot_1/angle_gradient'][-1])
+    assert sorted(ids.tolist()) == [2, 3, 4, 5] and np.all(np.isfinite(g))
+    _, blocks = wire.channel('angle_hessian').decode(messages['/robot_1/angle_hessian'][-1])
+    assert sorted(blocks) == [2, 3, 4, 5]
+    for packed in blocks.values():   # a Gauss-Newton block: positive semi-definite
+        xx, yy, zz, xy, xz, yz = packed
+        m = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+        assert np.linalg.eigvalsh(m).min() > -1e-12
+    stamps = sorted({wire.from_stamp(m.header.stamp) for m in messages['/robot_1/angle_gradient']})
+    assert np.allclose(np.diff(stamps), 1.0 / 30.0)
+
+
+def test_diagnostics_report_the_free_robots_velocity_reconstruction(run):
+    _, _, messages, _ = run
+    for robot in ('robot_3', 'robot_4', 'robot_5'):   # free robots: seen by robots 1 and 2
+        status = _status(messages, robot)
+        # Well above min_lambda_P (1e-3): two non-collinear bearings of it (A5 of the notes).
+        assert float(status['lambda_P']) > 0.03, status
+        assert status['reconstructed'] == '1'
+    assert float(_status(messages, 'robot_2')['lambda_P']) == 0.0   # a sensing robot
