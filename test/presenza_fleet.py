@@ -18,19 +18,15 @@ from bearing_pose_estimation.sim.world import World
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def camera_rate_case1(folder: Path, rate: float = 30.0, duration: float = 3.0) -> Path:
-    """``config/presenza_case1.yaml`` at ``rate`` [Hz]: estimator, gyro, odometry, bearings,
-    bearing rates and ranges all at that rate (internal step a tenth of it), with the
-    preconditioned scheme the explicit update cannot do without at such rates."""
-    d = yaml.safe_load((ROOT / 'config' / 'presenza_case1.yaml').read_text())
-    d.update(frequency=rate, publish_rate=rate, duration=duration,
-             name=f'presenza_case1_{rate:g}hz')
-    d['gains']['preconditioning'] = 1.0
-    for spec in d['sensors'].values():
-        spec['rate'] = rate
-    d['simulation'] = {'internal_step': 0.1 / rate, 'imu_rate': rate, 'bearing_rate': rate,
-                       'ground_truth_rate': rate}
-    path = folder / f'presenza_case1_{rate:g}hz.yaml'
+CAMERA_RATE = ROOT / 'config' / 'presenza_case1_30hz.yaml'
+
+
+def camera_rate_case1(folder: Path, duration: float = 3.0) -> Path:
+    """``config/presenza_case1_30hz.yaml`` (case 1 with the estimator and every sensor at
+    30 Hz, the preconditioned scheme) cut to ``duration`` [s], written into ``folder``."""
+    d = yaml.safe_load(CAMERA_RATE.read_text())
+    d['duration'] = duration
+    path = folder / CAMERA_RATE.name
     path.write_text(yaml.safe_dump(d, sort_keys=False))
     return path
 

@@ -39,7 +39,7 @@ LATE_TOPICS = {'/robot_1/angle_gradient': (wire.PointCloud2, wire.ESTIMATE_RECOR
 def run(tmp_path_factory):
     """The fleet's run to its end: (scenario file, output dir, observer's messages)."""
     tmp = tmp_path_factory.mktemp('presenza_dds')
-    scenario_file = camera_rate_case1(tmp, rate=30.0, duration=DURATION)
+    scenario_file = camera_rate_case1(tmp, duration=DURATION)
     scenario = load_scenario(scenario_file)
     cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp / 'out', duration=DURATION,
                            domain_id=DOMAIN, plots=False)

@@ -122,8 +122,8 @@ def test_at_30_hz_the_preconditioned_scheme_converges_and_the_explicit_update_do
 
 def test_what_the_nodes_cannot_run_is_refused_with_the_reason_and_the_fix():
     """Case 2's closed loop (u = Q̂ᵀ v) needs the estimates inside the truth, which a simulator
-    node cannot have; netsim has no second round yet. Case 1 runs over DDS
-    (test_presenza_dds.py)."""
+    node (or netsim's world) cannot have. Case 1 runs over DDS (test_presenza_dds.py) and in
+    netsim (test_presenza_faults.py)."""
     from bearing_pose_estimation.estimators.link_agent import agent_for
     from bearing_pose_estimation.scenario import ScenarioError
     from bearing_pose_estimation.sim.netsim import simulate_network
@@ -132,7 +132,6 @@ def test_what_the_nodes_cannot_run_is_refused_with_the_reason_and_the_fix():
     assert s1.not_distributable() is None
     agent_for(s1, 'robot_2')
     s2 = load_scenario(ROOT / 'config' / 'presenza_case2.yaml')
-    with pytest.raises(ScenarioError, match=r'anchor_estimate.*Fix: run it with'):
-        agent_for(s2, 'robot_2')
-    with pytest.raises(ScenarioError, match=r'two rounds of messages.*Fix: run it over DDS'):
-        simulate_network(s1, 1.0)
+    for run in (lambda: agent_for(s2, 'robot_2'), lambda: simulate_network(s2, 0.1)):
+        with pytest.raises(ScenarioError, match=r'anchor_estimate.*Fix: run it with'):
+            run()

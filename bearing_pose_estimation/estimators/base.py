@@ -523,6 +523,14 @@ class Estimator(ABC, Generic[G, S]):
         (its node then leaves a late value out)."""
         return None
 
+    def carry_anchor_frame(self, values: Mapping[str, Array], delta_R_a: Array,
+                           delta_a: Array) -> dict[str, Array] | None:
+        """Methods with an anchor: a neighbour's ``values`` in the anchor frame at ``t_s``
+        carried to ``t > t_s`` by the anchor's motion over ``[t_s, t]`` (``delta_R_a``,
+        ``delta_a``, in its frame at ``t_s``): the values the same world quantities have in the
+        anchor frame at t. None: the method cannot."""
+        return None
+
     # The names of the per-agent diagnostic 'stage' (an index), for methods that report one.
     stages: ClassVar[tuple[str, ...]] = ()
 

@@ -56,6 +56,7 @@ paper) or, ``anchor.pinned``, holds ``(I, 0)``. Estimates are in the anchor's bo
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import TYPE_CHECKING, ClassVar
@@ -192,17 +193,39 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         listener (``bearings``: zeros where the sender does not range it)."""
         return {'q_hat': x.p_hat.copy(), 'q_ranged': np.array(bearings, dtype=float)}
 
+    def carry_anchor_frame(self, values: Mapping[str, Array], delta_R_a: Array,
+                           delta_a: Array) -> dict[str, Array]:
+        """Values formed at ``t_s`` seen in the anchor frame at t: a position
+        ``ΔR_aᵀ (q - δ_a)`` (as if the sender had not moved meanwhile), a vector ``ΔR_aᵀ v``, the
+        Gauss-Newton block ``ΔR_aᵀ D ΔR_a``. What a node uses for a late value (the sender's
+        newest), instead of one of another frame."""
+        out = {}
+        for name, v in values.items():
+            if name == 'q_hat':
+                out[name] = delta_R_a.T @ (v - delta_a)
+            elif name == 'angle_hessian':
+                out[name] = _pack((delta_R_a.T @ _unpack(v[None])[0] @ delta_R_a)[None])[0]
+            else:
+                out[name] = delta_R_a.T @ v
+        return out
+
     @staticmethod
     def _structure(x: PresenzaState, inputs: StepInputs
                    ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_],
                               AnchorInputs]:
-        """Per link ``senses``, ``sensed_by``; per robot ``sensing`` (two or more
-        out-neighbours); the anchor inputs."""
+        """Per link whether its sensing terms are used this step (i senses j, and a node
+        has its bearing and ``q̂_j``: ``LinkInputs.measured``, ``fresh``) and ``sensed_by``;
+        per robot ``sensing`` (two or more out-neighbours: a role, whatever this step
+        lacks); the anchor inputs."""
         links, anchor = inputs.links, inputs.anchor
         assert links is not None and anchor is not None, 'Presenza et al. step over links'
         n = x.p_hat.shape[0]
         count = np.bincount(inputs.edges.agent[links.senses], minlength=n)
-        return links.senses, links.sensed_by, count >= 2, anchor
+        used = links.senses.copy()
+        for have in (links.measured, links.fresh):
+            if have is not None:
+                used &= have
+        return used, links.sensed_by, count >= 2, anchor
 
     @staticmethod
     def _motion(h: float, inputs: StepInputs, n: int) -> tuple[Array, Array, Array, Array,

@@ -16,14 +16,15 @@ Timing is :class:`link_agent.LinkAgentEstimator`'s: a value is lost once its sen
 newer one, a silent sender (``neighbour_timeout``) is left out, and the wait ends when the own
 sensors are ``link_wait`` ahead (or, ``impatient``, at once). What is missing then:
 
-- ``q̂_j``: j's newest estimate (no older than ``neighbour_timeout``) stands in for it
-  (``carried``): the angles see j where it was a moment ago; with none, the link's angles
-  and attitude terms sit the step out;
-- an own bearing or bearing rate: the link sits the step out (no angle, no attitude term);
+- ``q̂_j`` or a round-2 value: j's newest one (no older than ``neighbour_timeout``) carried
+  to t by the anchor's motion (:meth:`base.Estimator.carry_anchor_frame`: the same world
+  quantity in the anchor frame at t; counted in ``carried``); with none, the link's terms sit
+  the step out (``LinkInputs.fresh``; a round-2 value: zeros, which the method reads as "not
+  sent", so the velocity reconstruction and angle terms use the other sensing robots);
+- an own bearing or bearing rate: the link's terms sit the step out (``LinkInputs.measured``;
+  the robot keeps its role, sensing or free);
 - the anchor's odometry: the step is not run until it comes or the anchor goes silent, then
-  the anchor is taken as still (the frame's motion is lost for those steps, counted);
-- a round-2 value: zeros, which the method reads as "not sent" (the listener's velocity
-  reconstruction and angle terms use the other sensing robots).
+  the anchor is taken as still (the frame's motion is lost for those steps, counted).
 
 Each cause is counted in :attr:`missing`.
 """
@@ -264,7 +265,7 @@ class TwoRoundAgent(LinkAgentEstimator):
         what stands in for what is missing)."""
         n, h = len(self.links), self.h
         est = self.estimator
-        senses = self._senses.copy()
+        measured, fresh = self._senses.copy(), self._senses.copy()
         bearings, rates = np.zeros((n, 3)), np.zeros((n, 3))
         received = {c.name: np.zeros((n,) + c.shape) for c in est.sends}
         rotate = (lambda s_, t_: self.gyro.increment(t_, s_))
@@ -281,9 +282,9 @@ class TwoRoundAgent(LinkAgentEstimator):
                                     ('q_hat', q)):
                     if value is None:
                         self.missing[what] += 1
+                measured[e], fresh[e] = b is not None and rate is not None, q is not None
                 if b is None or rate is None or q is None:
-                    senses[e] = False   # the link's angles and attitude terms sit it out
-                    continue
+                    continue   # the link's angles and attitude terms sit the step out
                 bearings[e] = b / np.linalg.norm(b)
                 rates[e], received['q_hat'][e] = rate, q
             if self._ranged_by[e]:
@@ -312,10 +313,11 @@ class TwoRoundAgent(LinkAgentEstimator):
         anchor = AnchorInputs(is_anchor=np.array([self.is_anchor]), delta_R=a_R,
                               displacement=a_d, ranges=self._ranges, ranged_by=ranged_by,
                               pinned=self.pinned)
-        links = LinkInputs(senses=senses, sensed_by=self._sensed_by, owns=self._owns,
+        links = LinkInputs(senses=self._senses, sensed_by=self._sensed_by, owns=self._owns,
                            relative_positions=np.zeros((n, 3)),
                            other_delta_R=np.tile(np.eye(3), (n, 1, 1)),
-                           other_displacement=np.zeros((n, 3)))
+                           other_displacement=np.zeros((n, 3)),
+                           measured=measured | ~self._senses, fresh=fresh | ~self._senses)
         return StepInputs(delta_R=delta_R,
                           edges=Edges(agent=np.zeros(n, dtype=np.intp), k=np.ones(n),
                                       n_agents=1, slot=np.arange(n, dtype=np.intp)),
@@ -323,10 +325,19 @@ class TwoRoundAgent(LinkAgentEstimator):
                           links=links, t=t, bearing_rates=rates, anchor=anchor)
 
     def _newest(self, link: Link, name: str, t: float) -> Array | None:
-        """j's newest value of ``name`` before ``t``, no older than ``neighbour_timeout``."""
+        """j's newest value of ``name`` before ``t`` (no older than ``neighbour_timeout``)
+        carried to ``t`` by the anchor's motion (:meth:`base.Estimator.carry_anchor_frame`),
+        or None."""
         for stamp, value in reversed(link.history.get(name, ())):
-            if stamp < t - 1e-9:
-                return value if stamp >= t - self.limits.neighbour_timeout else None
+            if stamp >= t - 1e-9:
+                continue
+            odo = self.odometry if self.is_anchor else self.anchor_odometry
+            if stamp < t - self.limits.neighbour_timeout or odo is None or not odo.covers(
+                    stamp, t):
+                return None
+            carried = self.estimator.carry_anchor_frame(
+                {name: value}, odo.rotation(stamp, t), odo.displacement(stamp, t))
+            return None if carried is None else carried[name]
         return None
 
     def pending_reply(self, impatient: bool = False) -> dict[str, dict[int, Array]] | None:
@@ -380,6 +391,9 @@ class TwoRoundAgent(LinkAgentEstimator):
                 if not link.sensed_by:
                     continue
                 v, _ = link.value_at(name, t)
+                if v is None:   # late or lost: j's newest, carried to t, if any
+                    v = self._newest(link, name, t)
+                    self.carried += v is not None
                 if v is None:
                     self.missing[name] += 1
                 else:
@@ -389,8 +403,10 @@ class TwoRoundAgent(LinkAgentEstimator):
         self._pending = inputs
         self._pending_k = self.k
         super()._step()
-        self.last = replace(self.last, edges_used=int(np.count_nonzero(first.links.senses)
-                                                      if first.links is not None else 0))
+        L = first.links
+        assert L is not None and L.measured is not None and L.fresh is not None
+        self.last = replace(self.last, edges_used=int(np.count_nonzero(
+            L.senses & L.measured & L.fresh)))
         self._round1, self._reply = None, None
 
     # ------------------------------------------------------------------------------ outputs

@@ -48,6 +48,7 @@ from ..core.errors import ScenarioError
 from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits
 from ..estimators.base import Channel
 from ..estimators.link_agent import LinkAgentEstimator, agent_for
+from ..estimators.two_round_agent import TwoRoundAgent
 from ..scenario.model import Scenario, initial_estimates
 from ..studies.results import PoseErrors, Recording, pose_errors
 from .world import World
@@ -242,7 +243,7 @@ class _Corruptor:
         mine = per_edge.get(listener_id, np.eye(self.edge_shape[0])[0])
         if kind in ('nan_value', 'inf_value'):
             bad = np.nan if kind == 'nan_value' else np.inf
-            if self.agent_channel is not None:
+            if self.agent_channel in values:   # not in a two-round method's second round
                 values[self.agent_channel] = np.array(values[self.agent_channel], dtype=float)
                 values[self.agent_channel][0 if kind == 'nan_value' else -1] = bad
             else:
@@ -324,10 +325,6 @@ class _Network:
         problem = scenario.not_distributable()
         if problem:
             raise ScenarioError(f'{scenario.source}: {problem}')
-        if scenario.estimator().rounds == 2:
-            raise ScenarioError(f'{scenario.source}: netsim does not exchange two rounds of '
-                                'messages per step yet (Presenza et al.). Fix: run it over '
-                                'DDS (`bearing-pose run`) or in the batch simulator')
         self.world = World(scenario)
         self.rng = np.random.default_rng(links.seed)
         estimator = scenario.estimator()
@@ -338,13 +335,18 @@ class _Network:
         self.agents: dict[str, AgentEstimator | LinkAgentEstimator] = {
             n: agent_for(scenario, n, limits, self.initial) for n in self.names}
         self.link_method = estimator.links == 'communication'
+        self.two_rounds = estimator.rounds == 2
         # Who receives what an agent sends: those that sense it, or, for link methods, every
-        # communication neighbour.
+        # communication neighbour (two-round methods: its estimate to those that sense it,
+        # its second round to those it senses, the anchor's odometry to everyone and its
+        # ranges to the ranged robots; see ros.wiring).
         self.receivers = {n: (sorted(set(scenario.listeners(n))
                                      | {nb.name for nb in scenario.agent(n).neighbours},
                                      key=scenario.index.__getitem__)
-                              if self.link_method else scenario.listeners(n))
+                              if self.link_method and not self.two_rounds
+                              else scenario.listeners(n))
                           for n in self.names}
+        self.sensed = {n: [nb.name for nb in scenario.agent(n).neighbours] for n in self.names}
         self.sent_k = dict.fromkeys(self.names, -1)
         self.per_step = int(round(scenario.step / self.world.dt))
         self.per_publish = self.per_step * scenario.publish_every
@@ -389,8 +391,14 @@ class _Network:
                 if not self.stopped(name, now):
                     self.tally.count([self.agents[name].add_odometry(world.t, v, w,
                                                                      now=world.t)], 0)
-                    if self.link_method:
+                    if self.two_rounds and name == scenario.anchor:
+                        self.send(name, now, ('odometry', i + 1, world.t, v, w),
+                                  to=[n for n in self.names if n != name])
+                    elif self.link_method and not self.two_rounds:
                         self.send(name, now, ('odometry', i + 1, world.t, v, w))
+        if self.two_rounds:
+            self.sense_two_rounds(now)
+            return
         every = world.sensor_every.get('relative_positions')
         if self.link_method and every is not None and world.due(every):
             for i, name in enumerate(self.names):
@@ -423,15 +431,43 @@ class _Network:
                 for (R,), bad in self.bad.inputs((world.R[i],), self.bad.known_pose(world.R[i])):
                     self.tally.count([agent.set_known_pose(world.t, R, world.p[i])], bad)
 
+    def sense_two_rounds(self, now: float) -> None:
+        """A two-round method's own bearings and bearing rates, and the anchor's ranges of
+        its ranged robots, when due."""
+        world, scenario = self.world, self.scenario
+        for i, name in enumerate(self.names):
+            agent = self.agents[name]
+            if self.stopped(name, now) or not isinstance(agent, TwoRoundAgent):
+                continue
+            own = scenario.agent_id(name)
+            if world.due(world.bearing_every):
+                j, b = world.bearings(i)
+                good = (world.t, j + 1, b)
+                for args, bad in self.bad.inputs(good, self.bad.bearings(own, *good)):
+                    self.tally.count(agent.add_bearings(*args), bad * len(j))
+            every = world.sensor_every.get('bearing_rates')
+            if every is not None and world.due(every):
+                j, rates = world.sensed('bearing_rates', i)
+                good = (world.t, j + 1, rates)
+                for args, bad in self.bad.inputs(good, self.bad.bearings(
+                        own, *good, kinds=_Corruptor.RELATIVE)):
+                    self.tally.count(agent.add_bearing_rates(*args), bad * len(j))
+            every = world.sensor_every.get('relative_positions')
+            if name == scenario.anchor and every is not None and world.due(every):
+                j, y = world.sensed('relative_positions', i)
+                self.send(name, now, ('measurements', i + 1, world.t, j + 1, y),
+                          to=list(scenario.ranged))
+
     # ------------------------------------------------------------------ links
-    def send(self, name: str, now: float, msg: tuple) -> None:
-        """``msg`` from ``name`` to everyone who receives from it, through the link faults."""
+    def send(self, name: str, now: float, msg: tuple, to: list[str] | None = None) -> None:
+        """``msg`` from ``name`` to everyone who receives from it (or ``to``), through the
+        link faults."""
         if self.offline(name, now):
             return
-        for to in self.receivers[name]:
+        for receiver in self.receivers[name] if to is None else to:
             if self.links.drop_rate and self.rng.uniform() < self.links.drop_rate:
                 continue
-            self.in_flight.append((now + self.links.delay, to, msg))
+            self.in_flight.append((now + self.links.delay, receiver, msg))
 
     def publish(self, now: float) -> None:
         """Every estimator sends its channels (p̂ and world bearings for the leader-follower
@@ -492,6 +528,12 @@ class _Network:
                 ag = self.agents[name]
                 if self.stopped(name, now) or not isinstance(ag, LinkAgentEstimator):
                     continue
+                reply = ag.pending_reply() if isinstance(ag, TwoRoundAgent) else None
+                if reply is not None:   # round 2, to the robots it senses
+                    progress = True
+                    self.send(name, now, (self.scenario.agent_id(name), ag.t, reply),
+                              to=self.sensed[name])
+                    self.deliver(now)
                 if ag.advance(1):
                     progress = True
                     if not (np.all(np.isfinite(ag.R_hat)) and np.all(np.isfinite(ag.p_hat))):
