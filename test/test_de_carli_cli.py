@@ -53,8 +53,8 @@ def test_compare_runs_what_the_scenario_can_run_and_says_why_not_the_others(tmp_
     # And the other way round: the bearing scenario does not simulate relative positions.
     assert main(['compare', PAPER, '--duration', '1', '--out', str(tmp_path / 'p'),
                  '--no-plots']) == 0
-    assert 'not running de_carli: it needs 0 leaders, the scenario has 2' in \
-        capsys.readouterr().err
+    assert ('not running de_carli: it needs odometry, relative_positions, which the scenario '
+            'does not simulate') in capsys.readouterr().err
 
 
 def test_run_refuses_the_paper_mode_over_dds(tmp_path, capsys):

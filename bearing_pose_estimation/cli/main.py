@@ -152,8 +152,18 @@ def _method_scenarios(args: argparse.Namespace
         data['formation_control']['mode'] = mode
     derived = method_scenarios(data, scenario, args.methods, args.gain_overrides)
     shown = {str(w) for w in check_scenario(scenario).warnings}
-    for method, (_, method_scenario) in derived.items():
-        for w in check_scenario(method_scenario).warnings:
+    for method, (_, method_scenario) in list(derived.items()):
+        report = check_scenario(method_scenario)
+        if report.errors:   # its assumptions fail on this scenario (De Carli: yaw-only frames)
+            why = f'its check fails: {report.errors[0]}' + (
+                f' (and {len(report.errors) - 1} more)' if len(report.errors) > 1 else '')
+            if not getattr(args, 'methods_chosen', False):
+                raise ScenarioError(f'{method} cannot run on {args.scenario}: {why}')
+            print(f'{args.scenario}: not running {method}: {why}', file=sys.stderr)
+            del derived[method]
+            args.methods.remove(method)
+            continue
+        for w in report.warnings:
             if str(w) not in shown:
                 shown.add(str(w))
                 print(f'{args.scenario} ({method}): {w}', file=sys.stderr)
@@ -595,6 +605,7 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         if args.methods is None:
             args.methods, skipped = compatible_methods(scenario)
+            args.methods_chosen = True   # by us: one whose check fails is skipped, not refused
             for method, why in skipped.items():
                 print(f'{args.scenario}: not running {method}: {why}', file=sys.stderr)
         for method in args.methods:

@@ -531,6 +531,12 @@ class Estimator(ABC, Generic[G, S]):
         anchor frame at t. None: the method cannot."""
         return None
 
+    def fleet_margins(self, scenario: Scenario, R_hat: Array, p_hat: Array) -> dict[str, float]:
+        """Margins of the method's assumptions evaluated on the whole fleet's estimates
+        ``(N, 3, 3)``, ``(N, 3)`` (what the monitor, which sees every estimate, reports;
+        Presenza et al.: angle rigidity). Empty: none."""
+        return {}
+
     # The names of the per-agent diagnostic 'stage' (an index), for methods that report one.
     stages: ClassVar[tuple[str, ...]] = ()
 

@@ -142,6 +142,11 @@ def _pairs(agent: bytes, senses: bytes) -> tuple[Index, Index]:
     return np.array(e1, dtype=np.intp), np.array(e2, dtype=np.intp)
 
 
+@lru_cache(maxsize=16)
+def _triples(out: tuple[tuple[int, ...], ...]) -> Index:
+    return angles.angle_triples(out)
+
+
 def _outer(a: Array, b: Array) -> Array:
     return a[:, :, None] * b[:, None, :]
 
@@ -208,6 +213,14 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
             else:
                 out[name] = delta_R_a.T @ v
         return out
+
+    def fleet_margins(self, scenario: Scenario, R_hat: Array, p_hat: Array) -> dict[str, float]:
+        """Infinitesimal angle rigidity of the estimated positions: ``σ_{3N-7}/σ_1`` of the
+        angle rigidity matrix on the normalised estimates (the check's margin, §2, on ``q̂``
+        instead of the truth): the gradient flow (16) needs it away from 0."""
+        out = [[scenario.index[nb.name] for nb in a.neighbours] for a in scenario.agents]
+        return {'angle_rigidity_margin': angles.iar_margin(p_hat, _triples(tuple(map(tuple,
+                                                                                  out))))}
 
     @staticmethod
     def _structure(x: PresenzaState, inputs: StepInputs

@@ -21,6 +21,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.task import Future
@@ -59,6 +60,11 @@ class MonitorNode(Node):
         # Errors as the method's estimates require (the followers are every agent that
         # estimates; for methods without leaders, the whole fleet).
         self.frame = s.estimator().frame
+        self.method = s.estimator()
+        # The method's margins on the whole fleet's estimates (Presenza et al.: angle
+        # rigidity), on /diagnostics once per second of simulated time; min and last logged.
+        self.pub_diag = self.create_publisher(DiagnosticArray, wire.DIAGNOSTICS, 10)
+        self.margins: dict[str, list[tuple[float, float]]] = {}
         self.watched = watched(s)
         self.whole = len(self.watched) == len(s.agents) and len(self.followers) < len(s.agents)
         self._truth: dict[int, dict[int, tuple]] = {}   # ns -> watched index -> (R, p)
@@ -124,6 +130,8 @@ class MonitorNode(Node):
             R_hat = np.stack([est[k][0] for k in range(n)])
             p_hat = np.stack([est[k][1] for k in range(n)])
             errors = pose_errors(self.frame, R, p, R_hat, p_hat, anchor=s.anchor_index)
+            if n == len(s.agents):
+                self._fleet_margins(t, R_hat, p_hat)
             if s.moves and n == len(s.agents):   # every agent estimates: the whole fleet
                 self.tracks.append((t, p, to_world(self.frame, R, p, R_hat, p_hat,
                                                    s.anchor_index)[1]))
@@ -151,6 +159,21 @@ class MonitorNode(Node):
                             leaders=list(self.scenario.leaders),
                             p=[x[1] for x in tracks], p_hat=[x[2] for x in tracks])
 
+    def _fleet_margins(self, t: float, R_hat: np.ndarray, p_hat: np.ndarray) -> None:
+        """Record the method's fleet margins at ``t``; publish them once per second."""
+        values = self.method.fleet_margins(self.scenario, R_hat, p_hat)
+        for key, value in values.items():
+            self.margins.setdefault(key, []).append((t, value))
+        if values and (len(self.margins[next(iter(values))]) - 1) % max(
+                1, int(round(1e9 / self.record_ns))) == 0:
+            status = DiagnosticStatus(name='monitor/fleet', hardware_id='monitor',
+                                      message='margins on the estimates')
+            status.values = [KeyValue(key='t_s', value=f'{t:.3f}')] + [
+                KeyValue(key=k, value=f'{v:.4g}') for k, v in values.items()]
+            msg = DiagnosticArray(status=[status])
+            msg.header.stamp = wire.to_stamp(t)
+            self.pub_diag.publish(msg)
+
     def finish(self) -> None:
         """Write the outputs (once), from whatever has been recorded."""
         if self.done:
@@ -176,6 +199,10 @@ class MonitorNode(Node):
                                   title=f'{self.scenario.name} over DDS: true and estimated '
                                   'trajectories')
         print(format_summary(summary), flush=True)
+        for key, series in self.margins.items():
+            t_min, v_min = min(series, key=lambda tv: tv[1])
+            print(f'{key} on the estimates: min {v_min:.4g} (t = {t_min:g} s), last '
+                  f'{series[-1][1]:.4g}', flush=True)
         self.finished.set_result(True)
 
 

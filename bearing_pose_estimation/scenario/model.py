@@ -159,6 +159,9 @@ class Scenario:
     anchor: str | None = None   # the agent whose body frame the estimates use (anchor methods)
     ranged: tuple[str, ...] = ()   # the agents whose relative position the anchor measures
     anchor_pinned: bool = False    # the anchor holds (I, 0) instead of estimating its pose
+    # The roles of other methods (`leaders`, `anchor`, as a scenario file writes them), for
+    # `bearing-pose compare`: the scenario's own method does not use them.
+    other_roles: dict[str, Any] = field(default_factory=dict, compare=False)
     method: str = estimators.DEFAULT_METHOD   # the registry key (`estimators.methods()`)
     gains: Any = None          # the method's own Gains dataclass; None: its defaults
     description: str = ''

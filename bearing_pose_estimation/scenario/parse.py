@@ -24,7 +24,7 @@ from ..core import so3
 from ..core.errors import ScenarioError
 from ..core.motion import (AngularVelocity, Component, LinearVelocity, Sinusoid, VectorProfile,
                            YawSpline, rot_z)
-from ..estimators.base import parse_gains
+from ..estimators.base import Estimator, parse_gains
 from .model import (Agent, BearingPerturbation, FormationControl, Neighbour, Noise, RandomInit,
                     Scenario, SensorSpec, Sensors, SimulationRates)
 
@@ -340,9 +340,28 @@ def _noise(ctx: _Ctx, value: Any) -> Noise:
 _TOP_KEYS = {'name', 'description', 'method', 'world_frame', 'gains', 'frequency',
              'publish_rate', 'duration',
              'noise', 'leaders', 'anchor', 'agents', 'initial_estimates', 'simulation',
-             'sensors', 'formation_control', 'yaw_knots'}
+             'sensors', 'formation_control', 'yaw_knots', 'other_roles'}
 _AGENT_KEYS = {'name', 'position', 'attitude', 'angular_velocity', 'velocity', 'neighbours',
                'initial_estimate', 'yaw', 'formation_position'}
+
+
+def _other_roles(ctx: _Ctx, value: Any, cls: type[Estimator]) -> dict[str, Any]:
+    """``other_roles``: the roles the scenario's method does not use, for the methods
+    ``bearing-pose compare`` runs beside it (``leaders``: a list of names; ``anchor``: as the
+    top-level ``anchor``)."""
+    m = _mapping(ctx, value, 'other_roles', {'leaders', 'anchor'})
+    own = {'leaders': cls.roles.leaders > 0, 'anchor': cls.roles.anchor}
+    for key in m:
+        if own[key]:
+            raise ctx.fail(f'other_roles.{key}', f'{cls.title} uses {key} itself',
+                           f'give them at the top level only (`{key}:`)')
+    if 'leaders' in m and not (isinstance(m['leaders'], list)
+                               and all(isinstance(x, str) for x in m['leaders'])):
+        raise ctx.fail('other_roles.leaders', f'expected a list of agent names, got '
+                       f'{m["leaders"]!r}', 'write e.g. `leaders: [agent_1, agent_2]`')
+    if 'anchor' in m:
+        _anchor(ctx, m['anchor'])   # the same checks as the top-level one
+    return dict(m)
 
 
 def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
@@ -421,6 +440,7 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
                ctx.fail('anchor', f'{cls.title} has no anchor', 'remove `anchor`'))
     anchor, ranged, pinned = (_anchor(ctx, top['anchor']) if cls.roles.anchor
                               else (None, (), False))
+    other_roles = _other_roles(ctx, top.get('other_roles', {}), cls)
     if (not isinstance(leaders, list) or len(leaders) != n_leaders
             or not all(isinstance(x, str) for x in leaders) or len(set(leaders)) != n_leaders):
         example = ', '.join(f'agent_{k + 1}' for k in range(n_leaders))
@@ -545,8 +565,16 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
             if names.count(nb.name) > 1:
                 raise ctx.fail(w, f'{nb.name!r} is listed twice', 'list each neighbour once')
 
+    agent_names = {a.name for a in agents}
+    named = [(f'other_roles.leaders[{k}]', x)
+             for k, x in enumerate(other_roles.get('leaders', ()))]
+    if 'anchor' in other_roles:
+        named.append(('other_roles.anchor.agent', other_roles['anchor']['agent']))
+    for where, agent in named:
+        if agent not in agent_names:
+            raise ctx.fail(where, f'{agent!r} is not an agent', 'use a name from `agents`')
     return Scenario(name=name, agents=tuple(agents), leaders=tuple(leaders), anchor=anchor,
-                    ranged=ranged, anchor_pinned=pinned,
+                    ranged=ranged, anchor_pinned=pinned, other_roles=other_roles,
                     method=method,
                     gains=gains, description=str(top.get('description', '')),
                     frequency=frequency, publish_rate=publish_rate, duration=duration,

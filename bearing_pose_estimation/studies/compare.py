@@ -84,17 +84,32 @@ def incompatible(scenario: Scenario, method: str) -> str | None:
     """Why ``method`` cannot run on ``scenario`` (its roles, or a sensor the scenario does not
     simulate), or None."""
     cls = estimators.get(method)
-    if cls.roles.leaders != len(scenario.leaders):
+    roles = _roles(scenario)
+    if cls.roles.leaders and cls.roles.leaders != len(roles.get('leaders', ())):
         return (f'it needs {cls.roles.leaders} leaders, the scenario has '
-                f'{len(scenario.leaders)}')
-    if cls.roles.anchor != (scenario.anchor is not None):
-        return 'it needs an anchor' if cls.roles.anchor else 'it has no anchor'
+                f'{len(roles.get("leaders", ()))} (give them under `other_roles: {{leaders: '
+                '[...]}}` for a method without leaders)')
+    if cls.roles.anchor and 'anchor' not in roles:
+        return ('it needs an anchor (give it under `other_roles: {anchor: {agent: ..., '
+                'ranged: [..., ...]}}` for a method without one)')
     always = {Sensor.GYRO, Sensor.BEARINGS, Sensor.KNOWN_POSE}
     missing = sorted(s.value for s in cls.sensors - always if not scenario.simulates(s.value))
     if missing:
         return (f'it needs {", ".join(missing)}, which the scenario does not simulate (list '
                 'them under `sensors:`)')
     return None
+
+
+def _roles(scenario: Scenario) -> dict[str, Any]:
+    """Every role the scenario gives, its method's and ``other_roles``, as a file writes
+    them."""
+    roles = dict(scenario.other_roles)
+    if scenario.leaders:
+        roles['leaders'] = list(scenario.leaders)
+    if scenario.anchor is not None:
+        roles['anchor'] = {'agent': scenario.anchor, 'ranged': list(scenario.ranged),
+                           'pinned': scenario.anchor_pinned}
+    return roles
 
 
 def compatible_methods(scenario: Scenario) -> tuple[list[str], dict[str, str]]:
@@ -114,12 +129,24 @@ def compatible_methods(scenario: Scenario) -> tuple[list[str], dict[str, str]]:
 
 def method_data(data: Mapping[str, Any], scenario: Scenario, method: str,
                 overrides: Mapping[str, float] | None = None) -> dict[str, Any]:
-    """The scenario file's content (``data``; ``scenario`` is it parsed) with ``method`` and a
-    ``gains:`` block of that method: every gain it reads (the file's value where the file's
+    """The scenario file's content (``data``; ``scenario`` is it parsed) with ``method``, its
+    roles (``leaders``, ``anchor``) at the top level and the others under ``other_roles``, and
+    a ``gains:`` block of that method: every gain it reads (the file's value where the file's
     method has a gain of that name, else the default; then ``overrides``), and the file's
     ``k_ij`` if any."""
     derived = copy.deepcopy(dict(data))
     derived['method'] = method
+    # The roles this method uses at the top level, the others under other_roles.
+    cls = estimators.get(method)
+    uses = {'leaders': cls.roles.leaders > 0, 'anchor': cls.roles.anchor}
+    roles = _roles(scenario)
+    for key in ('leaders', 'anchor'):
+        derived.pop(key, None)
+    derived.pop('other_roles', None)
+    derived.update({k: v for k, v in roles.items() if uses[k]})
+    others = {k: v for k, v in roles.items() if not uses[k]}
+    if others:
+        derived['other_roles'] = others
     gains = dataclasses.asdict(scenario.with_method(method, **(overrides or {})).gains)
     if EDGE_GAIN in (data.get('gains') or {}):
         gains[EDGE_GAIN] = data['gains'][EDGE_GAIN]
