@@ -71,3 +71,27 @@ def test_a_method_without_its_role_is_refused_with_where_to_give_it(tmp_path, ca
         main(['compare', str(paper), '--methods', 'presenza', '--out', str(tmp_path / 'x')])
     err = capsys.readouterr().err
     assert 'presenza cannot run on' in err and 'it needs an anchor (give it under' in err
+
+
+def test_simulate_writes_the_errors_of_sensing_and_free_robots_apart(tmp_path):
+    """errors_by_role.csv: per role the mean of its robots' columns of metrics.csv; the plot
+    beside it. Methods without roles write neither."""
+    out = tmp_path / 'sim'
+    config = ROOT / 'config' / 'presenza_case1_30hz.yaml'
+    assert main(['simulate', str(config), '--duration', '1', '--out', str(out), '--quiet']) == 0
+    assert (out / 'errors_by_role.png').stat().st_size > 10_000
+    with (out / 'metrics.csv').open() as fh:
+        per_robot = list(csv.DictReader(fh))
+    with (out / 'errors_by_role.csv').open() as fh:
+        roles = list(csv.DictReader(fh))
+    assert len(roles) == len(per_robot)
+    groups = {'sensing': ['robot_1', 'robot_2'], 'free': ['robot_3', 'robot_4', 'robot_5']}
+    for row, by_role in zip(per_robot, roles):
+        for group, robots in groups.items():
+            for q, col in (('position_error_mean_m', 'pos'), ('attitude_error_mean_rad', 'att')):
+                mean = np.mean([float(row[f'{col}_{r}']) for r in robots])
+                assert float(by_role[f'{group}_{q}']) == pytest.approx(mean, rel=1e-6)
+    other = tmp_path / 'tran'
+    assert main(['simulate', str(ROOT / 'config' / 'tran_cube.yaml'), '--duration', '0.5',
+                 '--out', str(other), '--quiet', '--no-plots']) == 0
+    assert not (other / 'errors_by_role.csv').exists()

@@ -84,8 +84,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from ..sim.batch import BatchSimulator
-    from ..studies.plots import CASCADE_PLOT, TRAJECTORY_PLOT, plot_cascade, plot_trajectories, \
-        write_plots
+    from ..studies.plots import CASCADE_PLOT, ROLES_CSV, ROLES_PLOT, TRAJECTORY_PLOT, \
+        plot_cascade, plot_trajectories, write_plots, write_role_outputs
     from ..studies.summary import (format_summary, summarize, write_metrics_csv,
                                    write_summary_json)
 
@@ -103,8 +103,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     # Moving fleets also get their trajectories drawn (the recording holds them).
     plots = [] if args.no_plots else (PLOT_FILES + ([TRAJECTORY_PLOT] if scenario.moves else [])
                                       + [CASCADE_PLOT])
+    groups = scenario.estimator().agent_groups(scenario)
+    roles = ([ROLES_CSV] + ([] if args.no_plots else [ROLES_PLOT])) if groups else []
     out = _out_dir(args.out or f'results/{scenario.name}', ['metrics.csv', 'summary.json']
-                   + plots, args.force)
+                   + plots + roles, args.force)
     duration = args.duration if args.duration is not None else scenario.duration
     sim = BatchSimulator(scenario, step=args.step)
 
@@ -132,6 +134,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if CASCADE_PLOT in plots:
         cascade = plot_cascade(rec, out / CASCADE_PLOT, title=f'{scenario.name}: the cascade')
         files += [cascade] if cascade is not None else []
+    files += write_role_outputs(rec, groups, out, title=f'{scenario.name}: errors by role',
+                                plot=not args.no_plots)
     print(format_summary(summary))
     print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
     return 0

@@ -531,6 +531,11 @@ class Estimator(ABC, Generic[G, S]):
         anchor frame at t. None: the method cannot."""
         return None
 
+    def agent_groups(self, scenario: Scenario) -> dict[str, list[str]]:
+        """The method's roles among the estimating robots, ``{role: names}``, for outputs
+        that show them apart (Presenza et al.: sensing and free robots). Empty: none."""
+        return {}
+
     def fleet_margins(self, scenario: Scenario, R_hat: Array, p_hat: Array) -> dict[str, float]:
         """Margins of the method's assumptions evaluated on the whole fleet's estimates
         ``(N, 3, 3)``, ``(N, 3)`` (what the monitor, which sees every estimate, reports;

@@ -214,6 +214,13 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                 out[name] = delta_R_a.T @ v
         return out
 
+    def agent_groups(self, scenario: Scenario) -> dict[str, list[str]]:
+        """Sensing robots (two or more out-neighbours) and free robots, as the paper's
+        figures show them apart."""
+        sensing = [a.name for a in scenario.agents if len(a.neighbours) >= 2]
+        return {'sensing': sensing,
+                'free': [a.name for a in scenario.agents if a.name not in sensing]}
+
     def fleet_margins(self, scenario: Scenario, R_hat: Array, p_hat: Array) -> dict[str, float]:
         """Infinitesimal angle rigidity of the estimated positions: ``σ_{3N-7}/σ_1`` of the
         angle rigidity matrix on the normalised estimates (the check's margin, §2, on ``q̂``

@@ -191,6 +191,10 @@ class MonitorNode(Node):
                             complete=bool(rec.t[-1] >= self.duration - 1e-9))
         write_metrics_csv(rec, self.out_dir / 'metrics.csv')
         write_summary_json(summary, self.out_dir / 'summary.json')
+        from ..studies.plots import write_role_outputs
+        write_role_outputs(rec, self.method.agent_groups(self.scenario), self.out_dir,
+                           title=f'{self.scenario.name} over DDS: errors by role',
+                           plot=self.plots)
         if self.plots:
             from ..studies.plots import TRAJECTORY_PLOT, plot_trajectories, write_plots
             write_plots(rec, self.out_dir)

@@ -8,6 +8,10 @@ Methods that keep per-pair states under formation control (De Carli et al.) add
 :func:`plot_cascade`: their Fig. 2's four panels, the relative-yaw error per pair, the yaw
 and position errors per robot and the formation error per robot, on log axes.
 
+Methods whose robots have roles (Presenza et al.: sensing and free robots) add
+:func:`write_role_outputs`: the errors per robot with the roles apart, as the paper's figures
+show them, and the roles' means as CSV.
+
 For moving fleets, :func:`plot_trajectories` draws the true and estimated (world-frame)
 trajectories in 3D next to each agent's position error, the distance between the two.
 """
@@ -57,6 +61,55 @@ def write_plots(rec: Recording, out_dir: Path) -> list[Path]:
             'Average position estimation error norm (Fig. 3)',
             r'$\|p_i - \tilde R_i \hat p_i\|$ [m]', pos)
     return [att, pos]
+
+
+ROLES_PLOT = 'errors_by_role.png'
+ROLES_CSV = 'errors_by_role.csv'
+
+
+def write_role_outputs(rec: Recording, groups: dict[str, list[str]], out_dir: Path,
+                       title: str = '', plot: bool = True) -> list[Path]:
+    """For methods whose robots have roles (Presenza et al.: sensing and free robots), in
+    the style of the paper's figures: :data:`ROLES_CSV` (``t``, then per group its mean
+    position [m] and attitude [rad] errors) and :data:`ROLES_PLOT` (position and attitude
+    error per robot, log scale, one line style per group, each group's mean in bold). Nothing
+    when ``groups`` is empty."""
+    if not groups:
+        return []
+    cols = {g: [rec.followers.index(a) for a in names if a in rec.followers]
+            for g, names in groups.items()}
+    cols = {g: c for g, c in cols.items() if c}
+    csv_path = out_dir / ROLES_CSV
+    header = ['t'] + [f'{g}_{q}' for g in cols for q in ('position_error_mean_m',
+                                                           'attitude_error_mean_rad')]
+    table = np.column_stack([rec.t] + [x[:, c].mean(axis=1) for c in cols.values()
+                                       for x in (rec.pos_err, rec.att_err)])
+    np.savetxt(csv_path, table, delimiter=',', header=','.join(header), comments='',
+               fmt='%.9e')
+    if not plot:
+        return [csv_path]
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    styles = ['-', '--', ':', '-.']
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    for ax, values, name, unit in ((axes[0], rec.pos_err, 'position error', 'm'),
+                                   (axes[1], rec.att_err, 'attitude error', 'rad')):
+        shown = np.where(values > 0, values, np.nan)   # an exact 0 (the anchor at t = 0)
+        for (group, c), style in zip(cols.items(), styles):   # has no place on a log axis
+            for k in c:
+                ax.plot(rec.t, shown[:, k], style, lw=0.9, alpha=0.7,
+                        label=f'{rec.followers[k]} ({group})')
+            ax.plot(rec.t, values[:, c].mean(axis=1), style, color='k', lw=2.0,
+                    label=f'{group} robots, mean')
+        log_axes(ax, f'{name} per robot', 'time [s]', unit, legend_size=6)
+    if title:
+        fig.suptitle(title)
+    path = out_dir / ROLES_PLOT
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [csv_path, path]
 
 
 CASCADE_PLOT = 'cascade.png'
