@@ -38,6 +38,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core import so3
+from ..core.bearing_rates import BearingRateFilter
 from ..core.odometry import OdometryBuffer
 from .agent import Limits, _vector_problem
 from .base import AnchorInputs, Edges, Estimator, LinkInputs, StepInputs
@@ -67,9 +69,9 @@ class TwoRoundAgent(LinkAgentEstimator):
     def __init__(self, estimator: Estimator, agent_id: int,
                  links: list[tuple[str, int, bool, bool]], step: float, R0: Array, p0: Array,
                  anchor: tuple[str, int], ranges: Collection[int] = (),
-                 ranged: bool = False, pinned: bool = False, t0: float = 0.0,
-                 gyro_horizon: float = 2.0, known_ids: set[int] | None = None,
-                 limits: Limits = Limits()) -> None:
+                 ranged: bool = False, pinned: bool = False, rate_tau: float | None = None,
+                 t0: float = 0.0, gyro_horizon: float = 2.0,
+                 known_ids: set[int] | None = None, limits: Limits = Limits()) -> None:
         super().__init__(estimator, agent_id, links, step, R0, p0, t0=t0,
                          gyro_horizon=gyro_horizon, known_ids=known_ids, limits=limits)
         self.anchor_name, self.anchor_id = anchor
@@ -89,6 +91,11 @@ class TwoRoundAgent(LinkAgentEstimator):
         self._round1_k = -1
         self._reply: dict[str, dict[int, Array]] | None = None
         self.anchor_still_steps = 0   # steps run without the anchor's odometry
+        # rate_tau: no bearing-rate sensor; the rates come from consecutive bearings through
+        # this filter (core.bearing_rates), one row per link.
+        self.rate_tau = rate_tau
+        self._rate_filter = (None if rate_tau is None
+                             else BearingRateFilter(len(self.links), rate_tau))
 
     # ------------------------------------------------------------------------------ wiring
     def measures_me(self, link: Link) -> bool:
@@ -117,6 +124,9 @@ class TwoRoundAgent(LinkAgentEstimator):
             assert self.anchor_odometry is not None
             self.anchor_odometry.reset(self.t0)
         self._round1, self._round1_k, self._reply = None, -1, None
+        if getattr(self, '_rate_filter', None) is not None:
+            assert self.rate_tau is not None
+            self._rate_filter = BearingRateFilter(len(self.links), self.rate_tau)
 
     # ------------------------------------------------------------------------------ inputs
     def add_bearings(self, stamp: float, ids: NDArray[np.integer], vectors: Array) -> list[str]:
@@ -240,7 +250,7 @@ class TwoRoundAgent(LinkAgentEstimator):
                     if not (link.measured and link.measured[-1][0] >= t - tol):
                         return 'own_bearing'
                     rates = self.rates[link.agent_id]
-                    if not (rates and rates[-1][0] >= t - tol):
+                    if self._rate_filter is None and not (rates and rates[-1][0] >= t - tol):
                         return 'own_bearing_rate'
                 if link.name in stale or behind:
                     continue
@@ -269,10 +279,12 @@ class TwoRoundAgent(LinkAgentEstimator):
         bearings, rates = np.zeros((n, 3)), np.zeros((n, 3))
         received = {c.name: np.zeros((n,) + c.shape) for c in est.sends}
         rotate = (lambda s_, t_: self.gyro.increment(t_, s_))
+        estimated = self._estimated_rates(t)
         for e, link in enumerate(self.links):
             if link.senses:
                 b, _ = _interpolated(link.measured, t, rotate)
-                rate, _ = _interpolated(self.rates[link.agent_id], t, rotate)
+                rate = (estimated[e] if estimated is not None
+                        else _interpolated(self.rates[link.agent_id], t, rotate)[0])
                 q, _ = link.value_at('q_hat', t)
                 if q is None:
                     q = self._newest(link, 'q_hat', t)
@@ -283,10 +295,10 @@ class TwoRoundAgent(LinkAgentEstimator):
                     if value is None:
                         self.missing[what] += 1
                 measured[e], fresh[e] = b is not None and rate is not None, q is not None
-                if b is None or rate is None or q is None:
-                    continue   # the link's angles and attitude terms sit the step out
-                bearings[e] = b / np.linalg.norm(b)
-                rates[e], received['q_hat'][e] = rate, q
+                # Without all three the link's angles and attitude terms sit the step out.
+                if b is not None and rate is not None and q is not None:
+                    bearings[e] = b / np.linalg.norm(b)
+                    rates[e], received['q_hat'][e] = rate, q
             if self._ranged_by[e]:
                 v, _ = _interpolated(link.theirs, t, lambda s_, t_: np.eye(3))
                 if v is None:
@@ -323,6 +335,31 @@ class TwoRoundAgent(LinkAgentEstimator):
                                       n_agents=1, slot=np.arange(n, dtype=np.intp)),
                           bearings=bearings, received=received, displacement=displacement,
                           links=links, t=t, bearing_rates=rates, anchor=anchor)
+
+    def _estimated_rates(self, t: float) -> list[Array | None] | None:
+        """Without a bearing-rate sensor: each sensing link's rate at ``t`` from its bearings
+        at ``t`` and at the previous step (None before the second one), as the batch simulator
+        forms them; None with a sensor."""
+        filt = self._rate_filter
+        if filt is None:
+            return None
+        n = len(self.links)
+        b = np.zeros((n, 3))
+        here = np.zeros(n, dtype=bool)
+        rotate = (lambda s_, t_: self.gyro.increment(t_, s_))
+        for e, link in enumerate(self.links):
+            v = _interpolated(link.measured, t, rotate)[0] if link.senses else None
+            if v is not None:
+                b[e], here[e] = v / np.linalg.norm(v), True
+        dR = np.tile(np.eye(3), (n, 1, 1))
+        for row in np.flatnonzero(here & ~np.isnan(filt.t_prev)).tolist():
+            if self.gyro.covers(float(filt.t_prev[row]), t):
+                dR[row] = self.gyro.increment(float(filt.t_prev[row]), t)
+            else:   # the rotation since the previous bearing is unknown: start again
+                filt.t_prev[row], filt.started[row] = np.nan, False
+        derotated, have = filt.update(t, b, dR, here)
+        omega = so3.log_small(self.gyro.increment(t, t + self.h)[None])[0] / self.h
+        return [derotated[e] - np.cross(omega, b[e]) if have[e] else None for e in range(n)]
 
     def _newest(self, link: Link, name: str, t: float) -> Array | None:
         """j's newest value of ``name`` before ``t`` (no older than ``neighbour_timeout``)
@@ -439,8 +476,10 @@ def two_round_agent_for(scenario: Scenario, name: str, limits: Limits = Limits()
     others = sorted(senses | sensed_by | ranging, key=scenario.index.__getitem__)
     links = [(o, scenario.agent_id(o), o in senses, o in sensed_by) for o in others]
     ranges = {scenario.agent_id(o) for o in scenario.ranged} if name == anchor else set()
+    spec = scenario.sensors.bearing_rates
     return TwoRoundAgent(scenario.estimator(), agent_id=scenario.agent_id(name), links=links,
                          step=scenario.step, R0=R0[i], p0=p0[i],
                          anchor=(anchor, scenario.agent_id(anchor)), ranges=ranges,
                          ranged=name in scenario.ranged, pinned=scenario.anchor_pinned,
+                         rate_tau=spec.tau if spec.from_bearings else None,
                          known_ids=set(range(1, len(scenario.agents) + 1)), limits=limits)

@@ -233,7 +233,8 @@ class EstimatorNode(Node):
         if self.method.uses(Sensor.BEARINGS):
             subs.append(self.create_subscription(wire.PointCloud2, wire.BEARINGS,
                                                  self.on_bearings, qos_in))
-        if self.method.uses(Sensor.BEARING_RATES):
+        if self.method.uses(Sensor.BEARING_RATES) and getattr(template, 'rate_tau',
+                                                              None) is None:
             subs.append(self.create_subscription(wire.PointCloud2, wire.BEARING_RATES,
                                                  self.on_bearing_rates, qos_in))
         if self.method.uses(Sensor.RELATIVE_POSITIONS):
@@ -327,7 +328,8 @@ class EstimatorNode(Node):
                                         for lk in t.links],
                                  step=self.h, R0=t.R0, p0=t.p0,
                                  anchor=(t.anchor_name, t.anchor_id), ranges=t.ranges,
-                                 ranged=t.ranged, pinned=t.pinned, t0=t0,
+                                 ranged=t.ranged, pinned=t.pinned, rate_tau=t.rate_tau,
+                                 t0=t0,
                                  known_ids=t.known_ids, limits=t.limits)
         if isinstance(t, LinkAgentEstimator):
             return LinkAgentEstimator(self.method(self.gains), agent_id=t.agent_id,

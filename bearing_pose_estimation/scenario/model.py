@@ -101,6 +101,11 @@ class SensorSpec:
     rate: float
     std: float = 0.0
     angular_std: float = 0.0
+    # Bearing rates only: no sensor, the robots estimate them from consecutive bearings
+    # (core.bearing_rates), low-pass filtered with time constant `tau` [s]; 0 (raw
+    # differences) is the default: on case 1 the filter's lag costs more than the noise.
+    from_bearings: bool = False
+    tau: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -236,9 +241,17 @@ class Scenario:
     def simulates(self, sensor: str) -> bool:
         """The simulators produce ``sensor`` (a :data:`Sensors.NAMES` entry): listed in
         ``sensors:``, needed by the method, or odometry of a moving fleet."""
+        if sensor == 'bearing_rates' and self.sensors.bearing_rates.from_bearings:
+            return False   # estimated by the robots from their bearings: no sensor
         needs = {s.value for s in estimators.get(self.method).sensors}
         return (sensor in self.sensors.listed or sensor in needs
                 or (sensor == 'odometry' and self.moves))
+
+    def provides(self, sensor: str) -> bool:
+        """The robots have ``sensor``'s values: simulated, or (bearing rates) estimated from
+        their bearings."""
+        return self.simulates(sensor) or (sensor == 'bearing_rates'
+                                          and self.sensors.bearing_rates.from_bearings)
 
     def not_distributable(self) -> str | None:
         """Why the nodes (and netsim) cannot run this scenario, with the fix; None if they

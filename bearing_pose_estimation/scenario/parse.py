@@ -274,15 +274,31 @@ def _sensors(ctx: _Ctx, value: Any, dt: float) -> Sensors:
     specs = {}
     for name, raw in m.items():
         where = f'sensors.{name}'
-        keys = {'rate', 'std'} | ({'angular_std'} if name == 'odometry' else set())
+        keys = ({'rate', 'std'} | ({'angular_std'} if name == 'odometry' else set())
+                | ({'from_bearings', 'tau'} if name == 'bearing_rates' else set()))
         raw = _mapping(ctx, {} if raw is None else raw, where, keys)
         default = d.spec(name)
         rate = _number(ctx, raw.get('rate', default.rate), f'{where}.rate', positive=True)
         _check_period(ctx, rate, dt, f'{where}.rate')
+        from_bearings = raw.get('from_bearings', False)
+        if not isinstance(from_bearings, bool):
+            raise ctx.fail(f'{where}.from_bearings', f'expected true or false, got '
+                           f'{from_bearings!r}', 'write `from_bearings: true` (estimate them '
+                           'from consecutive bearings) or remove it (a sensor measures them)')
+        if 'tau' in raw and not from_bearings:
+            raise ctx.fail(f'{where}.tau', 'tau filters bearing rates estimated from bearings',
+                           'add `from_bearings: true`, or remove tau')
+        if from_bearings and {'rate', 'std'} & set(raw):
+            raise ctx.fail(f'{where}', 'rate and std describe a bearing-rate sensor; with '
+                           'from_bearings the rates come from the bearings (their rate and '
+                           'noise)', 'remove rate and std')
         specs[name] = SensorSpec(
             rate=rate, std=_number(ctx, raw.get('std', 0.0), f'{where}.std', non_negative=True),
             angular_std=_number(ctx, raw.get('angular_std', 0.0), f'{where}.angular_std',
-                                non_negative=True))
+                                non_negative=True),
+            from_bearings=from_bearings,
+            tau=_number(ctx, raw.get('tau', SensorSpec.tau), f'{where}.tau',
+                        non_negative=True))
     return Sensors(**specs, listed=frozenset(m))
 
 

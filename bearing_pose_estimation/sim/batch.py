@@ -42,6 +42,8 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core import so3
+from ..core.bearing_rates import BearingRateFilter
 from ..core.formation import formation_error
 from ..core.motion import in_anchor_frame, yaw_of
 from ..estimators.base import (AnchorInputs, Edges, EstimateFrame, LinkInputs, State, StepInputs,
@@ -131,6 +133,14 @@ class BatchSimulator(OnTruth):
         self.noise = NoiseModel(self.scenario.noise, self.n, self.scenario.sensors)
         self.truth.reset()
         self.x: State = self.estimator.initial_state(*initial_estimates(self.scenario))
+        # Bearing rates estimated from consecutive bearings (sensors.bearing_rates
+        # .from_bearings), as each robot's node does: one filter row per link, and the
+        # previous step's gyro increments (the rotation between two bearings).
+        spec = self.scenario.sensors.bearing_rates
+        self._rates: BearingRateFilter | None = (
+            BearingRateFilter(len(self.edges), spec.tau)
+            if spec.from_bearings and self.links is not None else None)
+        self._prev_delta_R = np.tile(np.eye(3), (self.n, 1, 1))
 
     def inputs(self) -> StepInputs:
         """What every agent's next step consumes, measured now (noise drawn)."""
@@ -189,19 +199,28 @@ class BatchSimulator(OnTruth):
             owner, target = agent[sensing], other[sensing]
             b = self.truth.body_bearings(owner, self.truth.world_bearings(owner, target))
             bearings[sensing] = self.noise.bearings(b, self.t)
-            rates[sensing] = self.noise.sensor('bearing_rates',
-                                               self.truth.bearing_rates(owner, target))
+            if self._rates is None:
+                rates[sensing] = self.noise.sensor('bearing_rates',
+                                                   self.truth.bearing_rates(owner, target))
+        delta_R = self.gyro_increment(self.truth.increment())
+        measured = None
+        if self._rates is not None:   # (11) reads back this de-rotated one: β̇ = β̇° - ω × β
+            derotated, have = self._rates.update(self.t, bearings, self._prev_delta_R[agent],
+                                                 senses)
+            omega = so3.log_small(delta_R) / self.h
+            rates = np.where(have[:, None], derotated - so3.cross(omega[agent], bearings), 0.0)
+            measured = have | ~senses   # no rate before the second bearing
+        self._prev_delta_R = delta_R
         # The anchor's measurement of each ranged robot, on the anchor → robot link.
-        measured = np.zeros((len(agent), 3))
+        ranged_measured = np.zeros((len(agent), 3))
         if ranged_by.any():
             theirs = np.flatnonzero(ranged_by)
-            measured[theirs] = self.noise.sensor('relative_positions',
+            ranged_measured[theirs] = self.noise.sensor('relative_positions',
                                                  self.truth.relative_positions(
                                                      other[theirs], agent[theirs]))
         assert self.edges.slot is not None
-        sent = self.estimator.outbox(self.x, other, measured,
+        sent = self.estimator.outbox(self.x, other, ranged_measured,
                                      slot=self.edges.slot[self.links['reverse']])
-        delta_R = self.gyro_increment(self.truth.increment())
         displacement = self.odometry_displacement()
         a = self.scenario.anchor_index
         assert a is not None
@@ -212,7 +231,8 @@ class BatchSimulator(OnTruth):
                               pinned=self.scenario.anchor_pinned)
         links = LinkInputs(senses=senses, sensed_by=sensed_by, owns=self.links['owns'],
                            relative_positions=np.zeros((len(agent), 3)),
-                           other_delta_R=delta_R[other], other_displacement=displacement[other])
+                           other_delta_R=delta_R[other], other_displacement=displacement[other],
+                           measured=measured)
         first = [c for c in self.estimator.sends if c.round == 1]
         inputs = StepInputs(delta_R=delta_R, edges=self.edges, bearings=bearings,
                             received=route(sent, first, other), displacement=displacement,

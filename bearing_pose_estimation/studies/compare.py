@@ -93,7 +93,7 @@ def incompatible(scenario: Scenario, method: str) -> str | None:
         return ('it needs an anchor (give it under `other_roles: {anchor: {agent: ..., '
                 'ranged: [..., ...]}}` for a method without one)')
     always = {Sensor.GYRO, Sensor.BEARINGS, Sensor.KNOWN_POSE}
-    missing = sorted(s.value for s in cls.sensors - always if not scenario.simulates(s.value))
+    missing = sorted(s.value for s in cls.sensors - always if not scenario.provides(s.value))
     if missing:
         return (f'it needs {", ".join(missing)}, which the scenario does not simulate (list '
                 'them under `sensors:`)')
