@@ -24,6 +24,15 @@ Methods whose robots talk over communication links (De Carli et al.) run
 them; steps run as soon as every input of their instant is in (``link_wait``, ``neighbour_wait``
 bound the wait). These need ``scenario_file`` (the links come from the sensing graph).
 
+Methods with two rounds of messages per step (Presenza et al.) run
+:class:`estimators.two_round_agent.TwoRoundAgent`: the node subscribes to its own
+``bearings`` and ``bearing_rates`` (unless the scenario estimates the rates from the bearings),
+the ``estimate`` of each robot it senses, the anchor's ``odom`` and, for a ranged robot, the
+anchor's ``relative_positions`` (``ros.wiring``); once a step's first round is in it publishes
+its second (``angle_gradient``, ``angle_hessian``, ``anchor_bearing``, ``velocity_term``, to
+the robots it senses), then steps once the second round of the robots that sense it is in.
+Its estimate is in the anchor's body frame, ``<anchor>/base_link``.
+
 Bad input is rejected, counted by cause, warned about (throttled) and reported in the
 diagnostics; it never stops the node and never reaches the estimate.
 
