@@ -222,7 +222,12 @@ def decode_odometry(msg: Odometry, child_frame: str | None = None) -> tuple[floa
 # and instant, so the topic count grows with agents, not edges. Vectors (bearings, relative
 # positions, bearing rates) are fields x, y, z; a scalar (range) is one field.
 _FORMATS: dict[int, np.dtype] = {PointField.FLOAT64: np.dtype('<f8'),  # datatype -> numpy
+                                 PointField.FLOAT32: np.dtype('<f4'),
                                  PointField.UINT32: np.dtype('<u4')}
+# What a decoder accepts for each datatype it wants: most detectors and PCL publish FLOAT32
+# points (the values are widened to float64; a unit bearing in float32 is unit to 1e-7).
+_ACCEPTED = {PointField.FLOAT64: (PointField.FLOAT64, PointField.FLOAT32),
+             PointField.UINT32: (PointField.UINT32,)}
 _VECTOR_FIELDS = {'x': PointField.FLOAT64, 'y': PointField.FLOAT64, 'z': PointField.FLOAT64,
                   'agent_id': PointField.UINT32}
 
@@ -276,11 +281,14 @@ def _decode_cloud(msg: PointCloud2, want: dict[str, int]) -> tuple[float, np.nda
     """
     fields = {f.name: f for f in msg.fields}
     for name, datatype in want.items():
-        if name not in fields or fields[name].datatype != datatype or fields[name].count != 1:
-            raise WireError(f'PointCloud2 needs field {name!r} of datatype {datatype} '
+        if (name not in fields or fields[name].datatype not in _ACCEPTED[datatype]
+                or fields[name].count != 1):
+            raise WireError(f'PointCloud2 needs field {name!r} of datatype '
+                            f'{" or ".join(map(str, _ACCEPTED[datatype]))} '
                             f'(fields: {sorted(fields)})')
     if msg.is_bigendian:
         raise WireError('big-endian PointCloud2 is not supported')
+    want = {name: fields[name].datatype for name in want}   # as they come
     sizes = [_FORMATS[datatype].itemsize for datatype in want.values()]
     n = msg.width * msg.height
     if msg.point_step < sum(sizes) or len(msg.data) != n * msg.point_step:
@@ -312,8 +320,8 @@ def encode_vectors(t: float, frame_id: str, ids: NDArray[np.integer],
 
 def decode_vectors(msg: PointCloud2) -> tuple[float, NDArray[np.uint32], Array]:
     """Inverse of :func:`encode_vectors`. Accepts any field order or padding (e.g. a user's
-    detector) as long as x, y, z are FLOAT64 and agent_id is UINT32. The values are not
-    checked (finite, unit norm): each receiver validates its points.
+    detector, PCL) as long as x, y, z are FLOAT64 or FLOAT32 and agent_id is UINT32. The
+    values are not checked (finite, unit norm): each receiver validates its points.
 
     Raises:
         WireError: missing, mistyped or overlapping fields, inconsistent sizes, or big-endian
@@ -339,7 +347,8 @@ def encode_scalars(t: float, frame_id: str, ids: NDArray[np.integer], values: Ar
 def decode_scalars(msg: PointCloud2,
                    field: str = 'range') -> tuple[float, NDArray[np.uint32], Array]:
     """Inverse of :func:`encode_scalars`: ``(stamp, ids, values)``. Accepts any field order or
-    padding as long as ``field`` is FLOAT64 and agent_id is UINT32. The values are not checked.
+    padding as long as ``field`` is FLOAT64 (or FLOAT32) and agent_id is UINT32. The values are
+    not checked.
 
     Raises:
         WireError: missing, mistyped or overlapping fields, inconsistent sizes, or big-endian

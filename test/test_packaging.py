@@ -184,3 +184,23 @@ def test_colcon_built_estimator_talks_dds(colcon_install, tmp_path):
         out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 0, out
     assert 'agent_1 (id 1, leader) at 100 Hz' in out
+
+
+def test_one_version_a_license_and_bearing_pose_version(repo_root, capsys):
+    """package.xml, setup.py and the package say the same version, which `bearing-pose
+    --version` prints; the Apache-2.0 that package.xml and setup.py declare is in LICENSE."""
+    from bearing_pose_estimation import __version__
+    from bearing_pose_estimation.cli.main import main
+
+    root = ET.parse(repo_root / 'package.xml').getroot()
+    setup = ast.parse((repo_root / 'setup.py').read_text())
+    setup_kw = {kw.arg: kw.value for node in ast.walk(setup) if isinstance(node, ast.Call)
+                for kw in node.keywords}
+    assert root.findtext('version') == ast.literal_eval(setup_kw['version']) == __version__
+    assert root.findtext('license') == ast.literal_eval(setup_kw['license']) == 'Apache-2.0'
+    text = (repo_root / 'LICENSE').read_text()
+    assert 'Apache License' in text and 'Version 2.0, January 2004' in text
+    with pytest.raises(SystemExit) as info:
+        main(['--version'])
+    assert info.value.code == 0
+    assert capsys.readouterr().out.strip() == f'bearing-pose {__version__}'

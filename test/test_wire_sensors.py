@@ -141,8 +141,8 @@ def _renamed(msg: PointCloud2) -> PointCloud2:
     return msg
 
 
-def _float32_range(msg: PointCloud2) -> PointCloud2:
-    msg.fields = [PointField(name='range', offset=0, datatype=PointField.FLOAT32, count=1),
+def _integer_range(msg: PointCloud2) -> PointCloud2:
+    msg.fields = [PointField(name='range', offset=0, datatype=PointField.INT32, count=1),
                   msg.fields[1]]
     return msg
 
@@ -164,8 +164,9 @@ def _id_past_the_point(msg: PointCloud2) -> PointCloud2:
 
 
 @pytest.mark.parametrize('spoil, match', [
-    (_renamed, r"needs field 'range' of datatype 8 \(fields: \['agent_id', 'distance'\]\)"),
-    (_float32_range, "needs field 'range' of datatype 8"),
+    (_renamed,
+     r"needs field 'range' of datatype 8 or 7 \(fields: \['agent_id', 'distance'\]\)"),
+    (_integer_range, "needs field 'range' of datatype 8 or 7"),
     (_truncated, 'data is 23 bytes, expected 2 points x 12 bytes'),
     (_big_endian, 'big-endian'),
     (_id_past_the_point, "field 'agent_id' .*end of the 12-byte point"),
@@ -182,7 +183,8 @@ def test_decode_vectors_errors_are_unchanged():
     msg.fields = msg.fields[:2]
     with pytest.raises(wire.WireError) as err:
         wire.decode_vectors(msg)
-    assert str(err.value) == "PointCloud2 needs field 'z' of datatype 8 (fields: ['x', 'y'])"
+    assert str(err.value) == ("PointCloud2 needs field 'z' of datatype 8 or 7 (fields: "
+                              "['x', 'y'])")   # FLOAT64 or FLOAT32
 
     msg = wire.encode_vectors(T, 'agent_3/base_link', [1, 2], np.eye(3)[:2])
     msg.data = bytes(msg.data)[:28]
@@ -197,4 +199,30 @@ def test_overlapping_vector_fields_are_rejected():
                   PointField(name='y', offset=4, datatype=PointField.FLOAT64, count=1),
                   *msg.fields[2:]]
     with pytest.raises(wire.WireError, match="field 'x' .*overlaps"):
+        wire.decode_vectors(msg)
+
+
+def test_float32_points_are_accepted_as_detectors_and_pcl_publish_them():
+    """x, y, z as FLOAT32 (16-byte points): decoded to float64, and a unit bearing in float32
+    is still a unit bearing for the estimator (1e-7 against its 1e-3 tolerance)."""
+    from bearing_pose_estimation.estimators import agent
+
+    b = RNG.normal(size=(3, 3))
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    data = np.zeros(3, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('agent_id', '<u4')])
+    data['x'], data['y'], data['z'] = b.T
+    data['agent_id'] = [2, 5, 7]
+    msg = PointCloud2(height=1, width=3, is_bigendian=False, point_step=16, row_step=48,
+                      is_dense=True, data=data.tobytes(), fields=[
+                          PointField(name=n, offset=4 * k, datatype=PointField.FLOAT32, count=1)
+                          for k, n in enumerate('xyz')] + [
+                          PointField(name='agent_id', offset=12, datatype=PointField.UINT32,
+                                     count=1)])
+    msg.header.stamp = wire.to_stamp(T)
+    t, ids, vectors = wire.decode_vectors(msg)
+    assert t == pytest.approx(T) and ids.tolist() == [2, 5, 7] and vectors.dtype == np.float64
+    np.testing.assert_allclose(vectors, b, atol=1e-7)
+    assert all(agent._vector_problem(v, 1e-3) is None for v in vectors)
+    msg.fields[1].datatype = PointField.INT16   # a type no bearing comes in
+    with pytest.raises(wire.WireError, match="field 'y' of datatype 8 or 7"):
         wire.decode_vectors(msg)

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import yaml
 
-from .. import estimators
+from .. import __version__, estimators
 from ..estimators.base import format_gains
 from ..scenario import (Scenario, ScenarioError, check_scenario, load_scenario,
                         parse_scenario)
@@ -463,9 +463,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='bearing-pose',
         description='Distributed bearing-based pose estimation (Boughellaba & Tayebi; Tran, '
-                    'Anderson & Ahn): check, simulate and generate scenarios, compare the '
-                    'estimators, run Monte Carlo and noise studies, and run scenarios over '
-                    'DDS. No file is overwritten without --force.')
+                    'Anderson & Ahn; De Carli et al.; Presenza et al.): check, simulate and '
+                    'generate scenarios, compare the estimators, run Monte Carlo and noise '
+                    'studies, and run scenarios over DDS. No file is overwritten without '
+                    '--force.')
+    parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
 
     p = sub.add_parser('check', help="check a scenario against the paper's Assumption 2",
