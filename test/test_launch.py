@@ -246,6 +246,43 @@ def test_run_succeeds_and_leaves_nothing_behind(standins, tmp_path, monkeypatch,
     assert str(out / 'summary.json') in captured.out
     assert {p.name for p in (out / 'logs').glob('*.log')} == {f'{n}.log' for n in recs}
     assert 'shared-memory' not in captured.err and 'error' not in captured.err
+    # The same fleet for `ros2 launch`: one node per process it started, the same arguments.
+    nodes = _launched(out / launch.LAUNCH_FILE)
+    assert {n['name'] for n in nodes.values()} == set(recs)
+    for name, rec in recs.items():
+        assert nodes[name]['argv'] == _ros_args(rec['argv']), name
+    env = dict(_env(out / launch.LAUNCH_FILE))
+    assert env == {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST', 'ROS_DOMAIN_ID': domain}
+
+
+def _ros_args(argv: list[str]) -> list[str]:
+    """A command line's ROS arguments in launch-file order: remaps (namespace and node name
+    included), then parameter files."""
+    ros = argv[argv.index('--ros-args') + 1:]
+    pairs = list(zip(ros[::2], ros[1::2]))
+    return ([f'-r {v}' for f, v in pairs if f == '-r']
+            + [f'--params-file {v}' for f, v in pairs if f == '--params-file'])
+
+
+def _launched(path: Path) -> dict[str, dict]:
+    """The nodes of a launch file, by namespace (or name): their exec and arguments."""
+    import xml.etree.ElementTree as ET
+
+    out = {}
+    for node in ET.parse(path).getroot().iter('node'):
+        assert node.get('pkg') == 'bearing_pose_estimation'
+        ns, name = node.get('namespace'), node.get('name')
+        argv = ([f'-r __ns:=/{ns}'] if ns else []) + [f'-r __node:={name}']
+        argv += [f'-r {r.get("from")}:={r.get("to")}' for r in node.iter('remap')]
+        argv += [f'--params-file {q.get("from")}' for q in node.iter('param')]
+        out[ns or name] = {'name': ns or name, 'exec': node.get('exec'), 'argv': argv}
+    return out
+
+
+def _env(path: Path) -> list[tuple[str, str]]:
+    import xml.etree.ElementTree as ET
+
+    return [(e.get('name'), e.get('value')) for e in ET.parse(path).getroot().iter('set_env')]
 
 
 def test_run_removes_the_shm_files_it_left(standins, tmp_path, monkeypatch, capsys):

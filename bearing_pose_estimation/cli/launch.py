@@ -235,6 +235,55 @@ def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Pat
     return specs
 
 
+LAUNCH_FILE = 'fleet.launch.xml'
+# The environment a run sets for its children that a launch file must set too.
+_LAUNCH_ENV = ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')
+
+
+def launch_xml(specs: list[ProcessSpec], env: Mapping[str, str]) -> str:
+    """The processes ``specs`` (as :func:`plan_processes` plans them) as a ROS 2 XML launch
+    file: one ``<node>`` each, with the namespace, node name, remappings, parameter files and
+    ``-p`` parameters of its command line, and the DDS environment of ``env`` (loopback
+    discovery, the run's domain) set first. ``ros2 launch`` on a Jazzy install then starts the
+    same fleet as ``bearing-pose run``."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.Element('launch')
+    for key in _LAUNCH_ENV:
+        if key in env:
+            ET.SubElement(root, 'set_env', name=key, value=env[key])
+    for spec in specs:
+        exe, rest = Path(spec.argv[0]).name, list(spec.argv[1:])
+        ros = rest[rest.index('--ros-args') + 1:] if '--ros-args' in rest else []
+        args = rest[:rest.index('--ros-args')] if '--ros-args' in rest else rest
+        node = ET.SubElement(root, 'node', pkg=PACKAGE, exec=exe, output='screen')
+        if args:   # the `estimators` process: its own arguments, no --ros-args
+            node.set('args', ' '.join(args))
+        children: list[tuple[str, dict[str, str]]] = []
+        for flag, value in zip(ros[::2], ros[1::2]):
+            if flag == '-r':
+                src, dst = value.split(':=', 1)
+                if src == '__ns':
+                    node.set('namespace', dst.lstrip('/'))
+                elif src == '__node':
+                    node.set('name', dst)
+                else:
+                    children.append(('remap', {'from': src, 'to': dst}))
+            elif flag == '--params-file':
+                children.append(('param', {'from': value}))
+            elif flag == '-p':
+                key, val = value.split(':=', 1)
+                children.append(('param', {'name': key, 'value': val}))
+            else:
+                raise ValueError(f'{spec.label}: {flag} has no launch-file form')
+        for tag, attrs in children:
+            ET.SubElement(node, tag, attrs)
+    ET.indent(root)
+    return ('<?xml version="1.0"?>\n<!-- Written by bearing-pose run: the same processes, '
+            'namespaces, remappings and parameter files. ros2 launch ' + LAUNCH_FILE
+            + ' -->\n' + ET.tostring(root, encoding='unicode') + '\n')
+
+
 # ----------------------------------------------------------------------------- processes
 @dataclass(frozen=True)
 class Failure:
@@ -608,6 +657,7 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
     env = dds_env(cfg.domain_id, cfg.logs_dir / 'ros')
     shm_before = shm_files()
     started = time.time()
+    (cfg.out_dir / LAUNCH_FILE).write_text(launch_xml(specs, env))
     wall = time.perf_counter()
     result = RunResult(ok=False, wall_s=0.0)
     try:

@@ -184,7 +184,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
     if args.distributed:
         _refuse_paper_mode_over_dds(scenario)
         outputs += [f'{m}/{f}' for m in args.methods
-                    for f in ('scenario.yaml', 'metrics.csv', 'summary.json')]
+                    for f in ('scenario.yaml', 'metrics.csv', 'summary.json',
+                              'fleet.launch.xml')]
     out = _out_dir(args.out or f'results/{scenario.name}_compare', outputs, args.force)
     duration = args.duration if args.duration is not None else scenario.duration
     modes = 'batch simulator, then over DDS' if args.distributed else 'batch simulator'
@@ -353,7 +354,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     processes = [a.name for a in scenario.agents] + ['simulator', 'monitor']
     plots = [] if args.no_plots else PLOT_FILES + (['trajectories.png'] if scenario.moves
                                                    else [])
-    outputs = (['metrics.csv', 'summary.json'] + plots + (['scenario.yaml'] if derived else [])
+    outputs = (['metrics.csv', 'summary.json', 'fleet.launch.xml'] + plots
+               + (['scenario.yaml'] if derived else [])
                + [f'params/{p}.yaml' for p in processes] + [f'logs/{p}.log' for p in processes])
     out = _out_dir(args.out or f'results/{scenario.name}_dds', outputs, args.force)
     duration = args.duration if args.duration is not None else scenario.duration
