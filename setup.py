@@ -26,6 +26,7 @@ setup(
         ('share/ament_index/resource_index/packages', [f'resource/{package_name}']),
         (f'share/{package_name}', ['package.xml']),
         (f'share/{package_name}/config', sorted(glob('config/*.yaml'))),
+        (f'share/{package_name}/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'PyYAML', 'matplotlib'],
     zip_safe=True,

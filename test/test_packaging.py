@@ -69,6 +69,8 @@ def test_colcon_build_installs_what_ros2_run_needs(colcon_install, repo_root, tm
     configs = sorted(p.name for p in (repo_root / 'config').glob('*.yaml'))
     installed = sorted(p.name for p in (share / 'config').glob('*.yaml'))
     assert installed == configs
+    # `ros2 launch bearing_pose_estimation fleet.launch.py` finds it here.
+    assert (share / 'launch' / 'fleet.launch.py').is_file()
 
     # What `ros2 run bearing_pose_estimation bearing-pose --help` runs, with the install on the path.
     proc = _run_installed(colcon_install, [str(exe), '--help'], cwd=tmp_path)

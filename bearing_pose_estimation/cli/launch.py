@@ -240,44 +240,75 @@ LAUNCH_FILE = 'fleet.launch.xml'
 _LAUNCH_ENV = ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')
 
 
+@dataclass(frozen=True)
+class LaunchNode:
+    """One process of :func:`plan_processes` as a launch file starts it (``launch_ros``'s
+    ``Node`` arguments): its executable, node name and namespace (None: the process names
+    its own nodes), remappings, parameter files, ``-p`` parameters and other arguments."""
+
+    executable: str
+    name: str | None
+    namespace: str | None
+    remappings: tuple[tuple[str, str], ...]
+    parameter_files: tuple[str, ...]
+    parameters: tuple[tuple[str, str], ...]
+    arguments: tuple[str, ...]
+
+
+def launch_nodes(specs: list[ProcessSpec]) -> list[LaunchNode]:
+    """The processes ``specs`` as launch-file nodes: what their command lines say, read back
+    (the one source for ``fleet.launch.xml`` and the installed ``launch/fleet.launch.py``)."""
+    nodes = []
+    for spec in specs:
+        rest = list(spec.argv[1:])
+        cut = rest.index('--ros-args') if '--ros-args' in rest else len(rest)
+        ros, args = rest[cut + 1:], rest[:cut]
+        name = namespace = None
+        remaps, files, params = [], [], []
+        for flag, value in zip(ros[::2], ros[1::2]):
+            if flag == '-r':
+                src, dst = value.split(':=', 1)
+                if src == '__ns':
+                    namespace = dst.lstrip('/')
+                elif src == '__node':
+                    name = dst
+                else:
+                    remaps.append((src, dst))
+            elif flag == '--params-file':
+                files.append(value)
+            elif flag == '-p':
+                key, val = value.split(':=', 1)
+                params.append((key, val))
+            else:
+                raise ValueError(f'{spec.label}: {flag} has no launch-file form')
+        nodes.append(LaunchNode(Path(spec.argv[0]).name, name, namespace, tuple(remaps),
+                                tuple(files), tuple(params), tuple(args)))
+    return nodes
+
+
 def launch_xml(specs: list[ProcessSpec], env: Mapping[str, str]) -> str:
     """The processes ``specs`` (as :func:`plan_processes` plans them) as a ROS 2 XML launch
-    file: one ``<node>`` each, with the namespace, node name, remappings, parameter files and
-    ``-p`` parameters of its command line, and the DDS environment of ``env`` (loopback
-    discovery, the run's domain) set first. ``ros2 launch`` on a Jazzy install then starts the
-    same fleet as ``bearing-pose run``."""
+    file: one ``<node>`` each (:func:`launch_nodes`), and the DDS environment of ``env``
+    (loopback discovery, the run's domain) set first. ``ros2 launch`` on a Jazzy install then
+    starts the same fleet as ``bearing-pose run``."""
     import xml.etree.ElementTree as ET
 
     root = ET.Element('launch')
     for key in _LAUNCH_ENV:
         if key in env:
             ET.SubElement(root, 'set_env', name=key, value=env[key])
-    for spec in specs:
-        exe, rest = Path(spec.argv[0]).name, list(spec.argv[1:])
-        ros = rest[rest.index('--ros-args') + 1:] if '--ros-args' in rest else []
-        args = rest[:rest.index('--ros-args')] if '--ros-args' in rest else rest
-        node = ET.SubElement(root, 'node', pkg=PACKAGE, exec=exe, output='screen')
-        if args:   # the `estimators` process: its own arguments, no --ros-args
-            node.set('args', ' '.join(args))
-        children: list[tuple[str, dict[str, str]]] = []
-        for flag, value in zip(ros[::2], ros[1::2]):
-            if flag == '-r':
-                src, dst = value.split(':=', 1)
-                if src == '__ns':
-                    node.set('namespace', dst.lstrip('/'))
-                elif src == '__node':
-                    node.set('name', dst)
-                else:
-                    children.append(('remap', {'from': src, 'to': dst}))
-            elif flag == '--params-file':
-                children.append(('param', {'from': value}))
-            elif flag == '-p':
-                key, val = value.split(':=', 1)
-                children.append(('param', {'name': key, 'value': val}))
-            else:
-                raise ValueError(f'{spec.label}: {flag} has no launch-file form')
-        for tag, attrs in children:
-            ET.SubElement(node, tag, attrs)
+    for n in launch_nodes(specs):
+        node = ET.SubElement(root, 'node', pkg=PACKAGE, exec=n.executable, output='screen')
+        for attr, value in (('namespace', n.namespace), ('name', n.name),
+                            ('args', ' '.join(n.arguments) or None)):
+            if value is not None:
+                node.set(attr, value)
+        for src, dst in n.remappings:
+            ET.SubElement(node, 'remap', {'from': src, 'to': dst})
+        for path in n.parameter_files:
+            ET.SubElement(node, 'param', {'from': path})
+        for key, value in n.parameters:
+            ET.SubElement(node, 'param', {'name': key, 'value': value})
     ET.indent(root)
     return ('<?xml version="1.0"?>\n<!-- Written by bearing-pose run: the same processes, '
             'namespaces, remappings and parameter files. ros2 launch ' + LAUNCH_FILE
