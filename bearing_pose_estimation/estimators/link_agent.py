@@ -216,12 +216,13 @@ class LinkAgentEstimator(TimedAgent):
     def add_neighbour_measurements(self, agent_id: int, stamp: float,
                                    ids: NDArray[np.integer], vectors: Array) -> str | None:
         """Neighbour j's relative positions at ``stamp`` (its sensor's message): the point of
-        this robot, when j senses it, is kept."""
+        this robot, when the step reads j's measurement of it (:meth:`measures_me`), is
+        kept."""
         link = self._by_id.get(agent_id)
         if link is None:
             return 'unknown_id'
-        if not link.sensed_by or not np.isfinite(stamp):
-            return None if link.sensed_by is False else 'non_finite'
+        if not self.measures_me(link) or not np.isfinite(stamp):
+            return 'non_finite' if self.measures_me(link) else None
         mine = np.flatnonzero(np.asarray(ids) == self.agent_id)
         if not mine.size:
             return None
@@ -240,22 +241,28 @@ class LinkAgentEstimator(TimedAgent):
         link = self._by_id.get(agent_id)
         if link is None:
             return 'unknown_id'
+        return self._add_twist(link.odometry, stamp, v, omega)
+
+    def _add_twist(self, odometry: OdometryBuffer, stamp: float, v: Array,
+                   omega: Array) -> str | None:
+        """Another robot's odometry sample into ``odometry``, or why not: non-finite, absurd,
+        out of order; its clock restarted or a gap: the integration restarts."""
         v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
         if not (np.all(np.isfinite(v)) and np.all(np.isfinite(omega)) and np.isfinite(stamp)):
             return 'non_finite'
         if (float(np.linalg.norm(omega)) > self.limits.max_rate
                 or float(np.linalg.norm(v)) > self.limits.max_speed):
             return 'absurd_rate'
-        end = link.odometry.end
+        end = odometry.end
         if stamp <= end:
             if stamp < end - self.limits.jump_back:   # j restarted its clock
-                link.odometry.reset(stamp)
+                odometry.reset(stamp)
                 return None
             return 'out_of_order'
         if stamp - end > self.limits.max_gyro_gap:
-            link.odometry.reset(stamp)
+            odometry.reset(stamp)
             return 'odometry_gap'
-        link.odometry.add_twist(stamp, v, omega)
+        odometry.add_twist(stamp, v, omega)
         return None
 
     def add_neighbour(self, agent_id: int, stamp: float,

@@ -142,7 +142,8 @@ class TwoRoundAgent(LinkAgentEstimator):
     def add_relative_positions(self, stamp: float, ids: NDArray[np.integer],
                                vectors: Array) -> list[str]:
         """Unused: the anchor's ranges go to the ranged robots, its own step does not read
-        them."""
+        them (they read them with :meth:`add_neighbour_measurements`, for the links where
+        :meth:`measures_me`)."""
         return []
 
     def _add_own(self, stamp: float, ids: NDArray[np.integer], vectors: Array,
@@ -174,49 +175,12 @@ class TwoRoundAgent(LinkAgentEstimator):
                 rejected.append(problem)
         return rejected
 
-    def add_neighbour_measurements(self, agent_id: int, stamp: float,
-                                   ids: NDArray[np.integer], vectors: Array) -> str | None:
-        """The anchor's relative positions at ``stamp``: the point of this robot, if it is
-        ranged, is kept."""
-        link = self._by_id.get(agent_id)
-        if link is None:
-            return 'unknown_id'
-        if not self.measures_me(link) or not np.isfinite(stamp):
-            return None if np.isfinite(stamp) else 'non_finite'
-        mine = np.flatnonzero(np.asarray(ids) == self.agent_id)
-        if not mine.size:
-            return None
-        v = np.asarray(vectors, dtype=float)[mine[0]]
-        problem = self._vector_problem(v)
-        if problem is None and link.theirs and stamp <= link.theirs[-1][0]:
-            problem = 'out_of_order'
-        if problem is not None:
-            return problem
-        link.theirs.append((float(stamp), v.copy()))
-        return None
-
     def add_neighbour_odometry(self, agent_id: int, stamp: float, v: Array,
                                omega: Array) -> str | None:
         """The anchor's odometry sample (the only neighbour odometry this method reads)."""
         if agent_id != self.anchor_id or self.anchor_odometry is None:
             return 'unknown_id'
-        v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
-        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(omega)) and np.isfinite(stamp)):
-            return 'non_finite'
-        if (float(np.linalg.norm(omega)) > self.limits.max_rate
-                or float(np.linalg.norm(v)) > self.limits.max_speed):
-            return 'absurd_rate'
-        odo = self.anchor_odometry
-        if stamp <= odo.end:
-            if stamp < odo.end - self.limits.jump_back:   # the anchor restarted its clock
-                odo.reset(stamp)
-                return None
-            return 'out_of_order'
-        if stamp - odo.end > self.limits.max_gyro_gap:
-            odo.reset(stamp)
-            return 'odometry_gap'
-        odo.add_twist(stamp, v, omega)
-        return None
+        return self._add_twist(self.anchor_odometry, stamp, v, omega)
 
     # ------------------------------------------------------------------------------ stepping
     def stale_neighbours(self, t: float) -> list[str]:
