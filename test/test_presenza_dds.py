@@ -127,17 +127,20 @@ def test_the_monitor_reports_angle_rigidity_on_the_estimates(run):
     positive (the estimates stay infinitesimally angle rigid) and, as they converge, near the
     truth's 0.055 (the check's margin at t = 0, notes §2)."""
     scenario_file, out, messages, _ = run
+    # Published at t = 0, 1, 2 s; this observer may match the monitor's writer after the
+    # first (volatile), and the last may go out as the monitor exits: the newest one received
+    # after t = 0 is checked against the truth at its instant.
     fleet = [st for msg in messages['/diagnostics'] for st in msg.status
              if st.name == 'monitor/fleet']
-    assert len(fleet) >= 2
-    margins = [float({kv.key: kv.value for kv in st.values}['angle_rigidity_margin'])
-               for st in fleet]
+    values = [{kv.key: kv.value for kv in st.values} for st in fleet]
+    assert values and float(values[-1]['t_s']) >= 1.0
+    margins = [float(v['angle_rigidity_margin']) for v in values]
     assert all(0.0 < m < 1.0 for m in margins)
     from bearing_pose_estimation.core import angles
     from bearing_pose_estimation.sim.batch import BatchSimulator as Batch
     s = load_scenario(scenario_file)
     sim = Batch(s)
-    sim.run(DURATION, record_every=1.0)
+    sim.run(float(values[-1]['t_s']), record_every=1.0)
     true_q = sim.true_estimates()[1]
     out_nb = [[s.index[nb.name] for nb in a.neighbours] for a in s.agents]
     truth = angles.iar_margin(true_q, angles.angle_triples(out_nb))
