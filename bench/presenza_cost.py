@@ -10,8 +10,6 @@ time.
 from __future__ import annotations
 
 import os
-import statistics
-import time
 from pathlib import Path
 
 os.environ.setdefault('OMP_NUM_THREADS', '1')
@@ -20,18 +18,9 @@ import numpy as np  # noqa: E402
 
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 from bearing_pose_estimation.sim.batch import BatchSimulator  # noqa: E402
+from de_carli_cost import median_us  # noqa: E402  (bench/ is the script's folder: one timing)
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'presenza_case1.yaml'
-
-
-def median_us(fn, calls: int) -> float:
-    times = []
-    for _ in range(7):
-        t0 = time.perf_counter()
-        for _ in range(calls):
-            fn()
-        times.append((time.perf_counter() - t0) / calls * 1e6)
-    return statistics.median(times)
 
 
 def floor_us(n: int, n_edges: int, calls: int) -> float:

@@ -192,6 +192,17 @@ class LinkAgentEstimator(TimedAgent):
         """Own measurements ``ⁱp_ij`` (body frame [m]) of the robots ``ids`` at ``stamp``;
         points of robots this one does not sense are ignored. Returns the causes of the
         rejected points."""
+        return self._add_own_points(stamp, ids, vectors, self._vector_problem,
+                                    lambda link: link.measured, np.copy)
+
+    def _add_own_points(self, stamp: float, ids: NDArray[np.integer], vectors: Array,
+                        problem_of: Callable[[Array], str | None],
+                        history: Callable[[Link], deque[tuple[float, Array]]],
+                        kept: Callable[[Array], Array]) -> list[str]:
+        """One own sensor message, a vector per sensed robot: each point of a robot this one
+        senses is checked (``problem_of``, then its stamp against the newest in its
+        ``history(link)``) and kept as ``kept(v)``; others are ignored (unknown ids
+        rejected). Returns the causes of the rejected points."""
         if not np.isfinite(stamp):
             return ['non_finite'] * len(ids)
         if stamp > self.gyro.end + self.limits.max_future:
@@ -204,11 +215,12 @@ class LinkAgentEstimator(TimedAgent):
                                                and int(j) not in self.known_ids):
                     rejected.append('unknown_id')
                 continue
-            problem = self._vector_problem(v)
-            if problem is None and link.measured and stamp <= link.measured[-1][0]:
+            hist = history(link)
+            problem = problem_of(v)
+            if problem is None and hist and stamp <= hist[-1][0]:
                 problem = 'out_of_order'
             if problem is None:
-                link.measured.append((float(stamp), v.copy()))
+                hist.append((float(stamp), kept(v)))
             else:
                 rejected.append(problem)
         return rejected

@@ -148,32 +148,12 @@ class TwoRoundAgent(LinkAgentEstimator):
 
     def _add_own(self, stamp: float, ids: NDArray[np.integer], vectors: Array,
                  unit: bool) -> list[str]:
-        if not np.isfinite(stamp):
-            return ['non_finite'] * len(ids)
-        if stamp > self.gyro.end + self.limits.max_future:
-            return ['future_stamp'] * len(ids)
-        rejected = []
-        for j, v in zip(np.asarray(ids).tolist(), np.asarray(vectors, dtype=float)):
-            link = self._by_id.get(int(j))
-            if link is None or not link.senses:
-                if int(j) == self.agent_id or (self.known_ids is not None
-                                               and int(j) not in self.known_ids):
-                    rejected.append('unknown_id')
-                continue
-            if unit:
-                problem = _vector_problem(v, self.limits.unit_tolerance)
-            elif v.shape != (3,) or not np.all(np.isfinite(v)):
-                problem = 'non_finite'
-            else:
-                problem = 'absurd_value' if np.max(np.abs(v)) > MAX_BEARING_RATE else None
-            hist = link.measured if unit else self.rates[link.agent_id]
-            if problem is None and hist and stamp <= hist[-1][0]:
-                problem = 'out_of_order'
-            if problem is None:
-                hist.append((float(stamp), v / np.linalg.norm(v) if unit else v.copy()))
-            else:
-                rejected.append(problem)
-        return rejected
+        if unit:   # bearings: unit vectors, kept normalised
+            return self._add_own_points(
+                stamp, ids, vectors, lambda v: _vector_problem(v, self.limits.unit_tolerance),
+                lambda link: link.measured, lambda v: v / np.linalg.norm(v))
+        return self._add_own_points(stamp, ids, vectors, _rate_problem,
+                                    lambda link: self.rates[link.agent_id], np.copy)
 
     def add_neighbour_odometry(self, agent_id: int, stamp: float, v: Array,
                                omega: Array) -> str | None:
@@ -415,6 +395,13 @@ class TwoRoundAgent(LinkAgentEstimator):
         """Round 1 at the state time: ``q_hat`` (on the estimate). Round 2 goes out through
         :meth:`pending_reply`."""
         return {'q_hat': self.x.p_hat[0].copy()}
+
+
+def _rate_problem(v: Array) -> str | None:
+    """Why ``v`` is not a usable bearing rate, or None."""
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        return 'non_finite'
+    return 'absurd_value' if np.max(np.abs(v)) > MAX_BEARING_RATE else None
 
 
 def _waiting(link: Link, name: str, t: float) -> bool:
