@@ -60,6 +60,10 @@ def run(tmp_path_factory):
         assert obs.spin_until(lambda: g.returncode('monitor') is not None, 120.0), \
             'the monitor did not finish'
         assert g.returncode('monitor') in launch.CLEAN_EXITS
+        # The writers keep their last 20 values (transient local): a late reader gets them
+        # once matched, which on a fast run can be after the monitor is done.
+        assert obs.spin_until(lambda: all(obs.messages[t] for t in LATE_TOPICS), 60.0), \
+            {t: len(obs.messages[t]) for t in LATE_TOPICS}
         g.shutdown()
         assert g.unclean() == {}
     assert launch.leaked_shm(shm) == []
