@@ -477,8 +477,9 @@ def _encode_id_blocks(t: float, value: dict[int, Array], frame: str) -> PointClo
 
 # Channel name -> wire. p_hat: the position of the sender's `estimate`; world_bearing: its
 # `world_bearings`, one point per listener; De Carli et al.'s z_hat (`yaw_estimate`, the
-# complex ẑ_j), relyaw (`relative_yaws`, one point per listener of a pair it owns, z = 0) and
-# meas (the sender's own `relative_positions` sensor topic: the point of the listener).
+# complex ẑ_j), relyaw (`relative_yaws`, one point per listener of a pair it owns, z = 0; x = y
+# = 0 until the owner has one) and meas (the sender's own `relative_positions` sensor topic:
+# the point of the listener).
 CHANNELS = {
     'p_hat': ChannelWire(ESTIMATE, PoseStamped, '{estimate}', _decode_position, None),
     'world_bearing': ChannelWire(WORLD_BEARINGS, PointCloud2, WORLD_FRAME, _decode_id_vectors,

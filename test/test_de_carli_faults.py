@@ -120,4 +120,6 @@ def test_de_carli_fault_matrix_row(key, matrix_runs):
         back = rec.t[(rec.t >= end - 1e-9) & (att < 1e-3) & (pos < 5e-2)]
         assert back.size and back[0] - end <= exp.back + 1e-9, (back, end)
     assert convergence_cost(rec, ref.recording) <= exp.cost
-    assert att[-1] < 0.2 * att[0] and pos[-1] < 0.1 * pos[0]   # converging at the end
+    # Converging at the end: well below the row's worst record (the first is at 0.25 s, when
+    # the reference is already down to 2e-2 rad).
+    assert att[-1] < 0.2 * att.max() and pos[-1] < 0.1 * pos.max()

@@ -121,3 +121,26 @@ def test_a_silent_neighbour_is_left_out_after_the_timeout():
         assert est.t > 0.9, (n, est.t)
         assert est.missing['present'] > 0
         assert 'robot_7' in est.stale_neighbours(est.t)
+
+
+def test_an_owner_says_when_it_has_no_relative_yaw_yet():
+    """De Carli's relative yaw travels only from the pair's owner. Until it has one the owner
+    sends zeros, not nothing: "none yet", which the listener's step takes as the batch step
+    does, without waiting for a value that will not come (over DDS it waited out the
+    wall-clock patience and went on without the neighbour: 5 % off the batch run). A message
+    that does not list our pair still says nothing, and zeros from a non-owner are garbage."""
+    s = scenario()
+    r0, r1 = link_estimator_for(s, 'robot_0'), link_estimator_for(s, 'robot_1')
+    owner = next(lk for lk in r1.links if lk.name == 'robot_0')
+    assert not owner.owns   # two-way pair: robot_0 (id 1, the lower) owns it
+    sent = r0.outbox()
+    np.testing.assert_array_equal(sent['relyaw'][2], [0.0, 0.0])   # t = 0: none yet, for id 2
+    assert list(sent['relyaw']) == [2]   # robot_0 owns no other pair
+    assert r1.add_neighbour(1, 0.0, {'z_hat': sent['z_hat'], 'relyaw': sent['relyaw']}) is None
+    value, decided = owner.value_at('relyaw', 0.0)
+    assert decided and np.array_equal(value, np.zeros(2))
+    assert r1.add_neighbour(1, 0.01, {'relyaw': {2: np.array([0.0, 1.0])}}) is None
+    assert np.array_equal(owner.value_at('relyaw', 0.01)[0], [0.0, 1.0])
+    assert r1.add_neighbour(1, 0.02, {'relyaw': {99: np.array([1.0, 0.0])}}) == 'not_seen'
+    assert r1.add_neighbour(1, 0.02, {'relyaw': {2: np.array([0.0, 3.0])}}) == 'not_unit'
+    assert r0.add_neighbour(2, 0.0, {'relyaw': {1: np.zeros(2)}}) == 'zero_vector'

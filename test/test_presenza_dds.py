@@ -2,8 +2,8 @@
 preconditioned scheme), one process per robot plus the simulator and the monitor, observed
 from the test process. One fleet, several checks:
 
-- the errors track the batch simulator at the same rate and scheme within 5 % (the issue's
-  acceptance; in fact to the CSV's rounding when both rounds arrive for every step);
+- the errors equal the batch simulator's at the same rate and scheme to 1e-6 (the issue's
+  acceptance: within 5 %), none of their inputs left out or carried;
 - the wire: estimates in the anchor's body frame, the second round from each sensing robot to
   the robots it sees, in the anchor frame, one point per listener;
 - /diagnostics: λ_min(P̂_i) of the free robots' velocity reconstruction, no input left out.
@@ -79,20 +79,21 @@ def _status(messages, robot: str) -> dict[str, str]:
     return {}
 
 
-def test_the_fleet_tracks_the_batch_simulator_within_5_percent(run):
+def test_the_fleet_reproduces_the_batch_simulator(run):
+    """Every 0.1 s record equals the batch run's at the same rate and scheme to 1e-6 (the
+    issue asked for 5 %): in lockstep every step has both rounds of every neighbour, none left
+    out, none carried, none waited out on the wall clock."""
     scenario_file, out, _, logs = run
     dds = read_metrics_csv(out / 'metrics.csv')
     rec = BatchSimulator(load_scenario(scenario_file)).run(DURATION, record_every=0.1)
     np.testing.assert_allclose(dds.t, rec.t, atol=1e-9)
     att_b, pos_b = rec.mean_errors()
     att_d, pos_d = dds.mean_errors()
-    assert np.all(np.abs(pos_d - pos_b) <= 0.05 * pos_b)
-    assert np.all(np.abs(att_d - att_b) <= 0.05 * att_b)
-    assert pos_d[-1] < 0.5 * pos_d[0] and att_d[-1] < 0.5 * att_d[0]
-    # Every step had both rounds of every neighbour (on a loaded machine a few come after the
-    # wall-clock patience and are the sender's newest, carried: counted, never left out).
     for name, log in logs.items():
-        assert 'left out: 0; carried: ' in log, (name, log[-600:])
+        assert 'left out: 0; carried: 0' in log and 'impatient' not in log, (name, log[-600:])
+    np.testing.assert_allclose(pos_d, pos_b, rtol=1e-6)
+    np.testing.assert_allclose(att_d, att_b, rtol=1e-6)
+    assert pos_d[-1] < 0.5 * pos_d[0] and att_d[-1] < 0.5 * att_d[0]
 
 
 def test_the_second_round_travels_in_the_anchor_frame_one_point_per_listener(run):

@@ -154,6 +154,7 @@ class LinkAgentEstimator(TimedAgent):
         self._owns = np.array([lk.owns for lk in self.links], dtype=bool)
         self.missing: Counter[str] = Counter()   # inputs left out of a step, by what
         self.waits: Counter[str] = Counter()     # attempts that waited, by what was awaited
+        self.awaited: str | None = None          # what the latest of them waited for
         self.carried = 0   # neighbour values of an earlier instant carried to the step's
         self.impatient = False
         self._pending: StepInputs | None = None
@@ -292,7 +293,7 @@ class LinkAgentEstimator(TimedAgent):
             if channel.per == 'edge':
                 value = value.get(self.agent_id) if isinstance(value, dict) else None
                 if value is None:
-                    continue   # nothing for us: a pair j does not own, or not yet
+                    continue   # nothing for us: a pair j does not own
             v = np.asarray(value, dtype=float)
             if v.shape != channel.shape:
                 return 'malformed'
@@ -304,7 +305,9 @@ class LinkAgentEstimator(TimedAgent):
         if any(float(np.max(np.abs(v))) > MAX_RANGE_M for v in mine.values()):
             return 'absurd_value'
         for name, v in mine.items():
-            if self.channels[name].unit:
+            # The owner's zeros: no value of the pair yet (the step takes them as such).
+            none_yet = self.channels[name].owner_only and not link.owns and not np.any(v)
+            if self.channels[name].unit and not none_yet:
                 problem = _unit_problem(v, self.limits.unit_tolerance)
                 if problem is not None:
                     return problem
@@ -318,7 +321,8 @@ class LinkAgentEstimator(TimedAgent):
                 else:
                     return 'out_of_order'
             if hist and abs(stamp - hist[-1][0]) < 1e-9:
-                hist[-1] = (float(stamp), v)
+                if np.any(v) or not self.channels[name].owner_only:
+                    hist[-1] = (float(stamp), v)   # (an owner's "none yet" undoes no value)
             else:
                 hist.append((float(stamp), v))
         return None
@@ -371,7 +375,7 @@ class LinkAgentEstimator(TimedAgent):
         if not final:
             awaited = self._awaiting(t, due, stale)
             if awaited is not None:
-                self.waits[awaited] += 1
+                self._wait_for(awaited)
                 return None
         n = len(self.links)
         y = np.zeros((n, 3))
@@ -441,6 +445,10 @@ class LinkAgentEstimator(TimedAgent):
                                       n_agents=1, slot=np.arange(n, dtype=np.intp)),
                           bearings=np.zeros((n, 3)), received=received,
                           displacement=displacement, links=links, t=t)
+
+    def _wait_for(self, awaited: str) -> None:
+        self.waits[awaited] += 1
+        self.awaited = awaited
 
     def own_inputs_ready(self) -> bool:
         """Own gyro (and live odometry) cover the next step: only neighbours may be missing."""
@@ -523,9 +531,10 @@ class LinkAgentEstimator(TimedAgent):
                                      slot=np.arange(n, dtype=np.intp))
 
         def per_edge(name: str, c: Channel) -> dict[int, Array]:
-            # An owner-only value goes to the pairs this robot owns, once it has one.
+            # An owner-only value goes to the pairs this robot owns: zeros until it has one
+            # (the listener's step then knows not to wait for it).
             return {lk.agent_id: sent[name][e] for e, lk in enumerate(self.links)
-                    if not c.owner_only or (lk.owns and np.any(sent[name][e]))}
+                    if not c.owner_only or lk.owns}
 
         return {name: per_edge(name, c) if c.per == 'edge' else sent[name][0]
                 for name, c in self.channels.items() if c.sensor is None}

@@ -330,7 +330,7 @@ class TwoRoundAgent(LinkAgentEstimator):
         t = self.t
         awaited = None if impatient else self._awaiting_round(t, first=True)
         if awaited is not None:
-            self.waits[awaited] += 1
+            self._wait_for(awaited)
             return None
         inputs = self._round1_inputs(t)
         sent = self.estimator.reply(self.x, self.h, inputs)
@@ -345,7 +345,7 @@ class TwoRoundAgent(LinkAgentEstimator):
             return 0
         awaited = None if self.impatient else self._awaiting_round(self.t, first=False)
         if awaited is not None:
-            self.waits[awaited] += 1
+            self._wait_for(awaited)
             return 0
         return 1
 

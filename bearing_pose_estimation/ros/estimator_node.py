@@ -79,7 +79,7 @@ from ..estimators.link_agent import LinkAgentEstimator, agent_for
 from ..estimators.two_round_agent import TwoRoundAgent
 from ..scenario.parse import load_scenario
 from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
-from .wiring import link_subscriptions
+from .wiring import link_subscriptions, listener_counts
 
 # Used only without a scenario file.
 _EXPLICIT = ('agent_id', 'leader', 'neighbours', 'neighbour_ids', 'neighbour_gains',
@@ -185,6 +185,8 @@ class EstimatorNode(Node):
                 self.get_logger().warning(f'{", ".join(ignored)} ignored: they are for running '
                                           'without a scenario_file, which is set')
             template = agent_for(scenario, self.agent, limits)
+            listeners = {topic: n for (agent, topic), n in listener_counts(scenario).items()
+                         if agent == self.agent}
             self.expect_odometry = scenario.simulates('odometry')
             fleet, anchor = scenario.name, scenario.anchor
             publish_rate = publish_rate or scenario.publish_rate
@@ -196,6 +198,7 @@ class EstimatorNode(Node):
                 raise ScenarioError(f'method {method} needs scenario_file: its communication '
                                     'links come from the sensing graph. Fix: set scenario_file')
             fleet, anchor = 'fleet', None
+            listeners = {}   # unknown: the t0 announcement waits for no reader
             self.expect_odometry = False   # used whenever it arrives
             template = self._explicit_estimator(
                 explicit, limits, estimators.build(method, estimators.get(method).Gains()))
@@ -238,6 +241,13 @@ class EstimatorNode(Node):
         self.pub_channels = {name: (self.create_publisher(w.type, w.topic, qos_est), w.encode)
                              for name, w in self.wires.items() if w.encode is not None}
         self.pub_diag = self.create_publisher(DiagnosticArray, wire.DIAGNOSTICS, 10)
+        # The neighbours' readers of each writer: the t0 state is announced once they are
+        # matched, so the simulator's clock starts only when every value sent reaches them
+        # (its graph view sees a reader before the reader's writer has matched it).
+        writers = {wire.ESTIMATE: self.pub_estimate,
+                   **{self.wires[name].topic: pub for name, (pub, _) in self.pub_channels.items()}}
+        self._readers_wanted = [(writers[topic], n) for topic, n in listeners.items()
+                                if topic in writers]
         subs = [self.create_subscription(wire.Imu, wire.IMU, self.on_imu, qos_in)]
         if self.method.uses(Sensor.BEARINGS):
             subs.append(self.create_subscription(wire.PointCloud2, wire.BEARINGS,
@@ -284,8 +294,10 @@ class EstimatorNode(Node):
         self.timer = self.create_timer(self.h, self.on_timer)
         self.diag_timer = self.create_timer(diagnostics_period, self.publish_diagnostics)
         # Until the first gyro sample, announce the t0 state on a wall-clock timer, but only once
-        # every subscription has a publisher: best-effort sensor readers drop what arrives before
-        # they are matched, so the simulator starts the clock only after hearing from everyone.
+        # every subscription has a publisher and every writer its neighbours' readers:
+        # best-effort sensor readers drop what arrives before they are matched, and a volatile
+        # writer's values never reach a reader it matches later, so the simulator starts the
+        # clock only after hearing from everyone.
         self.ready_timer = self.create_timer(
             0.05, self.on_ready_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
         if self.links:   # a step waiting for a lost input goes on after neighbour_wait
@@ -518,7 +530,8 @@ class EstimatorNode(Node):
     def on_ready_check(self) -> None:
         if self.est is None or self.est.k > 0:
             return
-        if all(sub.get_publisher_count() > 0 for sub in self._subs):
+        if (all(sub.get_publisher_count() > 0 for sub in self._subs)
+                and all(pub.get_subscription_count() >= n for pub, n in self._readers_wanted)):
             self._publish(world=True, force=True)
 
     def on_timer(self) -> None:
@@ -590,6 +603,10 @@ class EstimatorNode(Node):
         if self._stuck is None or self._stuck[:2] != (est.k, est.gyro.end):
             self._stuck = (est.k, est.gyro.end, now)
         elif now - self._stuck[2] >= self.neighbour_wait:
+            self.get_logger().warning(
+                f'the step at t = {est.t:.3f} s waited {self.neighbour_wait:g} s of wall time '
+                f'for {est.awaited or "a neighbour"} with its own sensors standing still: going '
+                'on without it (counted in event_impatient_steps)', throttle_duration_sec=5.0)
             if isinstance(est, TwoRoundAgent):
                 self._stuck = None
                 self._two_rounds(impatient=True)

@@ -26,7 +26,6 @@ the stamps are simulated time either way).
 from __future__ import annotations
 
 import time
-from collections import Counter
 from functools import partial
 
 import numpy as np
@@ -39,10 +38,9 @@ from std_msgs.msg import Empty
 from .. import msg_defs as wire
 from ..core.errors import ScenarioError
 from ..estimators.base import Sensor
-from ..estimators.link_agent import agent_for
 from .monitor_node import watched
 from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
-from .wiring import link_subscriptions
+from .wiring import listener_counts
 from ..sim.world import World
 
 # Sim time advanced per wall-timer callback at most: keeps the node responsive to Ctrl-C and to
@@ -91,14 +89,9 @@ class SimulatorNode(Node):
         self.channel_topics = list(dict.fromkeys(wire.channel(c.name).topic
                                                  for c in method.sends if c.sensor is None))
         self.uses_bearings = method.uses(Sensor.BEARINGS)
-        # Who listens to an agent: those that sense it, or, for methods that talk over
-        # communication links, every agent it senses or that senses it.
-        self.links = method.links == 'communication'
-        # Link methods: how many subscriptions each (agent, topic) gets from the estimators of
-        # its neighbours (ros.wiring: what those nodes subscribe to).
-        self.link_subs: Counter[tuple[str, str]] = Counter(
-            (sub.agent, sub.topic) for name in self.names if self.links
-            for sub in link_subscriptions(agent_for(s, name)))
+        # How many subscriptions each (agent, topic) gets from the estimators of the other
+        # agents (ros.wiring: what those nodes subscribe to).
+        self.link_subs = listener_counts(s)
         self.pub_imu, self.pub_bearings, self.pub_truth = [], [], []
         for name in self.names:
             topic = lambda t, n=name: wire.topic(n, t)  # noqa: E731
@@ -174,8 +167,7 @@ class SimulatorNode(Node):
                 missing.append(wire.topic(name, wire.GROUND_TRUTH))
             # Every listener subscribes to each channel topic of the agent (link methods: the
             # neighbours that read it); the simulator and the monitor to its estimate as well.
-            wanted = {topic: self.link_subs[(name, topic)] if self.links
-                      else len(s.listeners(name)) for topic in self.channel_topics}
+            wanted = {topic: self.link_subs[(name, topic)] for topic in self.channel_topics}
             wanted[wire.ESTIMATE] = wanted.get(wire.ESTIMATE, 0) + 1 + monitored
             for topic, count in wanted.items():
                 if self.count_subscribers(wire.topic(name, topic)) < count:

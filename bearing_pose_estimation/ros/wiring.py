@@ -1,13 +1,18 @@
-"""Which neighbour topics a communication-link estimator subscribes to: one answer for the
-estimator node (that subscribes) and the simulator node (that waits for those subscriptions
-before it starts the clock)."""
+"""Which neighbour topics an estimator subscribes to: one answer for the estimator node (that
+subscribes, and whose writers wait for those readers before it announces its t0 state) and the
+simulator node (that waits for those subscriptions before it starts the clock)."""
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from .. import msg_defs as wire
 from ..estimators.agent import AgentEstimator
-from ..estimators.link_agent import LinkAgentEstimator
+from ..estimators.link_agent import LinkAgentEstimator, agent_for
+
+if TYPE_CHECKING:
+    from ..scenario.model import Scenario
 
 
 @dataclass(frozen=True)
@@ -37,3 +42,16 @@ def link_subscriptions(template: AgentEstimator | LinkAgentEstimator) -> list[Ne
     out += [NeighbourTopic(name, agent_id, wire.ODOM, None)
             for name, agent_id in template.odometry_sources()]
     return out
+
+
+def listener_counts(scenario: Scenario) -> Counter[tuple[str, str]]:
+    """(agent, relative topic) -> how many estimators of the other agents subscribe to it:
+    for link methods their :func:`link_subscriptions` (odometry too: the simulator's topic),
+    for the others each listener of the agent reads each of its channel topics."""
+    method = scenario.estimator()
+    if method.links == 'communication':
+        return Counter((sub.agent, sub.topic) for agent in scenario.agents
+                       for sub in link_subscriptions(agent_for(scenario, agent.name)))
+    topics = dict.fromkeys(wire.channel(c.name).topic for c in method.sends if c.sensor is None)
+    return Counter({(agent.name, topic): len(scenario.listeners(agent.name))
+                    for agent in scenario.agents for topic in topics})
