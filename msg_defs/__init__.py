@@ -56,6 +56,18 @@ def topic(agent: str, name: str) -> str:
     return f'/{agent}/{name}'
 
 
+# A moving robot's sensor (scenario.Sensors name) -> its topic and message type.
+SENSOR_TOPICS = {'odometry': ODOM, 'relative_positions': RELATIVE_POSITIONS,
+                 'bearing_rates': BEARING_RATES, 'ranges': RANGES}
+SENSOR_TYPES: dict[str, type] = {'odometry': Odometry, 'relative_positions': PointCloud2,
+                                 'bearing_rates': PointCloud2, 'ranges': PointCloud2}
+
+
+def type_name(msg_type: type) -> str:
+    """The ROS 2 name of a message class, as rosbag2 stores it: ``geometry_msgs/msg/Pose``."""
+    return f'{msg_type.__module__.split(".")[0]}/msg/{msg_type.__name__}'
+
+
 # ----------------------------------------------------------------------------- frames
 WORLD_FRAME = 'world'
 

@@ -204,15 +204,54 @@ def test_paper_scenario_converges_over_dds_like_the_batch_simulator(tmp_path, no
     assert len(started) == 10, started  # 8 estimators, the monitor and the simulator
 
 
-def test_several_agents_per_process(tmp_path, no_leftovers):
-    """`--agents-per-process 4`: two `estimators` processes host the eight agents' nodes; the
-    run tracks the batch simulator as closely as one process per agent does."""
+def test_several_agents_per_process_recorded_and_evaluated_with_evo(tmp_path, no_leftovers):
+    """`--agents-per-process 4 --record`: two `estimators` processes host the eight agents'
+    nodes, and the run tracks the batch simulator as closely as one process per agent does.
+    The bag holds every topic `recorded_topics` names with its type, and every estimate,
+    truth, gyro and bearing sample of the 10 s. `export-tum` turns it into TUM files, and evo's
+    APE on them equals the monitor's position errors in metrics.csv."""
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    from bearing_pose_estimation.ros.wiring import recorded_topics
+    from bearing_pose_estimation.studies.summary import read_metrics_csv
+
     out = tmp_path / 'run'
     assert main(['run', str(PAPER), '--duration', '10', '--out', str(out), '--agents-per-process',
-                 '4', '--domain-id', str(DOMAIN), '--no-plots']) == 0
+                 '4', '--domain-id', str(DOMAIN), '--no-plots', '--record']) == 0
     assert sorted(p.name for p in (out / 'logs').glob('estimators_*.log')) == [
         'estimators_0.log', 'estimators_1.log']
     _assert_tracks_batch(_read_metrics(out / 'metrics.csv'), PAPER, (5.0, 10.0))
+
+    scenario = load_scenario(PAPER)
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    stamps: dict[str, set[int]] = {}
+    with Reader(out / launch.BAG_DIR) as bag:
+        assert {(c.topic, c.msgtype) for c in bag.connections} == {
+            (name, wire.type_name(t)) for name, t in recorded_topics(scenario)}
+        for c, _, raw in bag.messages():
+            if c.msgtype != 'diagnostic_msgs/msg/DiagnosticArray':
+                st = typestore.deserialize_cdr(raw, c.msgtype).header.stamp
+                stamps.setdefault(c.topic, set()).add(st.sec * 10**9 + st.nanosec)
+    grid = {wire.IMU: 2000, wire.BEARINGS: 501, wire.GROUND_TRUTH: 501, wire.ESTIMATE: 501}
+    for agent in scenario.index:   # 200 Hz gyro (from the first period's end), 50 Hz others
+        for name, count in grid.items():
+            assert len(stamps[wire.topic(agent, name)]) == count, (agent, name)
+
+    assert main(['export-tum', str(out)]) == 0
+    assert main(['export-tum', str(out)]) == 1   # never overwrites without --force
+    rec = read_metrics_csv(out / 'metrics.csv')
+    for k, agent in enumerate(rec.followers):
+        truth = file_interface.read_tum_trajectory_file(out / 'tum' / f'{agent}_truth.tum')
+        est = file_interface.read_tum_trajectory_file(out / 'tum' / f'{agent}_estimate.tum')
+        truth, est = sync.associate_trajectories(truth, est, max_diff=1e-6)
+        ape = metrics.APE(metrics.PoseRelation.translation_part)
+        ape.process_data((truth, est))
+        on_grid = np.isin(np.round(est.timestamps, 6), np.round(rec.t, 6))
+        assert on_grid.sum() == rec.t.size == 101
+        np.testing.assert_allclose(ape.error[on_grid], rec.pos_err[:, k], rtol=1e-8)
 
 
 def test_tran_method_over_dds_through_compare_distributed(tmp_path, no_leftovers):

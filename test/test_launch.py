@@ -8,6 +8,7 @@ No rclpy, no DDS: these tests check process management only.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import os
@@ -169,6 +170,9 @@ def test_params_files_have_the_ros2_layout(tmp_path):
     assert yaml.safe_load(files['monitor'].read_text()) == {'/monitor': {
         'ros__parameters': {'scenario_file': str(PAPER), 'duration': 12.0,
                             'out_dir': str(tmp_path), 'plots': False, 'use_sim_time': True}}}
+    recorded = launch.write_params(scenario, dataclasses.replace(cfg, record=True))
+    assert yaml.safe_load(recorded['monitor'].read_text())['/monitor']['ros__parameters'][
+        'bag'] == str(tmp_path / 'bag')
 
 
 def test_plan_starts_estimators_then_monitor_then_simulator(tmp_path):

@@ -134,6 +134,9 @@ def _lockless_port(path: str) -> bool:
         and not Path(path + '_el').exists()
 
 
+BAG_DIR = 'bag'   # `run --record`: the rosbag2 directory in the output directory
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """Everything ``bearing-pose run`` decides before starting processes. Paths absolute."""
@@ -146,6 +149,7 @@ class RunConfig:
     plots: bool = True
     agents_per_process: int = 1    # >1: `estimators` processes, each running that many agents
     timeout: float | None = None   # wall seconds; None: see wall_timeout
+    record: bool = False           # the monitor records a rosbag2 into bag_dir
 
     @property
     def wall_timeout(self) -> float:
@@ -163,6 +167,10 @@ class RunConfig:
     def logs_dir(self) -> Path:
         return self.out_dir / 'logs'
 
+    @property
+    def bag_dir(self) -> Path:
+        return self.out_dir / BAG_DIR
+
 
 def write_params(scenario: Scenario, cfg: RunConfig) -> dict[str, Path]:
     """One standard ROS 2 parameter file per process (``/<ns>/<node>: ros__parameters:``),
@@ -179,7 +187,8 @@ def write_params(scenario: Scenario, cfg: RunConfig) -> dict[str, Path]:
         'real_time_factor': float(cfg.real_time_factor), 'use_sim_time': False}}}
     files['monitor'] = {'/monitor': {'ros__parameters': {
         'scenario_file': scenario_file, 'duration': float(cfg.duration),
-        'out_dir': str(cfg.out_dir), 'plots': bool(cfg.plots), 'use_sim_time': True}}}
+        'out_dir': str(cfg.out_dir), 'plots': bool(cfg.plots), 'use_sim_time': True,
+        **({'bag': str(cfg.bag_dir)} if cfg.record else {})}}}
     paths = {}
     for name, content in files.items():
         paths[name] = cfg.params_dir / f'{name}.yaml'
@@ -711,6 +720,8 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
         result.wall_s = time.perf_counter() - wall
         left_in_shm = _clean_shm(shm_before)
     result.files = _fresh_files(cfg.out_dir, started)
+    if cfg.record and (cfg.bag_dir / 'metadata.yaml').exists():
+        result.files.append(cfg.bag_dir)
     if result.failure is None:  # earlier failures were reported when they happened
         result.failure = _failure_after_stop(cfg, specs, result, left_in_shm)
         if result.failure is not None:
@@ -726,6 +737,8 @@ def _failure_after_stop(cfg: RunConfig, specs: list[ProcessSpec], result: RunRes
     if cfg.out_dir / 'summary.json' not in result.files:
         return Failure('monitor', f'exited with code 0 but wrote no '
                        f'{cfg.out_dir / "summary.json"}')
+    if cfg.record and cfg.bag_dir not in result.files:
+        return Failure('monitor', f'exited with code 0 but finished no bag in {cfg.bag_dir}')
     unclean = [s for s in specs if result.exit_codes.get(s.name) not in (*CLEAN_EXITS, None)]
     if unclean:
         s = unclean[0]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -21,6 +22,7 @@ import yaml
 
 from .. import __version__, estimators
 from ..estimators.base import format_gains
+from .launch import BAG_DIR
 from ..scenario import (Scenario, ScenarioError, check_scenario, load_scenario,
                         parse_scenario)
 
@@ -317,7 +319,8 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
     cfg = launch.RunConfig(
         scenario_file=scenario_file.resolve(), out_dir=out.resolve(), duration=duration,
         domain_id=domain_id, real_time_factor=args.real_time_factor, plots=not args.no_plots,
-        timeout=args.timeout, agents_per_process=args.agents_per_process)
+        timeout=args.timeout, agents_per_process=args.agents_per_process,
+        record=getattr(args, 'record', False))
     pace = (f'at most {cfg.real_time_factor:g}x real time' if cfg.real_time_factor > 0
             else 'as fast as the estimators keep up')
     print(f'running {scenario.name} ({scenario.method}) over DDS: {len(scenario.agents)} '
@@ -355,9 +358,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     plots = [] if args.no_plots else PLOT_FILES + (['trajectories.png'] if scenario.moves
                                                    else [])
     outputs = (['metrics.csv', 'summary.json', 'fleet.launch.xml'] + plots
-               + (['scenario.yaml'] if derived else [])
+               + (['scenario.yaml'] if derived else []) + ([BAG_DIR] if args.record else [])
                + [f'params/{p}.yaml' for p in processes] + [f'logs/{p}.log' for p in processes])
     out = _out_dir(args.out or f'results/{scenario.name}_dds', outputs, args.force)
+    if args.record and (out / BAG_DIR).exists():   # --force: a bag is replaced whole
+        shutil.rmtree(out / BAG_DIR)
     duration = args.duration if args.duration is not None else scenario.duration
     scenario_file = Path(args.scenario)
     if derived:   # the nodes read the file: write the one with the mode changed
@@ -382,6 +387,22 @@ def cmd_run(args: argparse.Namespace) -> int:
               f'{result.wall_s:.1f} s wall for {duration:g} s simulated')
     print(f'wall time {result.wall_s:.1f} s; wrote ' + ', '.join(str(f) for f in result.files)
           + f'; parameter files in {out.resolve() / "params"}; logs in {logs}')
+    return 0
+
+
+def cmd_export_tum(args: argparse.Namespace) -> int:
+    from ..studies.tum import export_tum
+
+    run_dir = Path(args.dir)
+    out = Path(args.out) if args.out else run_dir / 'tum'
+    existing = sorted(out.glob('*.tum')) if out.is_dir() else []
+    if existing and not args.force:
+        raise ScenarioError(f'{out}: already holds {len(existing)} TUM file(s), e.g. '
+                            f'{existing[0].name}; refusing to overwrite them. Fix: pass --force, '
+                            'or choose another --out')
+    files = export_tum(run_dir / BAG_DIR, out)
+    print(f'wrote {len(files)} TUM trajectories into {out}; e.g. evo_ape tum {files[1]} '
+          f'{files[0]}')
     return 0
 
 
@@ -558,7 +579,23 @@ def build_parser() -> argparse.ArgumentParser:
     _add_output_options(p, '_dds')
     _add_dds_options(p)
     _add_formation_option(p)
+    p.add_argument('--record', action='store_true',
+                   help=f'also record every estimate, truth, measurement and channel topic into '
+                   f'DIR/{BAG_DIR}, a rosbag2 (MCAP); `bearing-pose export-tum DIR` turns it into '
+                   'TUM trajectories for evo')
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser('export-tum', help='TUM trajectories (for evo) from a recorded run',
+                       description=f'Read DIR/{BAG_DIR} (written by `bearing-pose run --record`) '
+                       'and write, per agent, AGENT_estimate.tum and AGENT_truth.tum '
+                       '("t x y z qx qy qz qw" per line, t the message stamps in seconds), '
+                       'which evo reads: `evo_ape tum DIR/tum/AGENT_truth.tum '
+                       'DIR/tum/AGENT_estimate.tum`. Refuses to overwrite TUM files without '
+                       '--force.')
+    p.add_argument('dir', help='output directory of `bearing-pose run --record`')
+    p.add_argument('--out', metavar='OUT', help='where to write the files (default: DIR/tum)')
+    p.add_argument('--force', action='store_true', help='overwrite TUM files in OUT')
+    p.set_defaults(func=cmd_export_tum)
 
     p = sub.add_parser('generate', help='write a random valid scenario',
                        description='Generate a random scenario that satisfies Assumption 2 '

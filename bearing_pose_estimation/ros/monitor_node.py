@@ -10,8 +10,11 @@ estimates are not world poses, needs the whole fleet's truth (:func:`watched`): 
 then go to ``trajectories.png``, and the alignment covers every agent, as in the batch
 simulator.
 
+With ``bag`` set (``bearing-pose run --record``), it also records every estimate, truth,
+measurement and channel topic of the run into that new rosbag2 directory (:mod:`.recorder`).
+
 Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``out_dir``,
-``record_every`` [s], ``progress_every`` [s of sim time], ``plots``.
+``record_every`` [s], ``progress_every`` [s of sim time], ``plots``, ``bag``.
 """
 from __future__ import annotations
 
@@ -28,11 +31,16 @@ from rclpy.task import Future
 from std_msgs.msg import Empty
 
 from .. import msg_defs as wire
+from ..core.errors import ScenarioError
 from ..estimators.base import EstimateFrame
 from ..scenario.model import Scenario
 from ..studies.results import PoseErrors, Recording, pose_errors, to_world
 from ..studies.summary import format_summary, summarize, write_metrics_csv, write_summary_json
 from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
+
+
+# After the last row, the bag keeps recording this long [s of wall time] before it closes.
+BAG_DRAIN_S = 0.5
 
 
 def watched(scenario: Scenario) -> list[str]:
@@ -54,6 +62,8 @@ class MonitorNode(Node):
         self.progress_every = declare(self, 'progress_every', max(self.duration / 10.0, 1.0),
                                       'progress line interval [s] of simulated time', 1e-3, 1e9)
         self.plots = declare(self, 'plots', True, 'write the PNG plots')
+        bag = declare(self, 'bag', '', 'record the run into this new rosbag2 (MCAP) directory; '
+                      'empty: no bag')
         warn_unknown_parameters(self)
 
         self.followers = [a.name for a in s.followers]
@@ -85,6 +95,14 @@ class MonitorNode(Node):
         # Ready once every subscription has matched its publisher on this side: the
         # simulator's graph view alone (someone subscribed) does not mean the writers know
         # this reader yet, and the first records would be lost.
+        self.recorder = None
+        if bag:   # its subscriptions are in the ready check too: the bag starts at t = 0
+            if Path(bag).exists():
+                raise ScenarioError(f'parameter bag: {bag} exists; a bag is never overwritten. '
+                                    'Fix: remove it or choose another path')
+            from .recorder import BagRecorder
+            from .wiring import recorded_topics
+            self.recorder = BagRecorder(self, Path(bag), recorded_topics(s))
         self.pub_ready = self.create_publisher(Empty, wire.MONITOR_READY, wire.LATCHED_QOS)
         self.ready_timer = self.create_timer(
             0.05, self.on_ready_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -174,14 +192,16 @@ class MonitorNode(Node):
             msg.header.stamp = wire.to_stamp(t)
             self.pub_diag.publish(msg)
 
-    def finish(self) -> None:
+    def finish(self, interrupted: bool = False) -> None:
         """Write the outputs (once), from whatever has been recorded."""
         if self.done:
+            self._close_bag()   # interrupted while the bag drained
             return
         self.done = True
         rec = self.recording()
         if rec is None:
             print('monitor: nothing recorded', file=sys.stderr)
+            self._close_bag()
             self.finished.set_result(False)
             return
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -207,13 +227,37 @@ class MonitorNode(Node):
             t_min, v_min = min(series, key=lambda tv: tv[1])
             print(f'{key} on the estimates: min {v_min:.4g} (t = {t_min:g} s), last '
                   f'{series[-1][1]:.4g}', flush=True)
-        self.finished.set_result(True)
+        if self.recorder is None or not interrupted:
+            self._close_bag_later()
+        else:
+            self._close_bag()
+            self.finished.set_result(True)
+
+    def _close_bag_later(self) -> None:
+        """Done: the bag still takes what is in flight (the messages up to t = duration that
+        the recorder's readers have not yet handed over) for BAG_DRAIN_S of wall time."""
+        if self.recorder is None:
+            self.finished.set_result(True)
+            return
+
+        def close() -> None:
+            timer.cancel()
+            self._close_bag()
+            self.finished.set_result(True)
+        timer = self.create_timer(BAG_DRAIN_S, close,
+                                  clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _close_bag(self) -> None:
+        if self.recorder is not None and self.recorder.open:
+            n = self.recorder.close()
+            print(f'recorded {n} messages on {len(self.recorder.counts)} topics into '
+                  f'{self.recorder.path}', flush=True)
 
 
 def main(args: list[str] | None = None) -> None:
     # Interrupted, it still writes what it measured.
     raise SystemExit(run_node(MonitorNode, 'monitor', args, until=lambda node: node.finished,
-                              on_interrupt=lambda node: node.finish()))
+                              on_interrupt=lambda node: node.finish(interrupted=True)))
 
 
 if __name__ == '__main__':

@@ -104,7 +104,8 @@ class SimulatorNode(Node):
         # The moving-robot sensors the scenario simulates, and those the estimators read (the
         # start waits for their subscriptions).
         self.pub_sensors = {
-            name: [self.create_publisher(_SENSOR_TYPES[name], wire.topic(a, _SENSOR_TOPICS[name]),
+            name: [self.create_publisher(wire.SENSOR_TYPES[name],
+                                         wire.topic(a, wire.SENSOR_TOPICS[name]),
                                          wire.SIM_PUB_QOS) for a in self.names]
             for name in self.world.sensor_every}
         self.sensors_read = {name for name in self.pub_sensors if method.uses(Sensor(name))}
@@ -159,7 +160,7 @@ class SimulatorNode(Node):
             for sensor in self.sensors_read:
                 # The agent's own estimator, and link neighbours that read it (odometry, a
                 # sensor whose readings are a channel).
-                topic = _SENSOR_TOPICS[sensor]
+                topic = wire.SENSOR_TOPICS[sensor]
                 if self.pub_sensors[sensor][k].get_subscription_count() < 1 + self.link_subs[
                         (name, topic)]:
                     missing.append(wire.topic(name, topic))
@@ -266,13 +267,6 @@ class SimulatorNode(Node):
             else:
                 msg = wire.encode_vectors(t, wire.body_frame(name), j + 1, values)
             pubs[i].publish(msg)
-
-
-# Moving-robot sensor (scenario.Sensors name) -> its topic and message type.
-_SENSOR_TOPICS = {'odometry': wire.ODOM, 'relative_positions': wire.RELATIVE_POSITIONS,
-                  'bearing_rates': wire.BEARING_RATES, 'ranges': wire.RANGES}
-_SENSOR_TYPES = {'odometry': wire.Odometry, 'relative_positions': wire.PointCloud2,
-                 'bearing_rates': wire.PointCloud2, 'ranges': wire.PointCloud2}
 
 
 def main(args: list[str] | None = None) -> None:

@@ -7,6 +7,9 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
 from .. import msg_defs as wire
 from ..estimators.agent import AgentEstimator
 from ..estimators.link_agent import LinkAgentEstimator, agent_for
@@ -55,3 +58,27 @@ def listener_counts(scenario: Scenario) -> Counter[tuple[str, str]]:
     topics = dict.fromkeys(wire.channel(c.name).topic for c in method.sends if c.sensor is None)
     return Counter({(agent.name, topic): len(scenario.listeners(agent.name))
                     for agent in scenario.agents for topic in topics})
+
+
+# A recorder's reader: reliable matches the simulator's and the estimators' writers, volatile
+# matches both volatile and transient-local ones; deep enough not to drop a burst.
+RECORD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+
+
+def recorded_topics(scenario: Scenario) -> list[tuple[str, type]]:
+    """Every topic of a run worth a bag (``run --record``), with its type: per agent its
+    estimate, ground truth, gyro, bearings, the sensors the scenario simulates and the
+    channels its method sends on topics of their own; and /diagnostics. Each has a publisher
+    in every run (the simulator's and every estimator's), so a recorder can wait for them."""
+    method = scenario.estimator()
+    channels = {w.topic: w.type for w in (wire.channel(c.name) for c in method.sends
+                                          if c.sensor is None) if w.encode is not None}
+    per_agent = ([(wire.ESTIMATE, wire.PoseStamped), (wire.GROUND_TRUTH, wire.PoseStamped),
+                  (wire.IMU, wire.Imu), (wire.BEARINGS, wire.PointCloud2)]
+                 + [(wire.SENSOR_TOPICS[s], wire.SENSOR_TYPES[s]) for s in wire.SENSOR_TOPICS
+                    if scenario.simulates(s)]
+                 + list(channels.items()))
+    return ([(wire.topic(a.name, name), msg_type) for a in scenario.agents
+             for name, msg_type in per_agent] + [(wire.DIAGNOSTICS, DiagnosticArray)])

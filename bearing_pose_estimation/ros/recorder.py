@@ -1,0 +1,55 @@
+"""A rosbag2 of a run (``bearing-pose run --record``), written with `rosbags` (pure Python: the
+PyPI ROS wheels have no ``ros2 bag``).
+
+The subscriptions are raw: each message's CDR bytes go into the bag as they came, never
+deserialised, so recording costs one callback and one write per message. Storage is MCAP,
+what ``ros2 bag`` writes by default since Iron; ``ros2 bag info`` / ``play`` read it on a full
+install, and :mod:`studies.tum` reads it here. Messages are stamped with the node's clock
+(simulated time in a run), as ``ros2 bag record --use-sim-time`` does.
+"""
+from __future__ import annotations
+
+from collections import Counter
+from functools import partial
+from pathlib import Path
+
+from rclpy.node import Node
+from rclpy.subscription import Subscription
+from rosbags.interfaces import Connection
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from .. import msg_defs as wire
+from .wiring import RECORD_QOS
+
+
+class BagRecorder:
+    """Records ``topics`` (name, message class) on ``node`` into a new bag directory ``path``
+    (which must not exist: a bag is never overwritten)."""
+
+    def __init__(self, node: Node, path: Path, topics: list[tuple[str, type]]) -> None:
+        typestore = get_typestore(Stores.ROS2_JAZZY)
+        self.path = path
+        self.node = node
+        self.counts: Counter[str] = Counter()
+        self.writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self.writer.open()
+        self.subscriptions: list[Subscription] = []
+        for topic, msg_type in topics:
+            connection = self.writer.add_connection(topic, wire.type_name(msg_type),
+                                                    typestore=typestore)
+            self.subscriptions.append(node.create_subscription(
+                msg_type, topic, partial(self._write, connection), RECORD_QOS, raw=True))
+        self.open = True
+
+    def _write(self, connection: Connection, data: bytes) -> None:
+        if self.open:
+            self.writer.write(connection, self.node.get_clock().now().nanoseconds, data)
+            self.counts[connection.topic] += 1
+
+    def close(self) -> int:
+        """Finish the bag (its metadata.yaml); returns the number of messages written."""
+        if self.open:
+            self.open = False
+            self.writer.close()
+        return sum(self.counts.values())
