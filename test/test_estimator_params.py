@@ -6,6 +6,7 @@ import subprocess
 
 import numpy as np
 import pytest
+import yaml
 from rclpy.parameter import Parameter
 
 from bearing_pose_estimation.cli import launch
@@ -240,5 +241,65 @@ def test_the_readme_explicit_parameter_file_is_valid(context, repo_root, tmp_pat
         assert node.template.agent_id == 4 and node.gains == TranGains(2.0, 1.0, 0.5)
         assert [(n.name, n.agent_id, n.k) for n in node.template.neighbours] == [
             ('agent_1', 1, 1.0), ('agent_2', 2, 2.0)]
+    finally:
+        node.destroy_node()
+
+
+def test_parameters_read_their_effective_values(context, repo_root):
+    """`ros2 param get` tells the truth: the rates and gains read the values the node runs
+    (the scenario's; explicit mode: 100 Hz, 50 Hz, the method's defaults, or those given)."""
+    node = _node(context, scenario_file=str(repo_root / 'config' / 'paper_8_agents.yaml'))
+    try:
+        values = {n: node.get_parameter(n).value for n in ('k_R', 'k_p', 'frequency',
+                                                           'publish_rate', 'sensor_timeout')}
+        assert values == {'k_R': 1.0, 'k_p': 1.0, 'frequency': 100.0, 'publish_rate': 50.0,
+                          'sensor_timeout': 0.5}
+        assert not node.has_parameter('k_omega')   # another method's gain: not declared
+    finally:
+        node.destroy_node()
+    explicit = {k: v for k, v in EXPLICIT.items() if k != 'k_R'}
+    node = _node(context, **explicit, method='tran_anderson_ahn', k_omega=2.0)
+    try:
+        gains = {n: node.get_parameter(n).value for n in ('k_omega', 'k_c', 'k_p')}
+        assert gains == {'k_omega': 2.0, 'k_c': 1.0, 'k_p': 1.0}
+        assert node.get_parameter('frequency').value == 200.0   # EXPLICIT sets it
+        assert node.get_parameter('publish_rate').value == 50.0
+    finally:
+        node.destroy_node()
+
+
+def test_gains_and_limits_are_set_live_and_validated(context, repo_root, tmp_path):
+    """A running node takes new gains and input limits from the next step on, all or
+    nothing; a gain the method's check refuses (De Carli's position correction whose Euler
+    step diverges), a non-positive one, one out of range, or a read-only parameter is refused
+    with the reason, and nothing changes."""
+    node = _node(context, scenario_file=str(repo_root / 'config' / 'paper_8_agents.yaml'))
+    try:
+        est = node.est
+        ok = node.set_parameters([Parameter('k_R', value=2.0),
+                                  Parameter('sensor_timeout', value=0.2)])
+        assert [r.successful for r in ok] == [True, True]
+        assert est.gains.k_R == 2.0 and est.gains.k_p == 1.0
+        assert est.limits.sensor_timeout == 0.2 and node.template.limits.sensor_timeout == 0.2
+        assert node.get_parameter('k_R').value == 2.0
+        refused = node.set_parameters_atomically([Parameter('k_R', value=3.0),
+                                                  Parameter('k_p', value=0.0)])
+        assert not refused.successful and 'parameter.k_p: must be > 0' in refused.reason
+        assert not node.set_parameters([Parameter('k_R', value=-1.0)])[0].successful  # range
+        frozen = node.set_parameters([Parameter('frequency', value=50.0)])[0]
+        assert not frozen.successful and 'read-only' in frozen.reason
+        assert est.gains.k_R == 2.0 and node.get_parameter('k_R').value == 2.0
+        assert node.h == pytest.approx(0.01)
+    finally:
+        node.destroy_node()
+    data = yaml.safe_load((repo_root / 'config' / 'de_carli_8_quadrotors.yaml').read_text())
+    data['formation_control']['mode'] = 'exogenous'
+    (tmp_path / 'de_carli.yaml').write_text(yaml.safe_dump(data))
+    node = _node(context, scenario_file=str(tmp_path / 'de_carli.yaml'), agent='robot_4')
+    try:
+        assert node.set_parameters([Parameter('k_z', value=20.0)])[0].successful
+        diverging = node.set_parameters([Parameter('k_p', value=1e4)])[0]
+        assert not diverging.successful and 'k_p' in diverging.reason, diverging.reason
+        assert node.est.gains.k_p == 1.0 and node.est.gains.k_z == 20.0
     finally:
         node.destroy_node()

@@ -36,17 +36,20 @@ Its estimate is in the anchor's body frame, ``<anchor>/base_link``.
 Bad input is rejected, counted by cause, warned about (throttled) and reported in the
 diagnostics; it never stops the node and never reaches the estimate.
 
-Parameters (read-only): either ``scenario_file`` (+ ``agent``, default: the namespace) or the
-explicit set ``agent_id``, ``leader``, ``neighbours``, ``neighbour_ids``, ``neighbour_gains``,
+Parameters: either ``scenario_file`` (+ ``agent``, default: the namespace) or the explicit set
+``agent_id``, ``leader``, ``neighbours``, ``neighbour_ids``, ``neighbour_gains``,
 ``initial_position``, ``initial_orientation`` (x, y, z, w), with ``method`` (empty: the
 registry's default, ``boughellaba_tayebi``); ``frequency`` [Hz], ``publish_rate`` [Hz] and the
-gains of every registered method, named as in a scenario's ``gains:`` (``k_R``, ``k_p`` for
-boughellaba_tayebi; ``k_omega``, ``k_c``, ``k_p`` for tran_anderson_ahn): 0 means the
-scenario's value, or 100 Hz / 50 Hz / the method's default gains in explicit mode; a gain of
-another method is an error.
+method's gains, named as in a scenario's ``gains:`` (``k_R``, ``k_p`` for boughellaba_tayebi;
+``k_omega``, ``k_c``, ``k_p`` for tran_anderson_ahn; ...), each declared with its effective
+value (the scenario's, or 100 Hz / 50 Hz / the method's defaults in explicit mode), so
+``ros2 param get`` tells the truth; a gain of another method is an error.
 ``start_time`` [s] (the scenario's t = 0 on the node's clock; negative: the first gyro stamp);
 the input limits ``sensor_timeout``, ``neighbour_timeout``, ``max_rate``, ``link_wait`` [s of
-the own sensors' time] and ``neighbour_wait`` [s of wall time]; the expected frames
+the own sensors' time] and ``neighbour_wait`` [s of wall time]. The gains and these limits can
+be set while the node runs (``ros2 param set``): a change is validated (range, the gain's
+minimum, and the method's check on the scenario) and applies from the next step, or is
+refused with the reason; every other parameter is read-only. The expected frames
 ``imu_frame``, ``bearings_frame``, ``odom_child_frame`` (empty: accept any);
 ``diagnostics_period`` [s]; and the fault
 injection for tests and studies: ``inject_drop_rate`` (probability of dropping each neighbour
@@ -56,10 +59,11 @@ and unknown keys in a parameter file are warned about (see :func:`node_main.decl
 """
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import replace
 from typing import Any
 from functools import partial
@@ -67,19 +71,26 @@ from functools import partial
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 from .. import estimators
 from .. import msg_defs as wire
 from ..core import so3
 from ..core.errors import ScenarioError
 from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits
-from ..estimators.base import Channel, Estimator, Sensor, format_gains, gain_fields
+from ..estimators.base import (Channel, Estimator, Sensor, format_gains, gain_fields,
+                               parse_gains)
 from ..estimators.link_agent import LinkAgentEstimator, agent_for
 from ..estimators.two_round_agent import TwoRoundAgent
+from ..scenario.model import Scenario
 from ..scenario.parse import load_scenario
 from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
 from .wiring import link_subscriptions, listener_counts
+
+# The input limits a running node takes (with the gains and neighbour_wait).
+_LIVE_LIMITS = ('sensor_timeout', 'neighbour_timeout', 'max_rate', 'link_wait')
 
 # Used only without a scenario file.
 _EXPLICIT = ('agent_id', 'leader', 'neighbours', 'neighbour_ids', 'neighbour_gains',
@@ -95,17 +106,20 @@ def _gain_parameters() -> dict[str, str]:
     return {name: f'{text} ({", ".join(users)})' for name, (text, users) in out.items()}
 
 
-def _with_gains(method: str, base: Any, given: dict[str, float], where: str, fix: str) -> Any:
-    """``base`` (``method``'s gains) with the non-zero ``given`` gains; a gain of another
-    method is an error."""
-    own = [f.name for f in gain_fields(type(base))]
-    for gain, value in given.items():
-        if value and gain not in own:
+def _validated_gains(base: Any, values: dict[str, float]) -> Any:
+    """``base`` (a method's gains) with ``values``, each finite and above its minimum."""
+    return parse_gains(type(base), {**dataclasses.asdict(base), **values}, where='parameter')
+
+
+def _refuse_other_gains(method: str, own: list[str], given: Collection[str], where: str,
+                        fix: str) -> None:
+    """A gain parameter of another method is an error, not an unknown key."""
+    for gain in given:
+        if gain in _gain_parameters() and gain not in own:
             other = next(m for m in estimators.methods()
                          if gain in [f.name for f in gain_fields(estimators.get(m).Gains)])
             raise ScenarioError(f'parameter {gain} is a {other} gain, but {where} is {method}. '
                                 f'Fix: remove {gain} ({method} takes {", ".join(own)}); {fix}')
-    return replace(base, **{g: v for g, v in given.items() if v})
 
 
 class EstimatorNode(Node):
@@ -117,28 +131,24 @@ class EstimatorNode(Node):
         scenario_file = p('scenario_file', '', 'scenario YAML; empty: explicit parameters')
         default_agent = self.get_namespace().strip('/').split('/')[-1]
         self.agent = p('agent', default_agent, 'agent name (default: namespace)')
-        frequency = p('frequency', 0.0, 'estimator rate [Hz]; 0: scenario / 100', 0.0, 10000.0)
-        publish_rate = p('publish_rate', 0.0, 'estimate and world-bearing rate [Hz]; '
-                         '0: scenario / 50', 0.0, 10000.0)
         methods = estimators.methods()
         method = p('method', '', f'estimator, {" or ".join(methods)}; empty: the scenario\'s '
                    f'(explicit mode: {estimators.DEFAULT_METHOD})')
-        given_gains = {g: p(g, 0.0, f'{text}; 0: scenario / default', 0.0, 1e6)
-                       for g, text in _gain_parameters().items()}
         self.start_time = p('start_time', 0.0, 't = 0 of the scenario on this clock [s]; '
                             'negative: the first gyro stamp')
         d = Limits()
         limits = Limits(
             sensor_timeout=p('sensor_timeout', d.sensor_timeout,
-                             'own bearings older than this are not used [s]', 0.0, 1e6),
+                             'own bearings older than this are not used [s]', 0.0, 1e6,
+                             read_only=False),
             neighbour_timeout=p('neighbour_timeout', d.neighbour_timeout,
                                 'a neighbour silent for longer is stale and not used [s]',
-                                0.0, 1e6),
+                                0.0, 1e6, read_only=False),
             max_rate=p('max_rate', d.max_rate, 'gyro rates above this are rejected [rad/s]',
-                       0.0, 1e6),
+                       0.0, 1e6, read_only=False),
             link_wait=p('link_wait', d.link_wait, 'methods that talk over communication '
                         'links: a step waits for a neighbour\'s input until the own sensors '
-                        'are this far ahead [s]', 0.0, 1e6))
+                        'are this far ahead [s]', 0.0, 1e6, read_only=False))
         self.imu_frame = p('imu_frame', wire.body_frame(self.agent),
                            'expected Imu frame_id; empty: any')
         self.bearings_frame = p('bearings_frame', wire.body_frame(self.agent),
@@ -150,7 +160,8 @@ class EstimatorNode(Node):
                                0.01, 3600.0)
         self.neighbour_wait = p('neighbour_wait', 0.25, 'methods that talk over communication '
                                 'links: wall time [s] a step waits for a neighbour\'s missing '
-                                'input before going on without it', 0.0, 60.0)
+                                'input before going on without it', 0.0, 60.0,
+                                read_only=False)
         self.drop_rate = p('inject_drop_rate', 0.0, 'fault injection: probability of dropping '
                            'each neighbour message', 0.0, 1.0)
         self.delay = p('inject_delay', 0.0, 'fault injection: extra delay of each neighbour '
@@ -171,6 +182,7 @@ class EstimatorNode(Node):
         if method and method not in methods:
             raise ScenarioError(f'parameter method: unknown method {method!r}. Fix: one of '
                                 f'{", ".join(methods)}, or empty')
+        scenario: Scenario | None = None
         if scenario_file:
             scenario = load_scenario(scenario_file)
             if self.agent not in scenario.index:
@@ -189,7 +201,7 @@ class EstimatorNode(Node):
                          if agent == self.agent}
             self.expect_odometry = scenario.simulates('odometry')
             fleet, anchor = scenario.name, scenario.anchor
-            publish_rate = publish_rate or scenario.publish_rate
+            publish_rate = scenario.publish_rate
             method = scenario.method
             where, fix = "the scenario's method", 'the scenario file sets the method'
         else:
@@ -202,16 +214,29 @@ class EstimatorNode(Node):
             self.expect_odometry = False   # used whenever it arrives
             template = self._explicit_estimator(
                 explicit, limits, estimators.build(method, estimators.get(method).Gains()))
-            publish_rate = publish_rate or 50.0
+            publish_rate = 50.0
             where = 'the method parameter'
             fix = f'or set method: {" / ".join(m for m in methods if m != method)}'
-        gains = _with_gains(method, template.gains, given_gains, where, fix)
+        # Every parameter reads its effective value (`ros2 param get` tells the truth): the
+        # rates and gains default to the scenario's (explicit mode: 100 Hz, 50 Hz, the
+        # method's defaults). The gains and the input limits can be set live (validated).
+        frequency = p('frequency', 1.0 / template.h, 'estimator rate [Hz] (default: the '
+                      "scenario's, 100 in explicit mode)", 1e-3, 1e4)
+        publish_rate = p('publish_rate', publish_rate, 'estimate and world-bearing rate [Hz] '
+                         "(default: the scenario's, 50 in explicit mode)", 1e-3, 1e4)
+        own = [f.name for f in gain_fields(type(template.gains))]
+        _refuse_other_gains(method, own, parameter_overrides(self), where, fix)
+        help_of = _gain_parameters()
+        gains = _validated_gains(template.gains, {
+            g: p(g, float(getattr(template.gains, g)), f'{help_of[g]}; can be set live', 0.0,
+                 1e6, read_only=False) for g in own})
+        self.scenario = scenario
         self.template = template
         self.gains = gains
         self.method = estimators.get(method)
         self.links = isinstance(template, LinkAgentEstimator)
         self.estimate_frame = wire.estimate_frame(self.method.frame.value, fleet, anchor)
-        self.h = 1.0 / frequency if frequency > 0 else template.h
+        self.h = 1.0 / frequency
         # Publish on exact multiples of the publish period, so the monitor can pair estimates
         # with ground truth at identical stamps.
         self.publish_every = max(1, int(round(1.0 / (self.h * publish_rate))))
@@ -303,6 +328,7 @@ class EstimatorNode(Node):
         if self.links:   # a step waiting for a lost input goes on after neighbour_wait
             self.patience_timer = self.create_timer(
                 0.05, self.on_patience, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         role = 'leader' if template.leader else f'{len(template.neighbours)} neighbours'
         faults = (f'; INJECTING drop {self.drop_rate:g}, delay {self.delay:g} s on neighbour '
                   'messages' if self.drop_rate or self.delay else '')
@@ -340,6 +366,40 @@ class EstimatorNode(Node):
         return AgentEstimator(estimator, agent_id=e['agent_id'], neighbours=nbrs,
                               step=0.01, leader=e['leader'], R0=so3.from_quat(q), p0=p0,
                               limits=limits)
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        """A live change of gains or input limits (rclpy has checked the type, the range and
+        that the parameter is not read-only): the gains must be valid and, with a scenario,
+        pass the method's check on it (e.g. a position gain whose Euler step would diverge is
+        refused). Applied from the next step on, all or nothing."""
+        own = {f.name for f in gain_fields(type(self.gains))}
+        new_gains = {p.name: float(p.value) for p in params if p.name in own}
+        new_limits = {p.name: float(p.value) for p in params if p.name in _LIVE_LIMITS}
+        try:
+            gains = _validated_gains(self.gains, new_gains) if new_gains else self.gains
+            if new_gains and self.scenario is not None:
+                errors = estimators.build(self.scenario.method, gains).check(
+                    replace(self.scenario, gains=gains)).errors
+                if errors:
+                    raise ScenarioError(str(errors[0]))
+        except ScenarioError as exc:
+            self.get_logger().warning(f'parameter change refused: {exc}')
+            return SetParametersResult(successful=False, reason=str(exc))
+        if new_gains:
+            self.gains = gains
+            for agent in (self.template, self.est):
+                if agent is not None:
+                    agent.estimator = self.method(gains)
+        if new_limits:
+            limits = replace(self.template.limits, **new_limits)
+            for agent in (self.template, self.est):
+                if agent is not None:
+                    agent.limits = limits
+        self.neighbour_wait = next((float(p.value) for p in params if p.name == 'neighbour_wait'),
+                                   self.neighbour_wait)
+        changed = ', '.join(f'{p.name} = {p.value:g}' for p in params)
+        self.get_logger().info(f'parameters set live: {changed}')
+        return SetParametersResult(successful=True)
 
     def _make_estimator(self, t0: float) -> AgentEstimator | LinkAgentEstimator:
         t = self.template

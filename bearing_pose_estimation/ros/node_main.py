@@ -107,14 +107,16 @@ def _given(name: str, kind: Parameter.Type, given: Parameter) -> Any:
 
 
 def declare(node: Node, name: str, default: Any, description: str = '',
-            low: float | None = None, high: float | None = None) -> Any:
-    """Declare a read-only parameter whose type is the default's, and return its value.
+            low: float | None = None, high: float | None = None,
+            read_only: bool = True) -> Any:
+    """Declare a parameter whose type is the default's, and return its value (read-only
+    unless ``read_only`` is False: the node then validates changes, and rclpy the range).
 
     Integers are accepted where numbers are expected, and ``[]`` for any list. Another type,
     or a number outside ``[low, high]``, raises a :class:`ScenarioError` naming the parameter
     and the fix (rclpy would raise with a traceback, or accept 100 only as 100.0)."""
     kind = Parameter.Type.from_parameter_value(default)
-    descriptor = ParameterDescriptor(description=description, read_only=True)
+    descriptor = ParameterDescriptor(description=description, read_only=read_only)
     if low is not None and high is not None:
         if kind == _T.INTEGER:
             descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high),
