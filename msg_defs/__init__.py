@@ -407,7 +407,8 @@ class ChannelWire:
     the sender's namespace, its type and frame, and the decoder to ``(stamp, value)``; a
     per-edge value is ``{listener id: vector}``. ``frame`` is a fixed frame id or a template:
     ``{estimate}`` the frame of the method's estimates (:func:`estimate_frame`),
-    ``{sender_body}`` the sender's body frame. ``encode(t, value, frame)`` builds the message;
+    ``{sender_body}`` the sender's body frame, ``{world}`` the world frame (the scenario's
+    ``world_frame``). ``encode(t, value, frame)`` builds the message;
     None: the channel rides on a message published anyway (the ``estimate``, or the sender's
     sensor topic)."""
 
@@ -417,10 +418,10 @@ class ChannelWire:
     decode: Callable[[Any], tuple[float, Any]]
     encode: Callable[[float, Any, str], Any] | None
 
-    def frame_of(self, sender: str, estimate: str) -> str:
+    def frame_of(self, sender: str, estimate: str, world: str = WORLD_FRAME) -> str:
         """The frame id a message of ``sender`` must carry (``estimate``: the frame of the
-        method's estimates)."""
-        return self.frame.format(estimate=estimate, sender_body=body_frame(sender))
+        method's estimates; ``world``: the world frame's id)."""
+        return self.frame.format(estimate=estimate, sender_body=body_frame(sender), world=world)
 
 
 def _decode_position(msg: PoseStamped) -> tuple[float, Array]:
@@ -494,7 +495,7 @@ def _encode_id_blocks(t: float, value: dict[int, Array], frame: str) -> PointClo
 # the point of the listener).
 CHANNELS = {
     'p_hat': ChannelWire(ESTIMATE, PoseStamped, '{estimate}', _decode_position, None),
-    'world_bearing': ChannelWire(WORLD_BEARINGS, PointCloud2, WORLD_FRAME, _decode_id_vectors,
+    'world_bearing': ChannelWire(WORLD_BEARINGS, PointCloud2, '{world}', _decode_id_vectors,
                                  _encode_id_vectors),
     'z_hat': ChannelWire(YAW_ESTIMATE, Vector3Stamped, '{estimate}', _decode_complex,
                          _encode_complex),
@@ -518,12 +519,14 @@ CHANNELS = {
 }
 
 
-def estimate_frame(frame: str, fleet: str, anchor: str | None = None) -> str:
+def estimate_frame(frame: str, fleet: str, anchor: str | None = None,
+                   world: str = WORLD_FRAME) -> str:
     """The frame id of a method's estimates (``frame``: ``estimators.base.EstimateFrame``
-    value): ``world`` for world poses, the ``anchor``'s :func:`body_frame` for anchor-frame
-    estimates (Presenza et al.), else :func:`estimation_frame`."""
+    value): ``world`` (the scenario's ``world_frame``) for world poses, the ``anchor``'s
+    :func:`body_frame` for anchor-frame estimates (Presenza et al.), else
+    :func:`estimation_frame`."""
     if frame == 'world':
-        return WORLD_FRAME
+        return world
     if frame == 'anchor_body':
         if anchor is None:
             raise WireError('anchor-frame estimates need the anchor\'s name')

@@ -28,8 +28,8 @@ from ros_helpers import ProcessWatch, error_at, observer, paired_errors
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
 DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
 
-THREE_AGENTS = {
-    'name': 'wire_test', 'leaders': ['agent_1', 'agent_2'],
+THREE_AGENTS = {   # in `map`: every world pose and bearing, the leaders' known poses too
+    'name': 'wire_test', 'leaders': ['agent_1', 'agent_2'], 'world_frame': 'map',
     'initial_estimates': {'random': {'seed': 1, 'position_std': 1.0, 'max_angle_deg': 60}},
     'agents': [
         {'name': 'agent_1', 'position': [0, 0, 0], 'angular_velocity': [1, -2, 1]},
@@ -131,15 +131,15 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
     np.testing.assert_allclose(np.linalg.norm(vectors, axis=1), 1.0, atol=1e-12)
 
     est = m['/agent_3/estimate']
-    assert {x.header.frame_id for x in est} == {'world'}
+    assert {x.header.frame_id for x in est} == {'map'}
     est_stamps = np.array([wire.from_stamp(x.header.stamp) for x in est])
     np.testing.assert_allclose(np.round(est_stamps / 0.02) * 0.02, est_stamps, atol=1e-9)
 
     truth = m['/agent_1/ground_truth']
-    assert truth and {x.header.frame_id for x in truth} == {'world'}
+    assert truth and {x.header.frame_id for x in truth} == {'map'}
     checked = 0
     for msg in m['/agent_1/world_bearings']:
-        assert msg.header.frame_id == 'world'
+        assert msg.header.frame_id == 'map'
         t, ids, vectors = wire.decode_vectors(msg)
         if t > 0.0:
             row = dict(zip(ids.tolist(), vectors))

@@ -235,7 +235,12 @@ class EstimatorNode(Node):
         self.gains = gains
         self.method = estimators.get(method)
         self.links = isinstance(template, LinkAgentEstimator)
-        self.estimate_frame = wire.estimate_frame(self.method.frame.value, fleet, anchor)
+        world = scenario.world_frame if scenario is not None else wire.WORLD_FRAME
+        self.world_frame = p('world_frame', world, "the world (fixed) frame's id: of world-pose "
+                             "estimates, world bearings and a leader's known pose (default: the "
+                             "scenario's world_frame)")
+        self.estimate_frame = wire.estimate_frame(self.method.frame.value, fleet, anchor,
+                                                  self.world_frame)
         self.h = 1.0 / frequency
         # Publish on exact multiples of the publish period, so the monitor can pair estimates
         # with ground truth at identical stamps.
@@ -543,7 +548,7 @@ class EstimatorNode(Node):
         self.on_timer()  # steps wait for live odometry as for the gyro
 
     def on_known_pose(self, msg: wire.PoseStamped) -> None:
-        decoded = self._decoded(msg, wire.decode_pose, wire.WORLD_FRAME, 'known_pose')
+        decoded = self._decoded(msg, wire.decode_pose, self.world_frame, 'known_pose')
         if decoded is not None and isinstance(self.est, AgentEstimator):
             t, R, p = decoded
             cause = self.est.set_known_pose(t, R, p)
@@ -571,7 +576,8 @@ class EstimatorNode(Node):
         """Neighbour j's value of one channel (from its ``estimate``, ``world_bearings``, ...)."""
         w = self.wires[channel]
         what = f'{w.topic} of agent {agent_id}'
-        decoded = self._decoded(msg, w.decode, w.frame_of(name, self.estimate_frame), what)
+        decoded = self._decoded(msg, w.decode, w.frame_of(name, self.estimate_frame,
+                                                          self.world_frame), what)
         if decoded is None or self.est is None:
             return
         t, value = decoded
@@ -710,7 +716,8 @@ class EstimatorNode(Node):
                 if not isinstance(value, dict) or value:  # nothing measured yet: nothing to say
                     pub.publish(encode(t, value,
                                        self.wires[name].frame_of(self.agent,
-                                                                 self.estimate_frame)))
+                                                                 self.estimate_frame,
+                                                                 self.world_frame)))
 
     # --------------------------------------------------------------------------- health
     def publish_diagnostics(self) -> None:

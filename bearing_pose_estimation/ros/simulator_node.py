@@ -247,7 +247,7 @@ class SimulatorNode(Node):
                 self._publish_sensor(sensor, pubs, t)
         if w.due(w.truth_every):
             for i, pub in enumerate(self.pub_truth):
-                pub.publish(wire.encode_pose(t, wire.WORLD_FRAME, w.R[i], w.p[i]))
+                pub.publish(wire.encode_pose(t, self.scenario.world_frame, w.R[i], w.p[i]))
         if clock and self.pub_clock is not None:
             self.pub_clock.publish(ClockMsg(clock=wire.to_stamp(t)))
 
