@@ -13,6 +13,7 @@ console_scripts = [
     'estimators = bearing_pose_estimation.ros.estimator_group:main',
     'simulator = bearing_pose_estimation.ros.simulator_node:main',
     'monitor = bearing_pose_estimation.ros.monitor_node:main',
+    'fleet_markers = bearing_pose_estimation.ros.markers_node:main',
 ]
 
 setup(

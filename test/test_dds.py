@@ -18,6 +18,7 @@ import yaml
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.core import so3
 from bearing_pose_estimation import msg_defs as wire
+from bearing_pose_estimation.msg_defs import rviz
 from bearing_pose_estimation.cli.main import main
 from bearing_pose_estimation.scenario import initial_estimates, load_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
@@ -59,10 +60,11 @@ def no_leftovers(tmp_path):
 
 
 def _start(group: launch.ProcessGroup, scenario_file: Path, out: Path, duration: float,
-           monitor: bool, real_time_factor: float = 0.0) -> None:
+           monitor: bool, real_time_factor: float = 0.0, rviz: bool = False) -> None:
     scenario = load_scenario(scenario_file)
     cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=out, duration=duration,
-                           domain_id=DOMAIN, plots=False, real_time_factor=real_time_factor)
+                           domain_id=DOMAIN, plots=False, real_time_factor=real_time_factor,
+                           rviz=rviz)
     cfg.logs_dir.mkdir(parents=True, exist_ok=True)
     specs = launch.plan_processes(scenario, launch.write_params(scenario, cfg), cfg.logs_dir,
                                   launch.find_executable)
@@ -91,13 +93,14 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
         '/agent_1/world_bearings': (wire.PointCloud2, wire.ESTIMATE_QOS),
         '/agent_1/ground_truth': (wire.PoseStamped, wire.SIM_PUB_QOS),
         '/clock': (Clock, wire.CLOCK_QOS),
+        rviz.MARKERS: (rviz.MarkerArray, 1),
     }
     with observer() as obs, launch.ProcessGroup(env=env) as group:
         for name, (msg_type, qos) in topics.items():
             obs.subscribe(msg_type, name, qos)
         # Real-time pacing: a lockstep run goes several times faster than this observer reads.
         _start(group, scenario_file, tmp_path / 'out', duration=30.0, monitor=False,
-               real_time_factor=1.0)
+               real_time_factor=1.0, rviz=True)
 
         def enough() -> bool:
             # The simulator does not wait for this observer, and under load discovery of each
@@ -134,6 +137,12 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
     assert {x.header.frame_id for x in est} == {'map'}
     est_stamps = np.array([wire.from_stamp(x.header.stamp) for x in est])
     np.testing.assert_allclose(np.round(est_stamps / 0.02) * 0.02, est_stamps, atol=1e-9)
+
+    # fleet_markers (--rviz): the three agents' estimated and true poses, in map.
+    markers = m[rviz.MARKERS][-1].markers
+    assert {(x.ns, x.id) for x in markers if x.ns in ('estimate', 'truth')} == {
+        (ns, k) for ns in ('estimate', 'truth') for k in range(3)}
+    assert {x.header.frame_id for x in markers} == {'map'}
 
     truth = m['/agent_1/ground_truth']
     assert truth and {x.header.frame_id for x in truth} == {'map'}

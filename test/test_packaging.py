@@ -95,8 +95,14 @@ def test_package_xml(repo_root):
             elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
                 imported.add(node.module.split('.')[0])
     third_party = imported - set(sys.stdlib_module_names) - {PKG}
+    # rosbags (run --record, export-tum) has no rosdep key we know of: pip, requirements.txt.
+    pip_only = {'rosbags'}
+    requirements = (repo_root / 'requirements.txt').read_text()
+    assert all(f'\n{m}==' in requirements for m in pip_only)
     ros = ('rclpy', '_msgs', '_interfaces')
-    needed = {m if m.endswith(ros) else f'python3-{m}' for m in third_party}
+    packages = {'tf2_ros': 'tf2_ros_py'}   # ROS packages named otherwise than their module
+    needed = {packages.get(m, m if m.endswith(ros) else f'python3-{m}')
+              for m in third_party - pip_only}
     assert needed <= exec_depends
     assert exec_depends == needed   # std_msgs: /monitor/ready (and every stamped Header)
 
@@ -146,13 +152,16 @@ def test_msg_defs_imports_from_colcon_install(colcon_install, tmp_path):
 
 def test_colcon_built_estimator_talks_dds(colcon_install, tmp_path):
     """`ros2 run bearing_pose_estimation estimator --ros-args -r __ns:=/agent_1 -p
-    scenario_file:=...` from the colcon install: once its inputs have publishers it announces
-    its t0 estimate (leader agent_1: its true pose) in frame `world`, and exits 0 on Ctrl-C."""
+    scenario_file:=...` from the colcon install: once its inputs have publishers and its
+    outputs the readers of its listeners (here stand-ins for them) it announces its t0
+    estimate (leader agent_1: its true pose) in frame `world`, and exits 0 on Ctrl-C."""
     import signal
 
     import numpy as np
 
     from bearing_pose_estimation import msg_defs as wire
+    from bearing_pose_estimation.ros.wiring import listener_counts
+    from bearing_pose_estimation.scenario import load_scenario
     from ros_helpers import observer
 
     exe = colcon_install / 'lib' / PKG / 'estimator'
@@ -172,6 +181,11 @@ def test_colcon_built_estimator_talks_dds(colcon_install, tmp_path):
                                               wire.SIM_PUB_QOS),
                     obs.node.create_publisher(wire.PoseStamped, '/agent_1/known_pose',
                                               wire.SIM_PUB_QOS)]
+            types = {wire.ESTIMATE: wire.PoseStamped, wire.WORLD_BEARINGS: wire.PointCloud2}
+            for (agent, topic), n in listener_counts(load_scenario(scenario)).items():
+                for _ in range(n if agent == 'agent_1' else 0):   # agent_1's listeners
+                    obs.node.create_subscription(types[topic], wire.topic(agent, topic),
+                                                 lambda _: None, wire.ESTIMATE_QOS)
             got = obs.spin_until(lambda: bool(obs.messages['/agent_1/estimate']), timeout=60)
             assert all(p.get_subscription_count() == 1 for p in pubs)
             assert got, 'no estimate from the installed estimator'

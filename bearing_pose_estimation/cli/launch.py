@@ -135,6 +135,7 @@ def _lockless_port(path: str) -> bool:
 
 
 BAG_DIR = 'bag'   # `run --record`: the rosbag2 directory in the output directory
+MARKERS = 'fleet_markers'   # `run --rviz`: the process (and node) that draws the fleet
 
 
 @dataclass(frozen=True)
@@ -150,6 +151,7 @@ class RunConfig:
     agents_per_process: int = 1    # >1: `estimators` processes, each running that many agents
     timeout: float | None = None   # wall seconds; None: see wall_timeout
     record: bool = False           # the monitor records a rosbag2 into bag_dir
+    rviz: bool = False             # also run fleet_markers (RViz markers of the fleet)
 
     @property
     def wall_timeout(self) -> float:
@@ -189,6 +191,9 @@ def write_params(scenario: Scenario, cfg: RunConfig) -> dict[str, Path]:
         'scenario_file': scenario_file, 'duration': float(cfg.duration),
         'out_dir': str(cfg.out_dir), 'plots': bool(cfg.plots), 'use_sim_time': True,
         **({'bag': str(cfg.bag_dir)} if cfg.record else {})}}}
+    if cfg.rviz:
+        files[MARKERS] = {f'/{MARKERS}': {'ros__parameters': {
+            'scenario_file': scenario_file, 'use_sim_time': True}}}
     paths = {}
     for name, content in files.items():
         paths[name] = cfg.params_dir / f'{name}.yaml'
@@ -236,7 +241,9 @@ def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Pat
             argv += group
             name = f'estimators_{g}'
             specs.append(ProcessSpec(name, 'estimators', tuple(argv), logs_dir / f'{name}.log'))
-    for name in ('monitor', 'simulator'):
+    for name in ('monitor', MARKERS, 'simulator'):
+        if name not in params:   # fleet_markers: only with --rviz
+            continue
         argv = [str(exe(name)), '--ros-args', '-r', f'__node:={name}',
                 '--params-file', str(params[name])]
         specs.append(ProcessSpec(name, name, tuple(argv), logs_dir / f'{name}.log',
@@ -687,7 +694,8 @@ class RunResult:
 def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = None) -> RunResult:
     """Write the parameter files, start every process, wait for the monitor, stop the rest.
     Ctrl-C (KeyboardInterrupt) stops everything and propagates."""
-    needed = ('estimators' if cfg.agents_per_process > 1 else 'estimator', 'simulator', 'monitor')
+    needed = ('estimators' if cfg.agents_per_process > 1 else 'estimator', 'simulator', 'monitor',
+              *([MARKERS] if cfg.rviz else []))
     exes = {name: find_executable(name, bin_dir) for name in needed}
     cfg.out_dir.mkdir(parents=True, exist_ok=True)
     cfg.logs_dir.mkdir(parents=True, exist_ok=True)

@@ -22,7 +22,7 @@ import yaml
 
 from .. import __version__, estimators
 from ..estimators.base import format_gains
-from .launch import BAG_DIR
+from .launch import BAG_DIR, MARKERS
 from ..scenario import (Scenario, ScenarioError, check_scenario, load_scenario,
                         parse_scenario)
 
@@ -320,7 +320,7 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
         scenario_file=scenario_file.resolve(), out_dir=out.resolve(), duration=duration,
         domain_id=domain_id, real_time_factor=args.real_time_factor, plots=not args.no_plots,
         timeout=args.timeout, agents_per_process=args.agents_per_process,
-        record=getattr(args, 'record', False))
+        record=getattr(args, 'record', False), rviz=getattr(args, 'rviz', False))
     pace = (f'at most {cfg.real_time_factor:g}x real time' if cfg.real_time_factor > 0
             else 'as fast as the estimators keep up')
     print(f'running {scenario.name} ({scenario.method}) over DDS: {len(scenario.agents)} '
@@ -354,7 +354,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     scenario = _with_formation_mode(_load_checked(args.scenario), args.formation_mode)
     _refuse_paper_mode_over_dds(scenario)
     derived = args.formation_mode is not None and scenario.formation is not None
-    processes = [a.name for a in scenario.agents] + ['simulator', 'monitor']
+    processes = ([a.name for a in scenario.agents] + ['simulator', 'monitor']
+                 + ([MARKERS] if args.rviz else []))
     plots = [] if args.no_plots else PLOT_FILES + (['trajectories.png'] if scenario.moves
                                                    else [])
     outputs = (['metrics.csv', 'summary.json', 'fleet.launch.xml'] + plots
@@ -579,6 +580,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_output_options(p, '_dds')
     _add_dds_options(p)
     _add_formation_option(p)
+    p.add_argument('--rviz', action='store_true',
+                   help='also run fleet_markers, which publishes /visualization_marker_array '
+                   '(estimated and true poses, sensing edges, bearing rays) for RViz')
     p.add_argument('--record', action='store_true',
                    help=f'also record every estimate, truth, measurement and channel topic into '
                    f'DIR/{BAG_DIR}, a rosbag2 (MCAP); `bearing-pose export-tum DIR` turns it into '

@@ -77,6 +77,7 @@ from rclpy.parameter import Parameter
 
 from .. import estimators
 from .. import msg_defs as wire
+from ..msg_defs import rviz
 from ..core import so3
 from ..core.errors import ScenarioError
 from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits
@@ -241,6 +242,10 @@ class EstimatorNode(Node):
                              "scenario's world_frame)")
         self.estimate_frame = wire.estimate_frame(self.method.frame.value, fleet, anchor,
                                                   self.world_frame)
+        self.tf = self._tf_broadcaster(p('publish_tf', True, 'broadcast the estimate on TF '
+                                         '(estimate frame -> <agent>/base_link) when tf2_ros '
+                                         'is installed; false for a robot whose odometry owns '
+                                         'base_link'))
         self.h = 1.0 / frequency
         # Publish on exact multiples of the publish period, so the monitor can pair estimates
         # with ground truth at identical stamps.
@@ -371,6 +376,19 @@ class EstimatorNode(Node):
         return AgentEstimator(estimator, agent_id=e['agent_id'], neighbours=nbrs,
                               step=0.01, leader=e['leader'], R0=so3.from_quat(q), p0=p0,
                               limits=limits)
+
+    def _tf_broadcaster(self, wanted: bool) -> Any:
+        """tf2_ros's TransformBroadcaster, when wanted and installed (a full Jazzy install;
+        the PyPI wheels have no tf2_ros), else None."""
+        if not wanted:
+            return None
+        try:
+            from tf2_ros import TransformBroadcaster
+        except ImportError:
+            self.get_logger().info('tf2_ros is not installed: no TF broadcast (the estimate '
+                                   'topic carries the same pose)')
+            return None
+        return TransformBroadcaster(self)
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """A live change of gains or input limits (rclpy has checked the type, the range and
@@ -706,6 +724,10 @@ class EstimatorNode(Node):
         if force or (estimate and self._published_k != est.k):
             self.pub_estimate.publish(
                 wire.encode_pose(t, self.estimate_frame, est.R_hat[0], est.p_hat[0]))
+            if self.tf is not None:
+                self.tf.sendTransform(rviz.encode_transform(
+                    t, self.estimate_frame, wire.body_frame(self.agent), est.R_hat[0],
+                    est.p_hat[0]))
             self._published_k = est.k
         if world and self.pub_channels:
             sent = est.outbox()
