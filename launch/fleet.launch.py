@@ -1,7 +1,7 @@
 """The fleet of `bearing-pose run`, for `ros2 launch` on a full ROS 2 Jazzy install:
 
     ros2 launch bearing_pose_estimation fleet.launch.py scenario:=/path/to/scenario.yaml \
-        [out:=results/<name>_launch] [duration:=0]
+        [out:=results/<name>_launch] [duration:=0] [fleet_namespace:=team_a]
 
 One estimator per agent (namespace /<agent>), the monitor and the simulator, with the
 parameter files `bearing-pose run` writes (into `out`/params) and the same remappings
@@ -31,10 +31,10 @@ def _fleet(context, *args, **kwargs):
     out = Path(value('out') or f'results/{scenario.name}_launch').resolve()
     duration = float(value('duration') or 0.0) or scenario.duration
     cfg = plan.RunConfig(scenario_file=scenario_file, out_dir=out, duration=duration,
-                         domain_id=0)
+                         domain_id=0, fleet_namespace=value('fleet_namespace'))
     cfg.logs_dir.mkdir(parents=True, exist_ok=True)
     specs = plan.plan_processes(scenario, plan.write_params(scenario, cfg), cfg.logs_dir,
-                                lambda name: Path(name))
+                                lambda name: Path(name), fleet=cfg.fleet_namespace)
     nodes = []
     for n in plan.launch_nodes(specs):
         parameters: list = list(n.parameter_files)
@@ -53,6 +53,9 @@ def generate_launch_description() -> LaunchDescription:
                               description='output directory (default results/<name>_launch)'),
         DeclareLaunchArgument('duration', default_value='0',
                               description="simulated time [s]; 0: the scenario's"),
+        DeclareLaunchArgument('fleet_namespace', default_value='',
+                              description='run every node and topic under /<it>/ (default: '
+                                          'none)'),
         SetEnvironmentVariable('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST'),
         OpaqueFunction(function=_fleet),
     ])

@@ -51,9 +51,23 @@ CLOCK = '/clock'                   # rosgraph_msgs/Clock, simulator (use_sim_tim
 MONITOR_READY = '/monitor/ready'   # std_msgs/Empty, latched: the monitor has matched everyone
 
 
-def topic(agent: str, name: str) -> str:
-    """Fully qualified name of an agent's topic, e.g. ``/agent_3/estimate``."""
-    return f'/{agent}/{name}'
+def topic(agent: str, name: str, fleet: str = '') -> str:
+    """Fully qualified name of an agent's topic, e.g. ``/agent_3/estimate``; in the fleet
+    namespace ``team_a``, ``/team_a/agent_3/estimate``."""
+    return f'{fleet_topic("", fleet)}/{agent}/{name}'
+
+
+def fleet_topic(name: str, fleet: str = '') -> str:
+    """A fleet-wide name (:data:`CLOCK`, :data:`MONITOR_READY`) in the fleet namespace
+    ``fleet`` (empty: none): ``/clock`` becomes ``/team_a/clock``."""
+    fleet = fleet.strip('/')
+    return f'/{fleet}{name}' if fleet else name
+
+
+def fleet_of(namespace: str) -> str:
+    """The fleet namespace of an agent's node namespace (``/team_a/agent_3`` -> ``team_a``;
+    ``/agent_3`` -> empty): its neighbours' topics live beside its own."""
+    return namespace.strip('/').rpartition('/')[0]
 
 
 # A moving robot's sensor (scenario.Sensors name) -> its topic and message type.

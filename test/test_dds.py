@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -418,14 +419,54 @@ def test_ctrl_c_stops_a_run_and_keeps_partial_outputs(tmp_path, no_leftovers):
             running = no_leftovers.scan()
             assert len(running) == 7, running  # bearing-pose, 4 estimators, monitor, simulator
             proc.send_signal(signal.SIGINT)
-            assert proc.wait(timeout=60) == 130, (tmp_path / 'run.log').read_text()
+            try:
+                code = proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:   # seen once: why it did not stop, in its log
+                proc.send_signal(signal.SIGUSR1)   # bearing-pose dumps its threads' stacks
+                time.sleep(1.0)
+                code = None
+            assert code == 130, (tmp_path / 'run.log').read_text()
         finally:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+                for pid in no_leftovers.scan():   # its orphans: stop them cleanly
+                    os.kill(pid, signal.SIGINT)
+                deadline = time.monotonic() + 30.0
+                while no_leftovers.scan() and time.monotonic() < deadline:
+                    time.sleep(0.2)
     assert no_leftovers.scan() == []
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['complete'] is False and 2.0 <= summary['duration_s'] < 600.0, summary
     metrics = _read_metrics(out / 'metrics.csv')
     assert max(metrics) == pytest.approx(summary['duration_s'])
     assert 'interrupted' in (tmp_path / 'run.log').read_text()
+
+
+def test_two_fleets_side_by_side_on_one_domain(tmp_path, no_leftovers):
+    """`--fleet-namespace`: two fleets of the same agent names, started from different initial
+    estimates, on one domain at once, each with its own simulator, clock and monitor: each
+    tracks its own batch run (so neither read the other's clock, sensors or neighbours), and
+    its nodes and parameter files are under its namespace."""
+    runs = {}
+    for fleet, seed in (('team_a', 5), ('team_b', 11)):
+        data = {**EXPLICIT_FLEET, 'name': fleet, 'initial_estimates': {
+            'random': {'seed': seed, 'position_std': 1.0, 'max_angle_deg': 60}}}
+        scenario_file = tmp_path / f'{fleet}.yaml'
+        scenario_file.write_text(yaml.safe_dump(data))
+        out = tmp_path / fleet
+        runs[fleet] = (scenario_file, out, subprocess.Popen(
+            [str(Path(sys.executable).parent / 'bearing-pose'), 'run', str(scenario_file),
+             '--duration', '5', '--out', str(out), '--domain-id', str(DOMAIN), '--no-plots',
+             '--fleet-namespace', fleet, '--agents-per-process', '2'],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+    for fleet, (scenario_file, out, proc) in runs.items():
+        log, _ = proc.communicate(timeout=300)
+        assert proc.returncode == 0, log[-3000:]
+        _assert_tracks_batch(_read_metrics(out / 'metrics.csv'), scenario_file, (2.5, 5.0))
+        params = yaml.safe_load((out / 'params' / 'agent_3.yaml').read_text())
+        assert list(params) == [f'/{fleet}/agent_3/estimator']
+        launch_file = (out / 'fleet.launch.xml').read_text()
+        assert f'namespace="{fleet}"' in launch_file and f'to="/{fleet}/clock"' in launch_file
+    a, b = (_read_metrics(runs[f][1] / 'metrics.csv') for f in ('team_a', 'team_b'))
+    assert a[0.0] != b[0.0]   # two different runs, not one seen twice

@@ -56,12 +56,13 @@ def launch_file(monkeypatch):
 def test_the_launch_file_starts_what_run_plans(launch_file, tmp_path):
     actions = launch_file.generate_launch_description()
     kinds = [type(a).__name__ for a in actions]
-    assert kinds.count('DeclareLaunchArgument') == 3 and 'OpaqueFunction' in kinds
+    assert kinds.count('DeclareLaunchArgument') == 4 and 'OpaqueFunction' in kinds
     env = next(a for a in actions if type(a).__name__ == 'SetEnvironmentVariable')
     assert env.args == ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     fleet = next(a for a in actions if type(a).__name__ == 'OpaqueFunction').kwargs['function']
     out = tmp_path / 'out'
-    _Config.values = {'scenario': str(PAPER), 'out': str(out), 'duration': '5'}
+    _Config.values = {'scenario': str(PAPER), 'out': str(out), 'duration': '5',
+                      'fleet_namespace': ''}
     nodes = [n.kwargs for n in fleet(context=None)]
 
     scenario = load_scenario(PAPER)
@@ -84,3 +85,15 @@ def test_the_launch_file_starts_what_run_plans(launch_file, tmp_path):
         assert node['remappings'] == remaps
     leaders = [n for n in nodes if n['remappings'] == [('known_pose', 'ground_truth')]]
     assert [n['namespace'] for n in leaders] == list(scenario.leaders)
+
+
+def test_the_launch_file_takes_a_fleet_namespace(launch_file, tmp_path):
+    """fleet_namespace:=team_a: every node under /team_a, the clock remapped to its own."""
+    actions = launch_file.generate_launch_description()
+    fleet = next(a for a in actions if type(a).__name__ == 'OpaqueFunction').kwargs['function']
+    _Config.values = {'scenario': str(PAPER), 'out': str(tmp_path / 'out'), 'duration': '5',
+                      'fleet_namespace': 'team_a'}
+    nodes = [n.kwargs for n in fleet(context=None)]
+    assert {n['namespace'] for n in nodes} == {'team_a'} | {
+        f'team_a/{a.name}' for a in load_scenario(PAPER).agents}
+    assert all(('/clock', '/team_a/clock') in n['remappings'] for n in nodes)

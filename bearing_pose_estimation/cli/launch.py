@@ -152,6 +152,7 @@ class RunConfig:
     timeout: float | None = None   # wall seconds; None: see wall_timeout
     record: bool = False           # the monitor records a rosbag2 into bag_dir
     rviz: bool = False             # also run fleet_markers (RViz markers of the fleet)
+    fleet_namespace: str = ''      # every topic under /<it>/ (two fleets side by side)
 
     @property
     def wall_timeout(self) -> float:
@@ -179,20 +180,21 @@ def write_params(scenario: Scenario, cfg: RunConfig) -> dict[str, Path]:
     so a real robot can be started with the same file. Returns process name -> file."""
     cfg.params_dir.mkdir(parents=True, exist_ok=True)
     scenario_file = str(cfg.scenario_file)
+    ns = _fleet_ns(cfg.fleet_namespace)
     files: dict[str, dict[str, Any]] = {
-        agent.name: {f'/{agent.name}/estimator': {'ros__parameters': {
+        agent.name: {f'{ns}/{agent.name}/estimator': {'ros__parameters': {
             'scenario_file': scenario_file, 'agent': agent.name, 'use_sim_time': True}}}
         for agent in scenario.agents
     }
-    files['simulator'] = {'/simulator': {'ros__parameters': {
+    files['simulator'] = {f'{ns}/simulator': {'ros__parameters': {
         'scenario_file': scenario_file, 'duration': float(cfg.duration),
         'real_time_factor': float(cfg.real_time_factor), 'use_sim_time': False}}}
-    files['monitor'] = {'/monitor': {'ros__parameters': {
+    files['monitor'] = {f'{ns}/monitor': {'ros__parameters': {
         'scenario_file': scenario_file, 'duration': float(cfg.duration),
         'out_dir': str(cfg.out_dir), 'plots': bool(cfg.plots), 'use_sim_time': True,
         **({'bag': str(cfg.bag_dir)} if cfg.record else {})}}}
     if cfg.rviz:
-        files[MARKERS] = {f'/{MARKERS}': {'ros__parameters': {
+        files[MARKERS] = {f'{ns}/{MARKERS}': {'ros__parameters': {
             'scenario_file': scenario_file, 'use_sim_time': True}}}
     paths = {}
     for name, content in files.items():
@@ -216,17 +218,26 @@ class ProcessSpec:
         return self.name if self.name == self.kind else f'{self.kind} {self.name}'
 
 
+def _fleet_ns(fleet: str) -> str:
+    """``/team_a`` for the fleet namespace ``team_a``; empty for none."""
+    return f'/{fleet.strip("/")}' if fleet.strip('/') else ''
+
+
 def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Path,
-                   exe: Callable[[str], Path], agents_per_process: int = 1) -> list[ProcessSpec]:
+                   exe: Callable[[str], Path], agents_per_process: int = 1,
+                   fleet: str = '') -> list[ProcessSpec]:
     """Command lines in start order: estimators, monitor, simulator (the simulator waits for
     every subscriber to match before it starts the clock at t = 0). With
-    ``agents_per_process`` > 1, consecutive agents share an ``estimators`` process."""
+    ``agents_per_process`` > 1, consecutive agents share an ``estimators`` process. With a
+    ``fleet`` namespace, every node runs under it and reads its simulator's clock there."""
     specs = []
     agents = [a.name for a in scenario.agents]
+    ns = _fleet_ns(fleet)
+    clock = ['-r', f'/clock:={ns}/clock'] if ns else []
     if agents_per_process <= 1:
         for agent in agents:
-            argv = [str(exe('estimator')), '--ros-args', '-r', f'__ns:=/{agent}',
-                    '-r', '__node:=estimator']
+            argv = [str(exe('estimator')), '--ros-args', '-r', f'__ns:={ns}/{agent}',
+                    '-r', '__node:=estimator', *clock]
             if agent in scenario.leaders:  # leaders read their known pose from the truth
                 argv += ['-r', 'known_pose:=ground_truth']
             argv += ['--params-file', str(params[agent])]
@@ -235,6 +246,7 @@ def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Pat
         for g, start in enumerate(range(0, len(agents), agents_per_process)):
             group = agents[start:start + agents_per_process]
             argv = [str(exe('estimators')), '--params-dir', str(params[group[0]].parent)]
+            argv += ['--fleet-namespace', fleet.strip('/')] if ns else []
             for agent in group:
                 if agent in scenario.leaders:
                     argv += ['--leader', agent]
@@ -245,6 +257,7 @@ def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Pat
         if name not in params:   # fleet_markers: only with --rviz
             continue
         argv = [str(exe(name)), '--ros-args', '-r', f'__node:={name}',
+                *(['-r', f'__ns:={ns}', *clock] if ns else []),
                 '--params-file', str(params[name])]
         specs.append(ProcessSpec(name, name, tuple(argv), logs_dir / f'{name}.log',
                                  forward=name == 'monitor'))
@@ -701,7 +714,7 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
     cfg.logs_dir.mkdir(parents=True, exist_ok=True)
     params = write_params(scenario, cfg)
     specs = plan_processes(scenario, params, cfg.logs_dir, exes.__getitem__,
-                           cfg.agents_per_process)
+                           cfg.agents_per_process, cfg.fleet_namespace)
     env = dds_env(cfg.domain_id, cfg.logs_dir / 'ros')
     shm_before = shm_files()
     started = time.time()

@@ -10,8 +10,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import faulthandler
 import os
+import re
 import shutil
+import signal
 import sys
 import time
 from pathlib import Path
@@ -320,7 +323,8 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
         scenario_file=scenario_file.resolve(), out_dir=out.resolve(), duration=duration,
         domain_id=domain_id, real_time_factor=args.real_time_factor, plots=not args.no_plots,
         timeout=args.timeout, agents_per_process=args.agents_per_process,
-        record=getattr(args, 'record', False), rviz=getattr(args, 'rviz', False))
+        record=getattr(args, 'record', False), rviz=getattr(args, 'rviz', False),
+        fleet_namespace=args.fleet_namespace)
     pace = (f'at most {cfg.real_time_factor:g}x real time' if cfg.real_time_factor > 0
             else 'as fast as the estimators keep up')
     print(f'running {scenario.name} ({scenario.method}) over DDS: {len(scenario.agents)} '
@@ -478,6 +482,9 @@ def _add_dds_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--agents-per-process', type=int, default=1, metavar='K',
                    help='run K agents per process (one executor, one node each) with the '
                    '`estimators` executable; 1: one `estimator` process per agent (default)')
+    p.add_argument('--fleet-namespace', default='', metavar='NS',
+                   help='run every node and topic under /NS/ (/NS/<agent>/estimate, '
+                   '/NS/clock, ...), so that several fleets share a domain (default: none)')
     p.add_argument('--timeout', type=float, metavar='S',
                    help='wall-time safety net [s] (default: 10 x duration / F + 120 for F < 1, '
                    'else 10 x duration + 120)')
@@ -622,6 +629,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:   # the command itself: `kill -USR1 <pid>` prints its threads' stacks
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == 'generate':
@@ -670,6 +679,11 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f'--gains sets gains of {stray[0]}, which is not in --methods')
     if getattr(args, 'agents_per_process', 1) < 1:
         parser.error('--agents-per-process must be at least 1')
+    fleet_ns = getattr(args, 'fleet_namespace', '')
+    if fleet_ns and not re.fullmatch(r'[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*',
+                                     fleet_ns.strip('/')):
+        parser.error(f'--fleet-namespace {fleet_ns!r} is not a ROS namespace: letters, digits '
+                     'and underscores, not starting with a digit, segments separated by /')
     if getattr(args, 'domain_id', None) is not None and not 0 <= args.domain_id <= 232:
         parser.error('--domain-id must be in 0..232 (ROS 2 domain ids)')
     rtf = getattr(args, 'real_time_factor', None)

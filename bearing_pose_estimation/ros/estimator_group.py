@@ -1,6 +1,7 @@
 """``estimators``: several agents' estimator nodes in one process, spun by one executor.
 
-Each agent keeps its own node (namespace ``/<agent>``), its own parameter file and its own
+Each agent keeps its own node (namespace ``/<agent>``, or ``/<fleet>/<agent>`` with
+``--fleet-namespace``), its own parameter file and its own
 remaps, exactly as a separate ``estimator`` process would have: only the process (a Python
 interpreter and a DDS participant) is shared.
 
@@ -28,6 +29,8 @@ def _parse(argv: list[str]) -> argparse.Namespace:
                         help='folder with one <agent>.yaml parameter file per agent')
     parser.add_argument('--leader', action='append', default=[], metavar='AGENT',
                         help='an agent whose known_pose is remapped to ground_truth')
+    parser.add_argument('--fleet-namespace', default='', metavar='NS',
+                        help='the fleet namespace: nodes in /NS/<agent>, the clock on /NS/clock')
     parser.add_argument('agents', nargs='+', help='the agents this process runs')
     return parser.parse_args(remove_ros_args(argv)[1:])
 
@@ -42,7 +45,10 @@ def _nodes(opts: argparse.Namespace) -> list[EstimatorNode]:
         cli = ['--ros-args', '--params-file', str(params)]
         if agent in opts.leader:
             cli += ['-r', 'known_pose:=ground_truth']
-        nodes.append(EstimatorNode(namespace=f'/{agent}', cli_args=cli))
+        ns = f'/{opts.fleet_namespace.strip("/")}' if opts.fleet_namespace.strip('/') else ''
+        if ns:
+            cli += ['-r', f'/clock:={ns}/clock']
+        nodes.append(EstimatorNode(namespace=f'{ns}/{agent}', cli_args=cli))
     return nodes
 
 

@@ -131,6 +131,9 @@ class EstimatorNode(Node):
         p = partial(declare, self)
         scenario_file = p('scenario_file', '', 'scenario YAML; empty: explicit parameters')
         default_agent = self.get_namespace().strip('/').split('/')[-1]
+        # Neighbours' topics are beside this node's: /<fleet>/<j>/... (run --fleet-namespace).
+        self.fleet = wire.fleet_of(self.get_namespace())
+        self.fleet_prefix = f'{self.fleet}/' if self.fleet else ''   # of /diagnostics names
         self.agent = p('agent', default_agent, 'agent name (default: namespace)')
         methods = estimators.methods()
         method = p('method', '', f'estimator, {" or ".join(methods)}; empty: the scenario\'s '
@@ -308,21 +311,21 @@ class EstimatorNode(Node):
             for sub in link_subscriptions(template):
                 if sub.channel is None:   # its motion: what this robot senses of it, the anchor
                     subs.append(self.create_subscription(
-                        wire.Odometry, wire.topic(sub.agent, wire.ODOM),
+                        wire.Odometry, wire.topic(sub.agent, wire.ODOM, self.fleet),
                         partial(self._link, self.on_neighbour_odometry, sub.agent_id,
                                 sub.agent), qos_in))
                     continue
                 w = self.wires[sub.channel]
                 sensor = self.method_channel(sub.channel).sensor
                 subs.append(self.create_subscription(
-                    w.type, wire.topic(sub.agent, w.topic),
+                    w.type, wire.topic(sub.agent, w.topic, self.fleet),
                     partial(self._link, self.on_neighbour, sub.agent_id, sub.channel,
                             sub.agent), qos_in if sensor is not None else qos_est))
         else:
             for nb in template.neighbours:
                 for name, w in self.wires.items():
                     subs.append(self.create_subscription(
-                        w.type, wire.topic(nb.name, w.topic),
+                        w.type, wire.topic(nb.name, w.topic, self.fleet),
                         partial(self._link, self.on_neighbour, nb.agent_id, name, nb.name),
                         qos_est))
         self._subs = subs
@@ -745,7 +748,8 @@ class EstimatorNode(Node):
     def publish_diagnostics(self) -> None:
         """Per-agent health on /diagnostics: rate, rejections by cause, stale neighbours, the
         spectrum of the method's local matrix (M_i, K_i) and its verdict, time events."""
-        status = DiagnosticStatus(name=f'{self.agent}/estimator', hardware_id=self.agent)
+        status = DiagnosticStatus(name=f'{self.fleet_prefix}{self.agent}/estimator',
+                                  hardware_id=self.agent)
         values = {'state_time_s': 'n/a'}
         level, problems = DiagnosticStatus.OK, list[str]()
         if self.est is not None:

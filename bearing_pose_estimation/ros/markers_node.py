@@ -24,6 +24,7 @@ from .node_main import declare, run_node, scenario_parameter, warn_unknown_param
 class MarkersNode(Node):
     def __init__(self, **node_kwargs) -> None:
         super().__init__('fleet_markers', **node_kwargs)
+        fleet = self.get_namespace().strip('/')   # the fleet namespace: its topics' prefix
         self.scenario = s = scenario_parameter(self)
         rate = declare(self, 'rate', 10.0, 'marker rate [Hz] of the node clock', 0.1, 100.0)
         warn_unknown_parameters(self)
@@ -39,14 +40,15 @@ class MarkersNode(Node):
         self.bearings: dict[str, tuple[list[str], np.ndarray]] = {}
         self.t = 0.0
         for name in self.names:
-            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE),
+            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE, fleet),
                                      partial(self._on_pose, self.estimates, name),
                                      wire.ESTIMATE_QOS)
-            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.GROUND_TRUTH),
+            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.GROUND_TRUTH, fleet),
                                      partial(self._on_pose, self.truth, name), wire.SIM_PUB_QOS)
-            self.create_subscription(wire.PointCloud2, wire.topic(name, wire.BEARINGS),
+            self.create_subscription(wire.PointCloud2, wire.topic(name, wire.BEARINGS, fleet),
                                      partial(self._on_bearings, name), wire.SENSOR_QOS)
-        self.pub = self.create_publisher(rviz.MarkerArray, rviz.MARKERS, 1)
+        # Relative: /visualization_marker_array, or /<fleet>/visualization_marker_array.
+        self.pub = self.create_publisher(rviz.MarkerArray, rviz.MARKERS.lstrip('/'), 1)
         self.timer = self.create_timer(1.0 / rate, self.publish_markers)
 
     def _on_pose(self, table: dict, name: str, msg: wire.PoseStamped) -> None:

@@ -53,6 +53,7 @@ def watched(scenario: Scenario) -> list[str]:
 class MonitorNode(Node):
     def __init__(self) -> None:
         super().__init__('monitor')
+        self.fleet = self.get_namespace().strip('/')   # the fleet namespace: its topics' prefix
         self.scenario = s = scenario_parameter(self)
         self.duration = declare(self, 'duration', 0.0, 'simulated time to record [s]; 0: the '
                                 "scenario's", 0.0, 1e9) or s.duration
@@ -87,10 +88,10 @@ class MonitorNode(Node):
         self.finished = Future()  # completes once the outputs are written
         self.wall_start = time.monotonic()
         for k, name in enumerate(self.watched):
-            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.GROUND_TRUTH),
+            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.GROUND_TRUTH, self.fleet),
                                      partial(self._on_pose, self._truth, k), wire.SIM_PUB_QOS)
         for k, name in enumerate(self.followers):
-            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE),
+            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE, self.fleet),
                                      partial(self._on_pose, self._est, k), wire.ESTIMATE_RECORD_QOS)
         # Ready once every subscription has matched its publisher on this side: the
         # simulator's graph view alone (someone subscribed) does not mean the writers know
@@ -102,8 +103,9 @@ class MonitorNode(Node):
                                     'Fix: remove it or choose another path')
             from .recorder import BagRecorder
             from .wiring import recorded_topics
-            self.recorder = BagRecorder(self, Path(bag), recorded_topics(s))
-        self.pub_ready = self.create_publisher(Empty, wire.MONITOR_READY, wire.LATCHED_QOS)
+            self.recorder = BagRecorder(self, Path(bag), recorded_topics(s, self.fleet))
+        self.pub_ready = self.create_publisher(Empty, wire.fleet_topic(wire.MONITOR_READY, self.fleet),
+                                               wire.LATCHED_QOS)
         self.ready_timer = self.create_timer(
             0.05, self.on_ready_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
@@ -184,7 +186,8 @@ class MonitorNode(Node):
             self.margins.setdefault(key, []).append((t, value))
         if values and (len(self.margins[next(iter(values))]) - 1) % max(
                 1, int(round(1e9 / self.record_ns))) == 0:
-            status = DiagnosticStatus(name='monitor/fleet', hardware_id='monitor',
+            status = DiagnosticStatus(name=f'{self.fleet}/monitor/fleet'.lstrip('/'),
+                                      hardware_id='monitor',
                                       message='margins on the estimates')
             status.values = [KeyValue(key='t_s', value=f'{t:.3f}')] + [
                 KeyValue(key=k, value=f'{v:.4g}') for k, v in values.items()]

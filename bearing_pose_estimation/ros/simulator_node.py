@@ -53,6 +53,7 @@ class SimulatorNode(Node):
         """``node_kwargs`` go to rclpy's Node (``context``, ``parameter_overrides``, ...)."""
         super().__init__('simulator', **node_kwargs)
         p = partial(declare, self)
+        self.fleet = self.get_namespace().strip('/')   # the fleet namespace: its topics' prefix
         self.scenario = s = scenario_parameter(self)
         self.duration = p('duration', 0.0, 'simulated time [s]; 0: the scenario\'s',
                           0.0, 1e9) or s.duration
@@ -94,7 +95,7 @@ class SimulatorNode(Node):
         self.link_subs = listener_counts(s)
         self.pub_imu, self.pub_bearings, self.pub_truth = [], [], []
         for name in self.names:
-            topic = lambda t, n=name: wire.topic(n, t)  # noqa: E731
+            topic = lambda t, n=name: wire.topic(n, t, self.fleet)  # noqa: E731
             qos = wire.SIM_PUB_QOS
             self.pub_imu.append(self.create_publisher(wire.Imu, topic(wire.IMU), qos))
             self.pub_bearings.append(
@@ -105,21 +106,25 @@ class SimulatorNode(Node):
         # start waits for their subscriptions).
         self.pub_sensors = {
             name: [self.create_publisher(wire.SENSOR_TYPES[name],
-                                         wire.topic(a, wire.SENSOR_TOPICS[name]),
+                                         wire.topic(a, wire.SENSOR_TOPICS[name], self.fleet),
                                          wire.SIM_PUB_QOS) for a in self.names]
             for name in self.world.sensor_every}
         self.sensors_read = {name for name in self.pub_sensors if method.uses(Sensor(name))}
-        self.pub_clock = (self.create_publisher(ClockMsg, wire.CLOCK, wire.CLOCK_QOS)
+        self.pub_clock = (self.create_publisher(ClockMsg,
+                                                wire.fleet_topic(wire.CLOCK, self.fleet),
+                                                wire.CLOCK_QOS)
                           if self.publish_clock else None)
         # Estimators' progress: the stamp of each agent's latest estimate (lockstep pacing).
         self.progress = np.full(len(self.names), -np.inf)
         for k, name in enumerate(self.names):
-            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE),
+            self.create_subscription(wire.PoseStamped,
+                                     wire.topic(name, wire.ESTIMATE, self.fleet),
                                      partial(self._on_estimate, k), wire.ESTIMATE_QOS)
 
         self.monitor_ready = False
         if self.wait_for_monitor:
-            self.create_subscription(Empty, wire.MONITOR_READY, self._on_monitor_ready,
+            self.create_subscription(Empty, wire.fleet_topic(wire.MONITOR_READY, self.fleet),
+                                     self._on_monitor_ready,
                                      wire.LATCHED_QOS)
         self.state = 'waiting'
         self.lags: list[float] = []
@@ -154,29 +159,29 @@ class SimulatorNode(Node):
             need_truth = ((1 if self.wait_for_monitor and name in self.monitor_watches else 0)
                           + (1 if name in s.leaders else 0))
             if self.pub_imu[k].get_subscription_count() < 1:
-                missing.append(wire.topic(name, wire.IMU))
+                missing.append(wire.topic(name, wire.IMU, self.fleet))
             if self.uses_bearings and self.pub_bearings[k].get_subscription_count() < 1:
-                missing.append(wire.topic(name, wire.BEARINGS))
+                missing.append(wire.topic(name, wire.BEARINGS, self.fleet))
             for sensor in self.sensors_read:
                 # The agent's own estimator, and link neighbours that read it (odometry, a
                 # sensor whose readings are a channel).
                 topic = wire.SENSOR_TOPICS[sensor]
                 if self.pub_sensors[sensor][k].get_subscription_count() < 1 + self.link_subs[
                         (name, topic)]:
-                    missing.append(wire.topic(name, topic))
+                    missing.append(wire.topic(name, topic, self.fleet))
             if self.pub_truth[k].get_subscription_count() < need_truth:
-                missing.append(wire.topic(name, wire.GROUND_TRUTH))
+                missing.append(wire.topic(name, wire.GROUND_TRUTH, self.fleet))
             # Every listener subscribes to each channel topic of the agent (link methods: the
             # neighbours that read it); the simulator and the monitor to its estimate as well.
             wanted = {topic: self.link_subs[(name, topic)] for topic in self.channel_topics}
             wanted[wire.ESTIMATE] = wanted.get(wire.ESTIMATE, 0) + 1 + monitored
             for topic, count in wanted.items():
-                if self.count_subscribers(wire.topic(name, topic)) < count:
-                    missing.append(wire.topic(name, topic))
-            if self.count_publishers(wire.topic(name, wire.ESTIMATE)) < 1:
-                missing.append(wire.topic(name, wire.ESTIMATE) + ' (publisher)')
+                if self.count_subscribers(wire.topic(name, topic, self.fleet)) < count:
+                    missing.append(wire.topic(name, topic, self.fleet))
+            if self.count_publishers(wire.topic(name, wire.ESTIMATE, self.fleet)) < 1:
+                missing.append(wire.topic(name, wire.ESTIMATE, self.fleet) + ' (publisher)')
         if self.wait_for_monitor and not self.monitor_ready:
-            missing.append(wire.MONITOR_READY)
+            missing.append(wire.fleet_topic(wire.MONITOR_READY, self.fleet))
         return missing
 
     def _start(self) -> None:

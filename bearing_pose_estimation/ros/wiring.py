@@ -67,7 +67,7 @@ RECORD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                         durability=DurabilityPolicy.VOLATILE)
 
 
-def recorded_topics(scenario: Scenario) -> list[tuple[str, type]]:
+def recorded_topics(scenario: Scenario, fleet: str = '') -> list[tuple[str, type]]:
     """Every topic of a run worth a bag (``run --record``), with its type: per agent its
     estimate, ground truth, gyro, bearings, the sensors the scenario simulates and the
     channels its method sends on topics of their own; and /diagnostics. Each has a publisher
@@ -80,5 +80,5 @@ def recorded_topics(scenario: Scenario) -> list[tuple[str, type]]:
                  + [(wire.SENSOR_TOPICS[s], wire.SENSOR_TYPES[s]) for s in wire.SENSOR_TOPICS
                     if scenario.simulates(s)]
                  + list(channels.items()))
-    return ([(wire.topic(a.name, name), msg_type) for a in scenario.agents
+    return ([(wire.topic(a.name, name, fleet), msg_type) for a in scenario.agents
              for name, msg_type in per_agent] + [(wire.DIAGNOSTICS, DiagnosticArray)])
