@@ -6,6 +6,7 @@ import atexit
 import os
 from pathlib import Path
 import shutil
+import signal
 import tempfile
 
 import pytest
@@ -16,6 +17,12 @@ os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 101)
 _ROS_LOG_DIR = tempfile.mkdtemp(prefix='bpe-test-roslog-')
 os.environ['ROS_LOG_DIR'] = _ROS_LOG_DIR
 atexit.register(shutil.rmtree, _ROS_LOG_DIR, ignore_errors=True)
+
+# A shell that starts the suite as a background job (`cmd &` without job control) leaves
+# SIGINT ignored, and every process a test starts would inherit that: the Ctrl-C tests would
+# then see a `bearing-pose run` that cannot be interrupted. Their processes get the default.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
