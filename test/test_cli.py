@@ -105,7 +105,7 @@ def test_compare_runs_each_method_on_the_same_scenario(tmp_path, capsys):
     assert main(['compare', PAPER, '--duration', '5', '--out', str(out),
                  '--gains', 'tran_anderson_ahn:k_omega=3,k_c=0.5']) == 0
     captured = capsys.readouterr()
-    assert '| boughellaba_tayebi | batch | k_R=1, k_p=1, k_v=1 | 5 |' in captured.out
+    assert '| boughellaba_tayebi | batch | k_R=1, k_p=1, k_v=1, bias_std=0 | 5 |' in captured.out
     assert '| tran_anderson_ahn | batch | k_omega=3, k_p=1, k_c=0.5, k_v=1 | 5 |' in captured.out
     # Tran's own condition on agent_8 (two orthogonal bearings: K_i = I with k_c = 1 would be
     # {1, 1, 1}; with k_c = 0.5 it is {0.5, 1, 1}).
@@ -182,7 +182,7 @@ def test_simulate_gains_turn_the_feed_forward_off_and_report_the_floor(tmp_path,
     assert main(['simulate', moving, '--duration', '20', '--gains', 'k_v=0', '--quiet',
                  '--no-plots', '--out', str(tmp_path / 'off')]) == 0
     out = capsys.readouterr()
-    assert 'gains: k_R=1, k_p=1, k_v=0' in out.err
+    assert 'gains: k_R=1, k_p=1, k_v=0, bias_std=0' in out.err
     summary = json.loads((tmp_path / 'off' / 'summary.json').read_text())
     assert summary['steady_position_error_mean_m'] > 0.2
     assert f'position error {summary["steady_position_error_mean_m"]:.3e} m' in out.out

@@ -44,12 +44,19 @@ MOTION_BLOCK = 200_000
 SPECTRUM_STEP_DEG = 0.5
 
 
-def bearing_pull(p_own: Array, edges: Edges, y: Array, p_hat_nbr: Array) -> Array:
+def bearing_pull(p_own: Array, edges: Edges, y: Array, p_hat_nbr: Array,
+                 bias_std: float = 0.0) -> Array:
     """``Σ_j P_{y_ij} (p̂_i - p̂_j)`` per agent, ``(N, 3)``, with ``P_y e = e - y (y·e)/‖y‖²``:
     the position correction of both observers (``y_ij = R̂_i b^i_ij``, ``(E, 3)``; ``p_own``
-    ``(E, 3)``: the owner's ``p̂_i`` paired with ``p̂_j``, :attr:`StepInputs.p_own`)."""
+    ``(E, 3)``: the owner's ``p̂_i`` paired with ``p̂_j``, :attr:`StepInputs.p_own`).
+
+    ``bias_std`` (σ_b > 0) removes the bias of a noisy bearing's projector: with each of the
+    two components of the bearing noise of std σ_b, ``E[P_ỹ] y = 2σ_b² y`` to second order,
+    so ``P_ỹ − 2σ_b² ỹỹᵀ`` is unbiased there, and the fixed point with it (bench/noise_bias.py:
+    2.2 cm of bias down to 0.08 cm on paper_noisy's agent_4)."""
     e = p_own - p_hat_nbr
-    return edges.sum_by_agent(e - y * (so3.dot(y, e) / so3.dot(y, y))[:, None])
+    along = (1.0 + 2.0 * bias_std ** 2) * so3.dot(y, e) / so3.dot(y, y)
+    return edges.sum_by_agent(e - y * along[:, None])
 
 
 def after_start(flags: NDArray[np.bool_]) -> NDArray[np.bool_]:

@@ -77,6 +77,8 @@ class CascadeGains:
     k_p: float = gain(1.0, 'position gain k_p of (23)')
     k_v: float = gain(1.0, 'odometry feed-forward of moving agents (1: on, 0: off)',
                       zero_allowed=True)
+    bias_std: float = gain(0.0, 'bearing noise std [rad] whose projector bias the position '
+                           "correction removes (0: off, the paper's (23))", zero_allowed=True)
 
 
 def innovation(R_hat: Array, edges: Edges, b_body: Array, d_world: Array) -> tuple[Array, Array]:
@@ -128,7 +130,7 @@ def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Ed
     sigma, y = innovation(R_hat, edges, b_body, d_world)
     if p_own is None:
         p_own = np.take(p_hat, edges.agent, axis=0)
-    pull = bearing_pull(p_own, edges, y, p_hat_nbr)
+    pull = bearing_pull(p_own, edges, y, p_hat_nbr, gains.bias_std)
     Q = so3.exp(-h * gains.k_R * sigma)
     p_pred = p_hat - h * gains.k_p * pull
     if displacement is not None and gains.k_v != 0.0:
