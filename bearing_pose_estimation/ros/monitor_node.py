@@ -87,15 +87,13 @@ class MonitorNode(Node):
         self.done = False
         self.finished = Future()  # completes once the outputs are written
         self.wall_start = time.monotonic()
+        topic = partial(wire.topic, fleet=self.fleet)
         for k, name in enumerate(self.watched):
-            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.GROUND_TRUTH, self.fleet),
+            self.create_subscription(wire.PoseStamped, topic(name, wire.GROUND_TRUTH),
                                      partial(self._on_pose, self._truth, k), wire.SIM_PUB_QOS)
         for k, name in enumerate(self.followers):
-            self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE, self.fleet),
+            self.create_subscription(wire.PoseStamped, topic(name, wire.ESTIMATE),
                                      partial(self._on_pose, self._est, k), wire.ESTIMATE_RECORD_QOS)
-        # Ready once every subscription has matched its publisher on this side: the
-        # simulator's graph view alone (someone subscribed) does not mean the writers know
-        # this reader yet, and the first records would be lost.
         self.recorder = None
         if bag:   # its subscriptions are in the ready check too: the bag starts at t = 0
             if Path(bag).exists():
@@ -104,8 +102,11 @@ class MonitorNode(Node):
             from .recorder import BagRecorder
             from .wiring import recorded_topics
             self.recorder = BagRecorder(self, Path(bag), recorded_topics(s, self.fleet))
-        self.pub_ready = self.create_publisher(Empty, wire.fleet_topic(wire.MONITOR_READY, self.fleet),
-                                               wire.LATCHED_QOS)
+        # Ready once every subscription has matched its publisher on this side: the
+        # simulator's graph view alone (someone subscribed) does not mean the writers know
+        # this reader yet, and the first records would be lost.
+        self.pub_ready = self.create_publisher(
+            Empty, wire.fleet_topic(wire.MONITOR_READY, self.fleet), wire.LATCHED_QOS)
         self.ready_timer = self.create_timer(
             0.05, self.on_ready_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
