@@ -248,7 +248,8 @@ def test_several_agents_per_process_recorded_and_evaluated_with_evo(tmp_path, no
     grid = {wire.IMU: 2000, wire.BEARINGS: 501, wire.GROUND_TRUTH: 501, wire.ESTIMATE: 501}
     for agent in scenario.index:   # 200 Hz gyro (from the first period's end), 50 Hz others
         for name, count in grid.items():
-            assert len(stamps[wire.topic(agent, name)]) == count, (agent, name)
+            got = len(stamps[wire.topic(agent, name)])
+            assert got == count, (agent, name, got, count)
 
     assert main(['export-tum', str(out)]) == 0
     assert main(['export-tum', str(out)]) == 1   # never overwrites without --force

@@ -39,8 +39,9 @@ from ..studies.summary import format_summary, summarize, write_metrics_csv, writ
 from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
 
 
-# After the last row, the bag keeps recording this long [s of wall time] before it closes.
-BAG_DRAIN_S = 0.5
+# After the last row, the bag keeps recording until no message came for BAG_QUIET_S [s of wall
+# time] (the simulator has stopped; what was in flight is in), BAG_DRAIN_MAX_S at most.
+BAG_QUIET_S, BAG_DRAIN_MAX_S = 0.5, 10.0
 
 
 def watched(scenario: Scenario) -> list[str]:
@@ -239,16 +240,21 @@ class MonitorNode(Node):
 
     def _close_bag_later(self) -> None:
         """Done: the bag still takes what is in flight (the messages up to t = duration that
-        the recorder's readers have not yet handed over) for BAG_DRAIN_S of wall time."""
-        if self.recorder is None:
+        the recorder's readers have not yet handed over), until they stop coming."""
+        recorder = self.recorder
+        if recorder is None:
             self.finished.set_result(True)
             return
+        start = time.monotonic()
 
-        def close() -> None:
+        def close_when_quiet() -> None:
+            now = time.monotonic()
+            if now - recorder.last_write < BAG_QUIET_S and now - start < BAG_DRAIN_MAX_S:
+                return
             timer.cancel()
             self._close_bag()
             self.finished.set_result(True)
-        timer = self.create_timer(BAG_DRAIN_S, close,
+        timer = self.create_timer(0.1, close_when_quiet,
                                   clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _close_bag(self) -> None:

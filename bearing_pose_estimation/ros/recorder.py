@@ -9,6 +9,7 @@ install, and :mod:`studies.tum` reads it here. Messages are stamped with the nod
 """
 from __future__ import annotations
 
+import time
 from collections import Counter
 from functools import partial
 from pathlib import Path
@@ -34,6 +35,7 @@ class BagRecorder:
         self.counts: Counter[str] = Counter()
         self.writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
         self.writer.open()
+        self.last_write = time.monotonic()   # wall time of the newest message written
         self.subscriptions: list[Subscription] = []
         for topic, msg_type in topics:
             connection = self.writer.add_connection(topic, wire.type_name(msg_type),
@@ -46,6 +48,7 @@ class BagRecorder:
         if self.open:
             self.writer.write(connection, self.node.get_clock().now().nanoseconds, data)
             self.counts[connection.topic] += 1
+            self.last_write = time.monotonic()
 
     def close(self) -> int:
         """Finish the bag (its metadata.yaml); returns the number of messages written."""
