@@ -18,6 +18,7 @@ from pathlib import Path
 
 from rclpy.utilities import remove_ros_args
 
+from .. import msg_defs as wire
 from .estimator_node import EstimatorNode
 from .node_main import run_node
 from ..core.errors import ScenarioError
@@ -45,9 +46,9 @@ def _nodes(opts: argparse.Namespace) -> list[EstimatorNode]:
         cli = ['--ros-args', '--params-file', str(params)]
         if agent in opts.leader:
             cli += ['-r', 'known_pose:=ground_truth']
-        ns = f'/{opts.fleet_namespace.strip("/")}' if opts.fleet_namespace.strip('/') else ''
+        ns = wire.fleet_topic('', opts.fleet_namespace)   # '/team_a', or '' for none
         if ns:
-            cli += ['-r', f'/clock:={ns}/clock']
+            cli += ['-r', f'{wire.CLOCK}:={wire.fleet_topic(wire.CLOCK, ns)}']
         nodes.append(EstimatorNode(namespace=f'{ns}/{agent}', cli_args=cli))
     return nodes
 
