@@ -149,3 +149,23 @@ class ProcessWatch:
         out += [f'pid {m} in the group of {pid}' for pid in self.seen
                 for m in groups.get(pid, []) if m not in self.seen]
         return out
+
+
+# A lockstep fleet whose steps must equal the batch run's: the wall-clock patience that breaks
+# a deadlock of lost messages (neighbour_wait, 0.25 s) must not fire on a process that is only
+# slow. On a loaded machine one stalled for 0.25 s once, at t = 0.3 s, and its neighbours went
+# on without its z_hat: 5e-4 off the batch run. None of these fleets loses a message.
+PATIENT = {'neighbour_wait': 10.0}
+
+
+def with_parameters(params: dict[str, Path], agents: list[str], **values: object
+                    ) -> dict[str, Path]:
+    """``params`` (launch.write_params' files) with ``values`` added to each of ``agents``'."""
+    import yaml
+
+    for agent in agents:
+        data = yaml.safe_load(params[agent].read_text())
+        for node in data.values():
+            node['ros__parameters'].update(values)
+        params[agent].write_text(yaml.safe_dump(data, sort_keys=False))
+    return params

@@ -22,7 +22,7 @@ from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
 from bearing_pose_estimation.studies.summary import read_metrics_csv
 
-from ros_helpers import observer
+from ros_helpers import PATIENT, observer, with_parameters
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from presenza_fleet import camera_rate_case1  # noqa: E402
@@ -44,7 +44,8 @@ def run(tmp_path_factory):
     cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp / 'out', duration=DURATION,
                            domain_id=DOMAIN, plots=False)
     cfg.logs_dir.mkdir(parents=True)
-    specs = launch.plan_processes(scenario, launch.write_params(scenario, cfg), cfg.logs_dir,
+    params = with_parameters(launch.write_params(scenario, cfg), list(scenario.index), **PATIENT)
+    specs = launch.plan_processes(scenario, params, cfg.logs_dir,
                                   launch.find_executable)
     shm = launch.shm_files()
     with observer() as obs, launch.ProcessGroup(env=launch.dds_env(DOMAIN, tmp / 'ros')) as g:
