@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from numpy.typing import NDArray
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
@@ -34,6 +34,9 @@ BEARING_RATES = 'bearing_rates'    # sensor_msgs/PointCloud2, in: d/dt b^i_ij [1
 RANGES = 'ranges'                  # sensor_msgs/PointCloud2, in: ‖p_j - p_i‖ [m] (field `range`)
 KNOWN_POSE = 'known_pose'          # geometry_msgs/PoseStamped, in: leaders' known pose
 ESTIMATE = 'estimate'              # geometry_msgs/PoseStamped, out: (R̂_i, p̂_i) in world
+# geometry_msgs/PoseWithCovarianceStamped, out: the estimate with its covariance (methods that
+# have one), for fusion (robot_localization) and the neighbours' own covariance
+POSE = 'pose'
 # (or the estimation frame of methods without world poses, estimation_frame)
 WORLD_BEARINGS = 'world_bearings'  # sensor_msgs/PointCloud2, out: R̂_i b^i_il for listeners l
 YAW_ESTIMATE = 'yaw_estimate'      # geometry_msgs/Vector3Stamped, out: ẑ_i = (x + ιy), De Carli
@@ -397,6 +400,33 @@ def encode_pose(t: float, frame_id: str, R: Array, p: Array) -> PoseStamped:
     return msg
 
 
+def encode_pose_covariance(t: float, frame_id: str, R: Array, p: Array,
+                           P: Array) -> PoseWithCovarianceStamped:
+    """The pose as :func:`encode_pose` with its 6x6 covariance ``P`` (position [m], then
+    rotation about the frame's axes [rad], row-major: ROS's x, y, z, rot x, rot y, rot z)."""
+    msg = PoseWithCovarianceStamped()
+    pose = encode_pose(t, frame_id, R, p)
+    msg.header, msg.pose.pose = pose.header, pose.pose
+    msg.pose.covariance = np.asarray(P, dtype=float).reshape(36).tolist()
+    return msg
+
+
+def decode_covariance(msg: PoseWithCovarianceStamped) -> tuple[float, Array]:
+    """The stamp and the 6x6 covariance of a PoseWithCovarianceStamped.
+
+    Raises:
+        WireError: a covariance that is not finite, symmetric, with a non-negative diagonal.
+    """
+    P = np.asarray(msg.pose.covariance, dtype=float)
+    if P.size != 36 or not np.all(np.isfinite(P)):
+        raise WireError('non-finite or malformed covariance')
+    P = P.reshape(6, 6)
+    if np.any(np.diag(P) < 0.0) or not np.allclose(P, P.T, rtol=1e-6,
+                                                   atol=1e-12 * max(np.abs(P).max(), 1e-300)):
+        raise WireError('covariance is not symmetric with a non-negative diagonal')
+    return from_stamp(msg.header.stamp), P
+
+
 def decode_pose(msg: PoseStamped) -> tuple[float, Array, Array]:
     """Inverse of :func:`encode_pose`; the quaternion is normalised.
 
@@ -509,6 +539,9 @@ def _encode_id_blocks(t: float, value: dict[int, Array], frame: str) -> PointClo
 # the point of the listener).
 CHANNELS = {
     'p_hat': ChannelWire(ESTIMATE, PoseStamped, '{estimate}', _decode_position, None),
+    # Boughellaba & Tayebi: P_j on the sender's `pose`, published with every estimate.
+    'pose_cov': ChannelWire(POSE, PoseWithCovarianceStamped, '{estimate}', decode_covariance,
+                            None),
     'world_bearing': ChannelWire(WORLD_BEARINGS, PointCloud2, '{world}', _decode_id_vectors,
                                  _encode_id_vectors),
     'z_hat': ChannelWire(YAW_ESTIMATE, Vector3Stamped, '{estimate}', _decode_complex,

@@ -90,6 +90,7 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
         '/agent_3/imu': (wire.Imu, wire.SENSOR_QOS),
         '/agent_3/bearings': (wire.PointCloud2, wire.SENSOR_QOS),
         '/agent_3/estimate': (wire.PoseStamped, wire.ESTIMATE_QOS),
+        '/agent_3/pose': (wire.PoseWithCovarianceStamped, wire.ESTIMATE_QOS),
         '/agent_3/odom': (wire.Odometry, wire.SENSOR_QOS),
         '/agent_1/world_bearings': (wire.PointCloud2, wire.ESTIMATE_QOS),
         '/agent_1/ground_truth': (wire.PoseStamped, wire.SIM_PUB_QOS),
@@ -138,6 +139,19 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
     assert {x.header.frame_id for x in est} == {'map'}
     est_stamps = np.array([wire.from_stamp(x.header.stamp) for x in est])
     np.testing.assert_allclose(np.round(est_stamps / 0.02) * 0.02, est_stamps, atol=1e-9)
+
+    # The estimate with its covariance (covariance.py), stamp for stamp the estimate's, the
+    # prior (2 m, 1 rad per axis) shrinking as the agent converges.
+    poses = m['/agent_3/pose']
+    assert {x.header.frame_id for x in poses} == {'map'}
+    by_stamp = {wire.from_stamp(x.header.stamp): x for x in est}
+    for msg in poses[-5:]:
+        t, P = wire.decode_covariance(msg)
+        assert np.all(np.linalg.eigvalsh(P) > 0.0)
+        np.testing.assert_array_equal(wire.decode_pose(by_stamp[t])[2],
+                                      [msg.pose.pose.position.x, msg.pose.pose.position.y,
+                                       msg.pose.pose.position.z])
+        assert np.trace(P[:3, :3]) < 0.5 * 3 * 2.0 ** 2 and np.trace(P[3:, 3:]) < 0.5 * 3
 
     # fleet_markers (--rviz): the three agents' estimated and true poses, in map.
     markers = m[rviz.MARKERS][-1].markers

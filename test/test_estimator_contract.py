@@ -153,7 +153,7 @@ def check_finite_inputs_give_finite_outputs(method: str) -> None:
                 v /= np.linalg.norm(v, axis=1, keepdims=True)
                 if trial % 3 == 1 and n_edges:
                     v[:] = v[0]
-            elif trial % 3 == 2 and c.per == 'agent':
+            elif trial % 3 == 2 and c.per == 'agent' and c.shape == (3,):
                 v = np.take(x.p_hat, agent, axis=0)  # neighbours where the agent thinks it is
             received[c.name] = v
         delta_R = so3.exp(rng.normal(size=(n, 3)) * (0.0 if trial % 4 == 0 else 0.1))

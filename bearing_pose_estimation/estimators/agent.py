@@ -467,7 +467,8 @@ class AgentEstimator(TimedAgent):
         ``neighbour_timeout``."""
         limit = t - self.limits.neighbour_timeout
         return [nb.name for nb in self.neighbours
-                if any(nb.stamps.get(c, -np.inf) < limit for c in self.channels)]
+                if any(nb.stamps.get(name, -np.inf) < limit
+                       for name, c in self.channels.items() if not c.optional)]
 
     def moved_back(self, t: float, t_s: float) -> Array | None:
         """``p̂_i`` moved back from ``t`` to ``t_s <= t`` by the own odometry,
@@ -486,7 +487,7 @@ class AgentEstimator(TimedAgent):
         it sent."""
         used, p_own, values = [], [], []
         moving = displacement is not None  # static fleets: what was sent does not change
-        names = list(self.channels)
+        names = [name for name, c in self.channels.items() if not c.optional]
         for nb in self.neighbours:
             if nb.name in stale:
                 continue
@@ -504,7 +505,7 @@ class AgentEstimator(TimedAgent):
             b = self.body_bearing(nb.agent_id, t, at=t_s if moving else None)
             if b is not None:
                 used.append((nb, b))
-                values.append(sent)
+                values.append({name: self._value(nb, sent, name) for name in self.channels})
                 back = self.moved_back(t, t_s) if t_s < t else None
                 if back is None and t_s < t:
                     self.unpaired += 1
@@ -518,6 +519,13 @@ class AgentEstimator(TimedAgent):
             bearings=np.array([b for _, b in used]) if used else np.zeros((0, 3)),
             received=received, displacement=displacement,
             p_own=np.array(p_own) if used and moving else None)
+
+    def _value(self, nb: NeighbourState, sent: dict[str, Array], name: str) -> Array:
+        """``name`` from what ``nb`` sent at the instant used; an optional channel's newest
+        value, or the method's stand-in until one came."""
+        if name in sent:
+            return sent[name]
+        return nb.values[name] if name in nb.values else self.estimator.missing(name)
 
     def _step(self) -> None:
         t = self.t

@@ -95,8 +95,8 @@ class Channel:
     at its instant like its own measurements); ``owner_only``: a per-edge value only the owner
     of the pair's shared state sends (a receiver that owns the pair expects none); ``round``
     2: formed from what the sender received in round 1 of the same step
-    (:meth:`Estimator.reply`, two-round methods). The wire encoding of each channel name lives
-    in ``msg_defs``."""
+    (:meth:`Estimator.reply`, two-round methods); ``optional``: see below. The wire encoding of
+    each channel name lives in ``msg_defs``."""
 
     name: str
     per: Literal['agent', 'edge']
@@ -107,15 +107,20 @@ class Channel:
     sensor: Sensor | None = None
     owner_only: bool = False
     round: int = 1
+    # A value the step can do without (the covariance): a neighbour missing it is not stale,
+    # and the step takes Estimator.missing(name) instead.
+    optional: bool = False
 
 
 # ----------------------------------------------------------------------------- gains
-def gain(default: float, help: str, minimum: float = 0.0, zero_allowed: bool = False) -> Any:
+def gain(default: float, help: str, minimum: float = 0.0, zero_allowed: bool = False,
+         model: bool = False) -> Any:
     """A field of a method's gains dataclass: ``default``, a one-line ``help`` (shown by the
     node's parameter descriptions) and the exclusive lower bound ``minimum`` (gains are > 0;
-    ``zero_allowed``: >= 0, for a term that 0 switches off)."""
+    ``zero_allowed``: >= 0, for a term that 0 switches off). ``model``: a parameter of the
+    covariance's model (noise, prior), not of the estimate: tables of gains leave it out."""
     return field(default=default, metadata={'help': help, 'minimum': minimum,
-                                            'zero_allowed': zero_allowed})
+                                            'zero_allowed': zero_allowed, 'model': model})
 
 
 def gain_fields(gains_cls: type) -> tuple[dataclasses.Field, ...]:
@@ -156,8 +161,9 @@ def parse_gains(gains_cls: type, values: Mapping[str, Any], where: str = 'gains'
 
 
 def format_gains(gains: Any) -> str:
-    """``k_R=1, k_p=1``: the gains as logs and tables show them."""
-    return ', '.join(f'{f.name}={getattr(gains, f.name):g}' for f in gain_fields(type(gains)))
+    """``k_R=1, k_p=1``: the gains as logs and tables show them (not the covariance's model)."""
+    return ', '.join(f'{f.name}={getattr(gains, f.name):g}' for f in gain_fields(type(gains))
+                     if not f.metadata.get('model'))
 
 
 # ----------------------------------------------------------------------------- edges, state
@@ -492,6 +498,10 @@ class Estimator(ABC, Generic[G, S]):
         agent sends the edge's other end, formed from its state, its own measurements and the
         round-1 values it received (``inputs`` as :meth:`step` gets them, without round 2)."""
         raise NotImplementedError(f'{self.method} exchanges one round of messages')
+
+    def missing(self, channel: str) -> Array:
+        """What the step takes for an ``optional`` channel a neighbour has not sent."""
+        raise NotImplementedError(f'{self.method} has no optional channel {channel!r}')
 
     def due(self, channel: str, t: float, h: float) -> bool:
         """The step at ``t`` reads ``channel`` (multirate methods read some only at their

@@ -278,11 +278,16 @@ class EstimatorNode(Node):
             qos_est = wire.ESTIMATE_RECORD_QOS
         self.pub_channels = {name: (self.create_publisher(w.type, w.topic, qos_est), w.encode)
                              for name, w in self.wires.items() if w.encode is not None}
+        # Methods with a covariance publish the estimate with it too, on the publish grid.
+        self.pub_pose = (self.create_publisher(wire.PoseWithCovarianceStamped, wire.POSE,
+                                               wire.ESTIMATE_PUB_QOS)
+                         if 'pose_cov' in self.wires else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, wire.DIAGNOSTICS, 10)
         # The neighbours' readers of each writer: the t0 state is announced once they are
         # matched, so the simulator's clock starts only when every value sent reaches them
         # (its graph view sees a reader before the reader's writer has matched it).
         writers = {wire.ESTIMATE: self.pub_estimate,
+                   **({wire.POSE: self.pub_pose} if self.pub_pose is not None else {}),
                    **{self.wires[name].topic: pub for name, (pub, _) in self.pub_channels.items()}}
         self._readers_wanted = [(writers[topic], n) for topic, n in listeners.items()
                                 if topic in writers]
@@ -727,6 +732,9 @@ class EstimatorNode(Node):
         if force or (estimate and self._published_k != est.k):
             self.pub_estimate.publish(
                 wire.encode_pose(t, self.estimate_frame, est.R_hat[0], est.p_hat[0]))
+            if self.pub_pose is not None:
+                self.pub_pose.publish(wire.encode_pose_covariance(
+                    t, self.estimate_frame, est.R_hat[0], est.p_hat[0], getattr(est.x, "P")[0]))
             if self.tf is not None:
                 self.tf.sendTransform(rviz.encode_transform(
                     t, self.estimate_frame, wire.body_frame(self.agent), est.R_hat[0],

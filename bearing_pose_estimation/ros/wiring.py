@@ -70,11 +70,12 @@ RECORD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
 def recorded_topics(scenario: Scenario, fleet: str = '') -> list[tuple[str, type]]:
     """Every topic of a run worth a bag (``run --record``), with its type: per agent its
     estimate, ground truth, gyro, bearings, the sensors the scenario simulates and the
-    channels its method sends on topics of their own; and /diagnostics. Each has a publisher
+    channels its method sends on topics of their own (its ``pose`` with the covariance, for
+    methods that have one); and /diagnostics. Each has a publisher
     in every run (the simulator's and every estimator's), so a recorder can wait for them."""
     method = scenario.estimator()
     channels = {w.topic: w.type for w in (wire.channel(c.name) for c in method.sends
-                                          if c.sensor is None) if w.encode is not None}
+                                          if c.sensor is None) if w.topic != wire.ESTIMATE}
     per_agent = ([(wire.ESTIMATE, wire.PoseStamped), (wire.GROUND_TRUTH, wire.PoseStamped),
                   (wire.IMU, wire.Imu), (wire.BEARINGS, wire.PointCloud2)]
                  + [(wire.SENSOR_TOPICS[s], wire.SENSOR_TYPES[s]) for s in wire.SENSOR_TOPICS

@@ -156,6 +156,14 @@ class SimulationRates:
         return int(round(1.0 / (rate * self.internal_step)))
 
 
+def noise_model_gains(noise: Noise, simulation: SimulationRates) -> dict[str, float]:
+    """The covariance noise model (gains ``bearing_std`` [rad], ``gyro_noise_density``
+    [rad/√s]) a simulation's ``noise:`` implies: the gyro's angle random walk is its
+    per-sample std over the square root of the IMU rate."""
+    return {'bearing_std': noise.bearing_std,
+            'gyro_noise_density': noise.gyro_std / float(np.sqrt(simulation.imu_rate))}
+
+
 @dataclass(frozen=True)
 class Scenario:
     name: str
@@ -201,7 +209,9 @@ class Scenario:
         (Same truth, initial estimates and noise: how methods are compared.)"""
         gains_cls = estimators.get(method).Gains
         mine = dataclasses.asdict(self.gains)
-        values = {f.name: mine.get(f.name, f.default) for f in dataclasses.fields(gains_cls)}
+        model = noise_model_gains(self.noise, self.simulation)
+        values = {f.name: mine.get(f.name, model.get(f.name, f.default))
+                  for f in dataclasses.fields(gains_cls)}
         values.update(gains)
         return dataclasses.replace(self, method=method, gains=gains_cls(**values),
                                    index={})

@@ -25,7 +25,7 @@ from ..core.errors import ScenarioError
 from ..core.motion import (AngularVelocity, Component, LinearVelocity, Sinusoid, VectorProfile,
                            YawSpline, rot_z)
 from ..estimators.base import Estimator, parse_gains
-from .model import (Agent, BearingPerturbation, FormationControl, Neighbour, Noise, RandomInit,
+from .model import (Agent, BearingPerturbation, noise_model_gains, FormationControl, Neighbour, Noise, RandomInit,
                     Scenario, SensorSpec, Sensors, SimulationRates)
 
 # Agent names become ROS namespaces and frame prefixes (`agent_3/base_link`).
@@ -316,6 +316,15 @@ def _simulation(ctx: _Ctx, value: Any) -> SimulationRates:
     return SimulationRates(internal_step=dt, **rates)
 
 
+def _noise_model(gains: Any, given: Any, noise: Noise, simulation: SimulationRates) -> Any:
+    """A method's covariance noise model not given in ``gains:`` is the simulation's own
+    ``noise:`` (:func:`.model.noise_model_gains`): in a simulation the model is the truth."""
+    names = {f.name for f in dataclasses.fields(gains)}
+    fill = {k: v for k, v in noise_model_gains(noise, simulation).items()
+            if k in names and k not in given}
+    return dataclasses.replace(gains, **fill) if fill else gains
+
+
 def _noise(ctx: _Ctx, value: Any) -> Noise:
     m = _mapping(ctx, value, 'noise', {'gyro_std', 'gyro_bias', 'gyro_bias_std', 'bearing_std',
                                        'bearing_perturbation', 'outlier_probability', 'seed'})
@@ -415,6 +424,7 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     noise = _noise(ctx, top.get('noise', {}))
 
     simulation = _simulation(ctx, top.get('simulation', {}))
+    gains = _noise_model(gains, raw_gains, noise, simulation)
     sensors = _sensors(ctx, top.get('sensors', {}), simulation.internal_step)
     formation = (_formation(ctx, top['formation_control']) if 'formation_control' in top
                  else None)

@@ -1,0 +1,94 @@
+"""Consistency of the published covariance: NEES over Monte Carlo runs of the batch simulator.
+
+For each run (seeds ``noise.seed``, +1, ...) and each follower, the normalised estimation
+error squared of the position, ``e_iᵀ P_ee⁻¹ e_i`` (``e_i = p̂_i − p_i``), and of the attitude,
+``φ_iᵀ P_φφ⁻¹ φ_i`` (``R̂_i = exp([φ_i]x) R_i``), averaged over the samples after ``--after``
+seconds. A consistent covariance gives 3 (3 dof); the 95 % band of the average of ``runs``
+independent values is ``chi2(3 runs) / runs``. Per method (``--methods``), per agent and the
+fleet's mean; methods without a covariance are skipped with the reason.
+
+    OMP_NUM_THREADS=1 .venv/bin/python bench/nees.py config/paper_noisy.yaml --runs 20
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bearing_pose_estimation.core import so3  # noqa: E402
+from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
+from bearing_pose_estimation.sim.batch import BatchSimulator  # noqa: E402
+
+
+def nees_run(path: str, method: str, seed: int, duration: float, after: float,
+             every: float, gains: dict[str, float]) -> dict[str, tuple[float, float]]:
+    """``{agent: (position NEES, attitude NEES)}`` of one run, averaged over its samples."""
+    s = load_scenario(path).with_method(method, **gains)
+    s = dataclasses.replace(s, noise=dataclasses.replace(s.noise, seed=seed))
+    sim = BatchSimulator(s)
+    stride = max(1, int(round(every / sim.h)))
+    followers = [s.index[a.name] for a in s.followers]
+    sums = np.zeros((len(followers), 2))
+    count = 0
+    for k in range(int(round(duration / sim.h))):
+        sim.step()
+        if (k + 1) * sim.h < after - 1e-9 or (k + 1) % stride:
+            continue
+        for m, i in enumerate(followers):
+            P = sim.x.P[i]
+            e = sim.x.p_hat[i] - sim.p[i]
+            phi = so3.log(sim.x.R_hat[i] @ sim.R[i].T)
+            sums[m] += (e @ np.linalg.solve(P[:3, :3], e), phi @ np.linalg.solve(P[3:, 3:], phi))
+        count += 1
+    return {s.agents[i].name: tuple(sums[m] / count) for m, i in enumerate(followers)}
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('scenario')
+    ap.add_argument('--runs', type=int, default=20)
+    ap.add_argument('--duration', type=float, default=60.0)
+    ap.add_argument('--after', type=float, default=30.0, help='converged from here [s]')
+    ap.add_argument('--every', type=float, default=0.05, help='sample interval [s]')
+    ap.add_argument('--methods', default='boughellaba_tayebi,tran_anderson_ahn')
+    ap.add_argument('--bias-std', type=float, default=None,
+                    help="gains.bias_std (default: the scenario's noise.bearing_std)")
+    ap.add_argument('--workers', type=int, default=2)
+    args = ap.parse_args(argv)
+    s = load_scenario(args.scenario)
+    lo, hi = (chi2.ppf(q, 3 * args.runs) / args.runs for q in (0.025, 0.975))
+    print(f'{args.scenario}: {args.runs} runs of {args.duration:g} s, NEES averaged over '
+          f't >= {args.after:g} s; 95 % band of the {args.runs}-run mean: [{lo:.2f}, {hi:.2f}]')
+    for method in args.methods.split(','):
+        state = s.with_method(method).estimator().initial_state(np.eye(3)[None], np.zeros((1, 3)))
+        if not hasattr(state, 'P'):
+            print(f'\n{method}: no covariance (its state has none)')
+            continue
+        bias = s.noise.bearing_std if args.bias_std is None else args.bias_std
+        gains = {'bias_std': bias} if 'bias_std' in {
+            f.name for f in dataclasses.fields(s.with_method(method).gains)} else {}
+        seeds = [s.noise.seed + r for r in range(args.runs)]
+        with ProcessPoolExecutor(args.workers) as pool:
+            runs = list(pool.map(nees_run, [args.scenario] * args.runs, [method] * args.runs,
+                                 seeds, [args.duration] * args.runs, [args.after] * args.runs,
+                                 [args.every] * args.runs, [gains] * args.runs))
+        print(f'\n{method} ({", ".join(f"{k}={v:g}" for k, v in gains.items()) or "as given"})')
+        print('| agent | position NEES | attitude NEES |')
+        print('|---|---|---|')
+        agents = list(runs[0])
+        table = np.array([[r[a] for a in agents] for r in runs])   # (runs, agents, 2)
+        for m, a in enumerate(agents):
+            p, q = table[:, m].mean(axis=0)
+            print(f'| {a} | {p:.2f} | {q:.2f} |')
+        p, q = table.mean(axis=(0, 1))
+        print(f'| fleet mean | {p:.2f} | {q:.2f} |')
+
+
+if __name__ == '__main__':
+    main()
