@@ -44,7 +44,7 @@ def nees_run(path: str, method: str, seed: int, duration: float, after: float,
             P = sim.x.P[i]
             e = sim.x.p_hat[i] - sim.p[i]
             phi = so3.log(sim.x.R_hat[i] @ sim.R[i].T)
-            sums[m] += (e @ np.linalg.solve(P[:3, :3], e), phi @ np.linalg.solve(P[3:, 3:], phi))
+            sums[m] += (e @ np.linalg.solve(P[:3, :3], e), phi @ np.linalg.solve(P[3:6, 3:6], phi))
         count += 1
     return {s.agents[i].name: tuple(sums[m] / count) for m, i in enumerate(followers)}
 

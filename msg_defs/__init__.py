@@ -415,15 +415,17 @@ def decode_covariance(msg: PoseWithCovarianceStamped) -> tuple[float, Array]:
     """The stamp and the 6x6 covariance of a PoseWithCovarianceStamped.
 
     Raises:
-        WireError: a covariance that is not finite, symmetric, with a non-negative diagonal.
+        WireError: a covariance that is not finite, symmetric and positive semi-definite.
     """
     P = np.asarray(msg.pose.covariance, dtype=float)
     if P.size != 36 or not np.all(np.isfinite(P)):
         raise WireError('non-finite or malformed covariance')
     P = P.reshape(6, 6)
-    if np.any(np.diag(P) < 0.0) or not np.allclose(P, P.T, rtol=1e-6,
-                                                   atol=1e-12 * max(np.abs(P).max(), 1e-300)):
-        raise WireError('covariance is not symmetric with a non-negative diagonal')
+    scale = max(float(np.abs(P).max()), 1e-300)
+    if not np.allclose(P, P.T, rtol=1e-6, atol=1e-12 * scale):
+        raise WireError('covariance is not symmetric')
+    if np.linalg.eigvalsh(0.5 * (P + P.T))[0] < -1e-9 * scale:
+        raise WireError('covariance is not positive semi-definite')
     return from_stamp(msg.header.stamp), P
 
 

@@ -106,7 +106,7 @@ def test_compare_runs_each_method_on_the_same_scenario(tmp_path, capsys):
                  '--gains', 'tran_anderson_ahn:k_omega=3,k_c=0.5']) == 0
     captured = capsys.readouterr()
     assert '| boughellaba_tayebi | batch | k_R=1, k_p=1, k_v=1, bias_std=0 | 5 |' in captured.out
-    assert '| tran_anderson_ahn | batch | k_omega=3, k_p=1, k_c=0.5, k_v=1 | 5 |' in captured.out
+    assert '| tran_anderson_ahn | batch | k_omega=3, k_p=1, k_c=0.5, k_v=1, bias_std=0 | 5 |' in captured.out
     # Tran's own condition on agent_8 (two orthogonal bearings: K_i = I with k_c = 1 would be
     # {1, 1, 1}; with k_c = 0.5 it is {0.5, 1, 1}).
     assert '(tran_anderson_ahn): warning: agent_8.neighbours: K_i' in captured.err
@@ -127,8 +127,8 @@ def test_compare_runs_each_method_on_the_same_scenario(tmp_path, capsys):
 
 
 @pytest.mark.parametrize('gains, message', [
-    ('tran_anderson_ahn:k_R=2', "'k_R' is not a gain of tran_anderson_ahn; use one of k_c, "
-                                'k_omega, k_p'),
+    ('tran_anderson_ahn:k_R=2', "'k_R' is not a gain of tran_anderson_ahn; use one of "
+                                'bearing_std, bias_std, gyro_noise_density'),
     ('boughellaba_tayebi:k_ij=2', 'k_ij is per edge'),
     ('tran_anderson_ahn:k_omega=-1', 'k_omega must be a positive number'),
     ('tran_anderson_ahn:k_omega=nan', 'k_omega must be a positive number'),

@@ -22,11 +22,14 @@ from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.core import so3
 from bearing_pose_estimation.estimators.base import Edges, StepInputs
 from bearing_pose_estimation.estimators.boughellaba_tayebi import CascadeGains, cascade_step
-from bearing_pose_estimation.estimators.covariance import cascade_jacobians
+from bearing_pose_estimation.estimators.covariance import cascade_jacobians, tran_jacobians
+from bearing_pose_estimation.estimators.tran_anderson_ahn import (TranGains, TwoNeighbourPairs,
+                                                                  tran_step)
 from bearing_pose_estimation.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 GAINS = CascadeGains(k_R=1.3, k_p=0.7)
+TRAN = TranGains(k_omega=2.5, k_p=0.7, k_c=1.4)
 H = 0.01
 
 
@@ -50,9 +53,11 @@ def _fleet():
     return p, R, dR, edges, nbr_a, b
 
 
-def _errors(p, R, dR, edges, nbr, b, d_phi=None, d_e=None, nbr_phi=None, nbr_e=None, nu=None,
-            nu_prime=None):
-    """``(e, φ)`` ``(N, 6)`` after one step from the truth with the given perturbations."""
+def _errors(method, p, R, dR, edges, nbr, b, d_phi=None, d_e=None, d_omega=None, nbr_phi=None,
+            nbr_e=None, nu=None, nu_prime=None, delta=None):
+    """The error after one step from the truth with the given perturbations: ``(e, φ)`` ``(N,
+    6)``, and ``Ω̃`` after them for Tran et al.; ``delta``: the agents move by ``R δ`` over the
+    step, fed forward from odometry."""
     R_hat = R if d_phi is None else so3.exp(d_phi) @ R
     p_hat = p if d_e is None else p + d_e
     y = b if nu is None else b + nu
@@ -61,30 +66,63 @@ def _errors(p, R, dR, edges, nbr, b, d_phi=None, d_e=None, nbr_phi=None, nbr_e=N
     if nu_prime is not None:
         d = (d + nu_prime) / np.linalg.norm(d + nu_prime, axis=1)[:, None]
     p_nbr = p[nbr] if nbr_e is None else p[nbr] + nbr_e
-    R1, p1, _ = cascade_step(R_hat, p_hat, dR, H, edges, b_body, d, p_nbr, GAINS)
+    if method == 'boughellaba_tayebi':
+        R1, p1, _ = cascade_step(R_hat, p_hat, dR, H, edges, b_body, d, p_nbr, GAINS,
+                                 displacement=delta)
+        extra = np.zeros((len(p), 0))
+    else:
+        omega = np.zeros((len(p), 3)) if d_omega is None else d_omega
+        R1, extra, p1, _ = tran_step(R_hat, omega, p_hat, dR, H, edges,
+                                     TwoNeighbourPairs.of(edges), b_body, d, p_nbr, TRAN,
+                                     displacement=delta)
     R_true = R @ dR
     phi = np.array([so3.log(R1[i] @ R_true[i].T) for i in range(len(p))])
-    return np.concatenate([p1 - p, phi], axis=1)
+    p_true = p if delta is None else p + np.einsum('nab,nb->na', R, delta)
+    return np.concatenate([p1 - p_true, phi, extra], axis=1)
 
 
-def test_the_jacobians_are_the_step_s_own():
+@pytest.mark.parametrize('moving', [False, True])
+@pytest.mark.parametrize('method', ['boughellaba_tayebi', 'tran_anderson_ahn'])
+def test_the_jacobians_are_the_step_s_own(method, moving):
     p, R, dR, edges, nbr, b = _fleet()
+    # Moving: the agents' displacements over the step (a static fleet's geometry otherwise;
+    # the linearisation holds at the step's start either way).
+    delta = np.random.default_rng(8).normal(size=(len(p), 3)) * 0.03 if moving else None
     dist = np.linalg.norm(p[nbr] - p[edges.agent], axis=1)
-    F, G, own, theirs = cascade_jacobians(H, edges, b, dist, p, GAINS.k_R, GAINS.k_p)
+    moved = np.zeros_like(p) if delta is None else np.einsum('nab,nb->na', R, delta)
+    if method == 'boughellaba_tayebi':
+        F, G, own, theirs, rates = cascade_jacobians(H, edges, b, dist, p + moved, GAINS.k_R,
+                                                     GAINS.k_p)
+    else:
+        F, G, own, theirs, rates = tran_jacobians(H, edges, b, dist, R, TwoNeighbourPairs.of(edges),
+                                           TRAN.k_omega, TRAN.k_p, TRAN.k_c)
+        assert len(TwoNeighbourPairs.of(edges).agent) == 4   # the third direction is checked
+    # The rates are those of the continuous error dynamics (the real parts of its eigenvalues).
+    exact = np.sort(np.linalg.eigvals((np.eye(F.shape[1]) - F) / H).real, axis=1)
+    followers = np.unique(edges.agent)
+    np.testing.assert_allclose(np.sort(rates, axis=1)[followers], exact[followers],
+                               rtol=0.05 if method != 'boughellaba_tayebi' else 1e-9)
     eps = 1e-6
     n, E = len(p), len(nbr)
     followers = np.unique(edges.agent)
 
+    if moving:
+        F = F.copy()   # what propagate adds for a moving agent (k_v = 1)
+        F[:, :3, 3:6] -= so3.hat(moved)
+
     def diff(**kw):
-        plus = _errors(p, R, dR, edges, nbr, b, **{k: v for k, v in kw.items()})
-        minus = _errors(p, R, dR, edges, nbr, b, **{k: -v for k, v in kw.items()})
+        plus = _errors(method, p, R, dR, edges, nbr, b, delta=delta, **kw)
+        minus = _errors(method, p, R, dR, edges, nbr, b, delta=delta,
+                        **{k: -v for k, v in kw.items()})
         return (plus - minus) / (2 * eps)
 
-    for k in range(3):
-        u = np.zeros((n, 3))
-        u[:, k] = eps
-        np.testing.assert_allclose(diff(d_e=u)[followers], F[followers, :, k], atol=1e-7)
-        np.testing.assert_allclose(diff(d_phi=u)[followers], F[followers, :, 3 + k], atol=1e-7)
+    own_states = ['d_e', 'd_phi'] + (['d_omega'] if method != 'boughellaba_tayebi' else [])
+    for block, name in enumerate(own_states):
+        for k in range(3):
+            u = np.zeros((n, 3))
+            u[:, k] = eps
+            np.testing.assert_allclose(diff(**{name: u})[followers],
+                                       F[followers, :, 3 * block + k], atol=1e-7)
     P_b = np.eye(3) - np.einsum('ea,eb->eab', b, b)
     for e in range(E):   # one edge at a time: its agent's other edges unperturbed
         i = edges.agent[e]
@@ -154,6 +192,18 @@ def test_leaders_are_exact_and_an_agent_alone_only_grows():
     np.testing.assert_allclose(growth[3:, 3:], 100 * H * est.gains.gyro_noise_density ** 2
                                * np.eye(3), rtol=0, atol=1e-12)   # on a prior of 1
     np.testing.assert_array_equal(growth[:3], 0.0)
+    # Moving on odometry alone, the position grows by the odometry's random walk, and by what
+    # the attitude error makes of the displacement.
+    moving = type(est)(dataclasses.replace(est.gains, odometry_noise_density=0.05))
+    y = moving.initial_state(np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 3)))
+    y.P[:, 3:, 3:] = 0.0
+    step = dataclasses.replace(alone, displacement=np.tile([H * 1.0, 0.0, 0.0], (2, 1)))
+    for _ in range(100):
+        y, _ = moving.step(y, H, step)
+    odometry = 100 * H * 0.05 ** 2
+    np.testing.assert_allclose(np.diag(y.P[1])[:3] - 4.0, odometry + np.array(
+        [0.0, 1.0, 1.0]) * (H ** 2 * 100 ** 3 / 3) * H * est.gains.gyro_noise_density ** 2,
+        rtol=0.05)
 
 
 def test_collinear_bearings_leave_the_position_along_them_unknown():
@@ -189,7 +239,9 @@ def test_the_covariance_round_trips_on_the_wire_and_a_broken_one_is_rejected():
                                               msg.pose.pose.orientation.y,
                                               msg.pose.pose.orientation.z,
                                               msg.pose.pose.orientation.w]), R, atol=1e-12)
-    for bad in (P + np.triu(np.ones((6, 6)), 1), P - 100 * np.eye(6),
+    indefinite = np.eye(6)
+    indefinite[0, 1] = indefinite[1, 0] = 3.0     # a positive diagonal, a negative eigenvalue
+    for bad in (P + np.triu(np.ones((6, 6)), 1), P - 100 * np.eye(6), indefinite,
                 np.where(np.eye(6) > 0, np.nan, P)):
         msg.pose.covariance = bad.reshape(36).tolist()
         with pytest.raises(wire.WireError, match='covariance'):

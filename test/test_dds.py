@@ -292,7 +292,9 @@ def test_tran_method_over_dds_through_compare_distributed(tmp_path, no_leftovers
     derived = yaml.safe_load((method_dir / 'scenario.yaml').read_text())
     assert derived['method'] == 'tran_anderson_ahn'
     assert derived['gains'] == {'k_omega': 2.5, 'k_c': 1.0, 'k_p': 1.0, 'k_v': 1.0,
-                                'k_ij': 1.0}
+                                'bias_std': 0.0, 'k_ij': 1.0, 'bearing_std': 0.0,
+                                'gyro_noise_density': 0.0, 'odometry_noise_density': 0.0,
+                                'initial_position_std': 2.0, 'initial_attitude_std': 1.0}
     assert 'k_omega=2.5' in (method_dir / 'logs' / 'estimators_0.log').read_text()
     dds = _read_metrics(method_dir / 'metrics.csv')
     _assert_tracks_batch(dds, method_dir / 'scenario.yaml', (5.0, 10.0))
@@ -303,8 +305,8 @@ def test_tran_method_over_dds_through_compare_distributed(tmp_path, no_leftovers
         batch, over_dds = (float(last[f'tran_anderson_ahn{m}_{q}']) for m in ('', '_dds'))
         assert abs(over_dds - batch) <= 0.1 * batch
     table = (out / 'compare.md').read_text()
-    assert '| tran_anderson_ahn | batch | k_omega=2.5, k_p=1, k_c=1, k_v=1 | 10 |' in table
-    assert '| tran_anderson_ahn | dds | k_omega=2.5, k_p=1, k_c=1, k_v=1 | 10 |' in table
+    assert '| tran_anderson_ahn | batch | k_omega=2.5, k_p=1, k_c=1, k_v=1, bias_std=0 | 10 |' in table
+    assert '| tran_anderson_ahn | dds | k_omega=2.5, k_p=1, k_c=1, k_v=1, bias_std=0 | 10 |' in table
 
 
 # Both followers see only the leaders, so each one's errors depend on its own observer alone

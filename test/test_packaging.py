@@ -181,7 +181,8 @@ def test_colcon_built_estimator_talks_dds(colcon_install, tmp_path):
                                               wire.SIM_PUB_QOS),
                     obs.node.create_publisher(wire.PoseStamped, '/agent_1/known_pose',
                                               wire.SIM_PUB_QOS)]
-            types = {wire.ESTIMATE: wire.PoseStamped, wire.WORLD_BEARINGS: wire.PointCloud2}
+            types = {wire.ESTIMATE: wire.PoseStamped, wire.WORLD_BEARINGS: wire.PointCloud2,
+                     wire.POSE: wire.PoseWithCovarianceStamped}
             for (agent, topic), n in listener_counts(load_scenario(scenario)).items():
                 for _ in range(n if agent == 'agent_1' else 0):   # agent_1's listeners
                     obs.node.create_subscription(types[topic], wire.topic(agent, topic),

@@ -14,14 +14,16 @@ bearings. Each method adds the spectrum condition of its own lemma (:meth:`Estim
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, ClassVar
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, ClassVar, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..core import graph, so3
 from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, G,
-                   Index, Roles, S, Sensor, StepInputs)
+                   Index, Roles, Sensor, State, StepInputs)
+from .covariance import DOF, initial_covariance
 
 if TYPE_CHECKING:
     from ..scenario.model import Agent, Scenario
@@ -29,6 +31,10 @@ if TYPE_CHECKING:
 P_HAT = Channel('p_hat', per='agent', frame='world', doc='p̂_j, the position estimate [m]')
 WORLD_BEARING = Channel('world_bearing', per='edge', frame='world', unit=True,
                         doc='R̂_j b^j_ji, j\'s bearing to its listener i in the world frame')
+# Optional: a neighbour whose covariance is lost still corrects the estimate; the covariance
+# then takes the prior for it (BearingLeaderEstimator.missing).
+POSE_COV = Channel('pose_cov', per='agent', frame='world', shape=(DOF, DOF), optional=True,
+                   doc='P_j, the covariance of (p̂_j, R̂_j) (covariance.py)')
 
 # Bearings closer than this to collinear make Σ P_b singular: an error.
 COLLINEAR_ERROR_RAD = 1e-6
@@ -42,6 +48,40 @@ MOTION_BLOCK = 200_000
 # the samples where one of the follower's bearings has turned by this much [deg] since the
 # last evaluation (at most every sample; a formation that keeps its shape costs nothing).
 SPECTRUM_STEP_DEG = 0.5
+
+
+@dataclass
+class CovState(State):
+    """Adds the covariance ``P`` ``(N, d, d)`` of each agent's error, position [m] then
+    rotation about the world axes [rad] first (:mod:`.covariance`), then the method's own
+    states."""
+
+    P: Array
+
+
+S = TypeVar('S', bound=CovState)
+
+
+def fed_forward(x: CovState, inputs: StepInputs, k_v: float) -> Array | None:
+    """``k_v R̂_i δ_i`` ``(N, 3)``, the odometry displacement the step feeds forward (None:
+    none), for the covariance (:func:`.covariance.propagate`)."""
+    if inputs.displacement is None or k_v == 0.0:
+        return None
+    return k_v * np.einsum('nab,nb->na', x.R_hat, inputs.displacement)
+
+
+def own_geometry(x: CovState, inputs: StepInputs, p_nbr: Array) -> tuple[Array, Array]:
+    """``(y_ij = R̂_i b^i_ij (E, 3), d_ij = ‖p̂_i − p̂_j‖ (E,))`` before the step: where the
+    covariance is linearised."""
+    edges = inputs.edges
+    p_own = np.take(x.p_hat, edges.agent, axis=0) if inputs.p_own is None else inputs.p_own
+    y = np.einsum('eab,eb->ea', np.take(x.R_hat, edges.agent, axis=0), inputs.bearings)
+    return y, np.linalg.norm(p_own - p_nbr, axis=1)
+
+
+def neighbour_cov(inputs: StepInputs) -> Array:
+    """``P_j`` ``(E, 6, 6)``, what each neighbour sent of its covariance."""
+    return inputs.received[POSE_COV.name]
 
 
 def bearing_pull(p_own: Array, edges: Edges, y: Array, p_hat_nbr: Array,
@@ -80,17 +120,35 @@ class BearingLeaderEstimator(Estimator[G, S]):
     sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.BEARINGS,
                                                      Sensor.KNOWN_POSE})
     optional_sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.ODOMETRY})
-    sends: ClassVar[tuple[Channel, ...]] = (P_HAT, WORLD_BEARING)
+    sends: ClassVar[tuple[Channel, ...]] = (P_HAT, WORLD_BEARING, POSE_COV)
     frame: ClassVar[EstimateFrame] = EstimateFrame.WORLD
     conditioning_label: ClassVar[str]      # the local matrix, e.g. 'M_i = Σ_j k_ij b_ij b_ijᵀ'
 
+    def prior(self, n: int, dof: int = DOF) -> Array:
+        """The covariance of ``n`` initial estimates (the gains' ``initial_*_std``)."""
+        g = self.gains
+        return initial_covariance(n, g.initial_position_std,  # type: ignore[attr-defined]
+                                  g.initial_attitude_std, dof)  # type: ignore[attr-defined]
+
+    def with_known_pose(self, x: S, rows: Index, R: Array, p: Array) -> S:
+        """Leaders: their known pose, exactly (a zero covariance)."""
+        x = super().with_known_pose(x, rows, R, p)
+        x.P[rows] = 0.0
+        return x
+
+    def missing(self, channel: str) -> Array:
+        """A neighbour's covariance not received (yet): the prior, what nothing is known of."""
+        if channel != POSE_COV.name:
+            return super().missing(channel)
+        return self.prior(1)[0]
+
     def outbox(self, x: S, sender: Index, bearings: Array,
                slot: Index | None = None) -> dict[str, Array]:
-        """``R̂_j b^j_jl`` for each sender row j and its own bearing to listener l, and
-        ``p̂_j``."""
+        """``R̂_j b^j_jl`` for each sender row j and its own bearing to listener l, ``p̂_j``
+        and the covariance of its pose."""
         R = np.take(x.R_hat, sender, axis=0)
         return {WORLD_BEARING.name: np.einsum('eab,eb->ea', R, bearings),
-                P_HAT.name: x.p_hat}
+                P_HAT.name: x.p_hat, POSE_COV.name: x.P[:, :DOF, :DOF]}
 
     @staticmethod
     def neighbour_terms(inputs: StepInputs) -> tuple[Array, Array]:

@@ -65,23 +65,10 @@ from typing import ClassVar
 import numpy as np
 
 from ..core import so3
-from .base import Array, Channel, Edges, Index, State, StepInputs, gain
-from .bearing_leaders import (P_HAT, WORLD_BEARING, BearingLeaderEstimator, bearing_pull,
-                              repeated)
-from .covariance import cascade_covariance, initial_covariance
-
-# Optional: a neighbour whose covariance is lost still corrects the estimate; the covariance
-# then takes the prior for it (BoughellabaTayebi.missing).
-POSE_COV = Channel('pose_cov', per='agent', frame='world', shape=(6, 6), optional=True,
-                   doc='P_j, the covariance of (p̂_j, R̂_j) (covariance.py)')
-
-
-@dataclass
-class CascadeState(State):
-    """Adds the covariance ``P`` ``(N, 6, 6)`` of each agent's error (position [m], then
-    rotation about the world axes [rad]; :mod:`.covariance`)."""
-
-    P: Array
+from .base import Array, Edges, StepInputs, gain
+from .bearing_leaders import (BearingLeaderEstimator, CovState, bearing_pull, fed_forward,
+                              neighbour_cov, own_geometry, repeated)
+from .covariance import cascade_jacobians, model_gain, propagate
 
 
 @dataclass(frozen=True)
@@ -94,17 +81,12 @@ class CascadeGains:
                       zero_allowed=True)
     bias_std: float = gain(0.0, 'bearing noise std [rad] whose projector bias the position '
                            "correction removes (0: off, the paper's (23))", zero_allowed=True)
-    # The noise model of the published covariance (covariance.py); a simulation's defaults
-    # are its `noise:` block (scenario.parse).
-    bearing_std: float = gain(0.0, 'bearing noise std [rad] per component, for the covariance',
-                              zero_allowed=True, model=True)
-    gyro_noise_density: float = gain(0.0, 'gyro angle random walk [rad/sqrt(s)] (gyro std / '
-                                     'sqrt(IMU rate)), for the covariance', zero_allowed=True,
-                                     model=True)
-    initial_position_std: float = gain(2.0, 'std of the initial position estimate [m], the '
-                                       "covariance's prior", model=True)
-    initial_attitude_std: float = gain(1.0, 'std of the initial attitude estimate [rad], the '
-                                       "covariance's prior", model=True)
+    # The published covariance's model (covariance.py).
+    bearing_std: float = model_gain('bearing_std')
+    gyro_noise_density: float = model_gain('gyro_noise_density')
+    odometry_noise_density: float = model_gain('odometry_noise_density')
+    initial_position_std: float = model_gain('initial_position_std')
+    initial_attitude_std: float = model_gain('initial_attitude_std')
 
 
 def innovation(R_hat: Array, edges: Edges, b_body: Array, d_world: Array) -> tuple[Array, Array]:
@@ -168,55 +150,34 @@ def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Ed
     return R_next, p_next, sigma
 
 
-class BoughellabaTayebi(BearingLeaderEstimator[CascadeGains, CascadeState]):
+class BoughellabaTayebi(BearingLeaderEstimator[CascadeGains, CovState]):
     method: ClassVar[str] = 'boughellaba_tayebi'
     title: ClassVar[str] = 'Boughellaba & Tayebi'
     Gains: ClassVar[type] = CascadeGains
     reference_scenario: ClassVar[str] = 'paper_8_agents.yaml'
     conditioning_label: ClassVar[str] = 'M_i = Σ_j k_ij b_ij b_ijᵀ'
-    sends: ClassVar[tuple[Channel, ...]] = (P_HAT, WORLD_BEARING, POSE_COV)
 
-    def initial_state(self, R_hat: Array, p_hat: Array) -> CascadeState:
+    def initial_state(self, R_hat: Array, p_hat: Array) -> CovState:
         R_hat = np.array(R_hat, dtype=float)
-        g = self.gains
-        return CascadeState(R_hat=R_hat, p_hat=np.array(p_hat, dtype=float),
-                            P=initial_covariance(R_hat.shape[0], g.initial_position_std,
-                                                 g.initial_attitude_std))
+        return CovState(R_hat=R_hat, p_hat=np.array(p_hat, dtype=float),
+                        P=self.prior(R_hat.shape[0]))
 
-    def with_known_pose(self, x: CascadeState, rows: Index, R: Array,
-                        p: Array) -> CascadeState:
-        """Leaders: their known pose, exactly (a zero covariance)."""
-        x = super().with_known_pose(x, rows, R, p)
-        x.P[rows] = 0.0
-        return x
-
-    def missing(self, channel: str) -> Array:
-        """A neighbour's covariance not received (yet): the prior, what nothing is known of."""
-        if channel != POSE_COV.name:
-            return super().missing(channel)
-        g = self.gains
-        return initial_covariance(1, g.initial_position_std, g.initial_attitude_std)[0]
-
-    def outbox(self, x: CascadeState, sender: Index, bearings: Array,
-               slot: Index | None = None) -> dict[str, Array]:
-        return {**super().outbox(x, sender, bearings, slot), POSE_COV.name: x.P}
-
-    def step(self, x: CascadeState, h: float, inputs: StepInputs,
-             reorthonormalize: bool = True) -> tuple[CascadeState, dict[str, Array]]:
+    def step(self, x: CovState, h: float, inputs: StepInputs,
+             reorthonormalize: bool = True) -> tuple[CovState, dict[str, Array]]:
         d_world, p_nbr = self.neighbour_terms(inputs)
         g = self.gains
-        edges = inputs.edges
         R_hat, p_hat, sigma = cascade_step(
-            x.R_hat, x.p_hat, inputs.delta_R, h, edges, inputs.bearings, d_world, p_nbr,
+            x.R_hat, x.p_hat, inputs.delta_R, h, inputs.edges, inputs.bearings, d_world, p_nbr,
             g, reorthonormalize, displacement=inputs.displacement, p_own=inputs.p_own)
         # The covariance, linearised at the estimate before the step (covariance.py).
-        p_own = np.take(x.p_hat, edges.agent, axis=0) if inputs.p_own is None else inputs.p_own
-        y = np.einsum('eab,eb->ea', np.take(x.R_hat, edges.agent, axis=0), inputs.bearings)
-        dist = np.linalg.norm(p_own - p_nbr, axis=1)
-        P = cascade_covariance(x.P, h, edges, y, dist, x.p_hat, inputs.received[POSE_COV.name],
-                               g.k_R, g.k_p, g.bearing_std, g.gyro_noise_density)
-        return CascadeState(R_hat=R_hat, p_hat=p_hat, P=P), {'innovation': sigma}
-
+        y, dist = own_geometry(x, inputs, p_nbr)
+        moved = fed_forward(x, inputs, g.k_v)
+        lever = x.p_hat if moved is None else x.p_hat + moved   # what Q turns
+        P = propagate(x.P, h, inputs.edges, y, neighbour_cov(inputs), g.bearing_std,
+                      g.gyro_noise_density,
+                      cascade_jacobians(h, inputs.edges, y, dist, lever, g.k_R, g.k_p),
+                      moved, g.odometry_noise_density)
+        return CovState(R_hat=R_hat, p_hat=p_hat, P=P), {'innovation': sigma}
     def conditioning(self, bearings: Array, k: Array) -> Array:
         """``M_i = Σ_j k_ij b_ij b_ijᵀ`` (Lemma 1)."""
         return np.einsum('e,ea,eb->ab', k, bearings, bearings)

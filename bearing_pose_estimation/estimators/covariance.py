@@ -1,4 +1,7 @@
-"""Covariance of the Boughellaba & Tayebi estimate: its linearised error dynamics, one step.
+"""Covariance of the leader-follower estimates: their linearised error dynamics, one step.
+
+Written out for Boughellaba & Tayebi below; Tran et al. (:func:`tran_jacobians`) add the
+gyro correction ``Ω̃_i`` to the error state and have no lever arm.
 
 Error of agent i, in the order of ``geometry_msgs/PoseWithCovariance`` (position, then
 rotation): ``x_i = (e_i, φ_i)`` with ``e_i = p̂_i − p_i`` [m] (world) and ``R̂_i = exp([φ_i]x)
@@ -36,40 +39,74 @@ from __future__ import annotations
 
 import numpy as np
 
+from typing import Any
+
 from ..core import so3
-from .base import Array, Edges
+from .base import Array, Edges, gain
 
-DOF = 6
+EYE3 = np.eye(3)
+DOF = 6     # what the pose covariance covers, what neighbours send: (e_i, φ_i)
+
+# The covariance's model, gains of both methods (not shown in tables of gains).
+_MODEL = {
+    'bearing_std': (0.0, 'bearing noise std [rad] per component, for the covariance'),
+    'gyro_noise_density': (0.0, 'gyro angle random walk [rad/sqrt(s)] (gyro std / sqrt(IMU '
+                                'rate)), for the covariance'),
+    'odometry_noise_density': (0.0, 'odometry velocity random walk [m/sqrt(s)] (velocity std / '
+                                    'sqrt(odometry rate)), for the covariance'),
+    'initial_position_std': (2.0, "std of the initial position estimate [m], the covariance's "
+                                  'prior'),
+    'initial_attitude_std': (1.0, "std of the initial attitude estimate [rad], the "
+                                  "covariance's prior"),
+}
 
 
-def initial_covariance(n: int, position_std: float, attitude_std: float) -> Array:
-    """``(n, 6, 6)`` diagonal prior: ``position_std`` [m] and ``attitude_std`` [rad] per axis."""
-    diag = np.array([position_std ** 2] * 3 + [attitude_std ** 2] * 3)
+def model_gain(name: str) -> Any:
+    """The gains field ``name`` of the covariance's model (a fresh field per class); the noise
+    stds default to a simulation's ``noise:`` (scenario.parse), 0 otherwise."""
+    default, help = _MODEL[name]
+    return gain(default, help, zero_allowed=default == 0.0, model=True)
+
+
+def initial_covariance(n: int, position_std: float, attitude_std: float,
+                       dof: int = DOF) -> Array:
+    """``(n, dof, dof)`` diagonal prior: ``position_std`` [m] and ``attitude_std`` [rad] per
+    axis, 0 for the states beyond the pose (they start at their true value, e.g. ``Ω̃ = 0``)."""
+    diag = np.zeros(dof)
+    diag[:3], diag[3:6] = position_std ** 2, attitude_std ** 2
     return np.tile(np.diag(diag), (n, 1, 1))
 
 
+def _sums(edges: Edges, *per_edge: Array) -> list[Array]:
+    """``Σ_j`` of each ``(E, 3, 3)`` term per agent, in one sparse product (a product costs
+    ~30 µs whatever its width)."""
+    n = len(per_edge)
+    total = edges.sum_by_agent(np.concatenate([t.reshape(-1, 9) for t in per_edge], axis=1))
+    return [total[:, 9 * m:9 * (m + 1)].reshape(-1, 3, 3) for m in range(n)]
+
+
 def cascade_jacobians(h: float, edges: Edges, y: Array, dist: Array, p_hat: Array,
-                      k_R: float, k_p: float) -> tuple[Array, Array, Array, Array]:
+                      k_R: float, k_p: float) -> tuple[Array, Array, Array, Array, Array]:
     """The linearised step of the module docstring at the current estimate.
 
     Args:
         y: ``(E, 3)`` estimated world bearings ``R̂_i b^i_ij`` (unit).
         dist: ``(E,)`` estimated distances ``‖p̂_i − p̂_j‖`` [m].
-        p_hat: ``(N, 3)`` the agents' positions (the lever arm of the attitude correction).
+        p_hat: ``(N, 3)`` what the attitude correction turns about the origin (the lever
+            arm): the positions, moved by the odometry fed forward for moving agents.
 
     Returns:
         ``F`` ``(N, 6, 6)``, ``G`` ``(E, 6, 6)`` (neighbour j's error into the edge's agent),
-        and the maps of the two bearing noises of each edge ``(E, 6, 3)``, own then the
-        neighbour's.
+        the maps of the two bearing noises of each edge ``(E, 6, 3)``, own then the
+        neighbour's, and the decay rates ``(N, 6)``: the eigenvalues of ``k_p M_i`` and
+        ``k_R Q_i`` (``F`` is block triangular).
     """
     k = edges.k[:, None, None]
-    eye = np.eye(3)
+    eye = EYE3
     P_b = eye - np.einsum('ea,eb->eab', y, y)
     B = so3.hat(y)                                           # [b]x, (E, 3, 3)
     # (23) sums the projectors unweighted; σ_i weighs its terms with k_ij.
-    M = edges.sum_by_agent(P_b.reshape(-1, 9)).reshape(-1, 3, 3)
-    Q = edges.sum_by_agent((k * P_b).reshape(-1, 9)).reshape(-1, 3, 3)
-    A = edges.sum_by_agent((dist[:, None, None] * B).reshape(-1, 9)).reshape(-1, 3, 3)
+    M, Q, A = _sums(edges, P_b, k * P_b, dist[:, None, None] * B)
     Hp = so3.hat(p_hat)                                      # [p_i]x, (N, 3, 3)
     Hp_e = np.take(Hp, edges.agent, axis=0)
     n = p_hat.shape[0]
@@ -87,30 +124,105 @@ def cascade_jacobians(h: float, edges: Edges, y: Array, dist: Array, p_hat: Arra
     theirs = np.zeros((len(y), DOF, 3))       # ν'_ij, in what neighbour j sent
     theirs[:, :3] = -h * k_R * Hp_e @ (k * B)
     theirs[:, 3:] = h * k_R * k * B
-    return F, G, own, theirs
+    lam = np.linalg.eigvalsh(np.concatenate([k_p * M, k_R * Q]))   # one call for both
+    return F, G, own, theirs, np.concatenate([lam[:n], lam[n:]], axis=1)
 
 
-def cascade_covariance(P: Array, h: float, edges: Edges, y: Array, dist: Array, p_hat: Array,
-                       P_nbr: Array, k_R: float, k_p: float, bearing_std: float,
-                       gyro_noise_density: float) -> Array:
-    """``P_i⁺`` of every agent (module docstring) from its ``P`` ``(N, 6, 6)`` and the
-    covariances its neighbours sent, ``P_nbr`` ``(E, 6, 6)``."""
-    F, G, own, theirs = cascade_jacobians(h, edges, y, dist, p_hat, k_R, k_p)
-    n = P.shape[0]
-    P_b = np.eye(3) - np.einsum('ea,eb->eab', y, y)
+def propagate(P: Array, h: float, edges: Edges, y: Array, P_nbr: Array, bearing_std: float,
+              gyro_noise_density: float,
+              jacobians: tuple[Array, Array, Array, Array, Array],
+              moved: Array | None = None, odometry_noise_density: float = 0.0) -> Array:
+    """``P_i⁺ = F P Fᵀ + W + c_i Σ_j G P_j Gᵀ`` of every agent (module docstring) from its ``P``
+    ``(N, d, d)``, the covariances its neighbours sent ``P_nbr`` ``(E, 6, 6)`` and the method's
+    ``jacobians`` ``(F (N, d, d), G (E, d, 6), own (E, d, 3), theirs (E, d, 3), rates (N, r))``,
+    ``rates`` the decay rates of the agent's own error dynamics [1/s]; the gyro noise drives
+    the rotation error (rows 3-5). Moving agents: ``moved`` ``(N, 3)``, the odometry
+    displacement fed forward, ``k_v R̂_i δ_i`` [m] (world): its error ``φ_i × R_i δ_i`` adds
+    ``−[R̂ δ]x`` to ``∂e⁺/∂φ``, and the odometry noise ``h N_v² I`` to the position."""
+    F, G, own, theirs, rates = jacobians
+    if moved is not None:
+        F = F.copy()
+        F[:, :3, 3:6] -= so3.hat(moved)
+    n, d = P.shape[0], P.shape[1]
+    P_b = EYE3 - np.einsum('ea,eb->eab', y, y)
     noise = bearing_std ** 2 * (own @ P_b @ own.transpose(0, 2, 1)
                                 + theirs @ P_b @ theirs.transpose(0, 2, 1))
-    W = edges.sum_by_agent(noise.reshape(-1, DOF * DOF)).reshape(n, DOF, DOF)
-    W[:, 3:, 3:] += h * gyro_noise_density ** 2 * np.eye(3)
     # c_i: the neighbours' errors are slow and correlated with each other (module docstring).
-    rates = np.sort(np.concatenate([np.linalg.eigvalsh(np.eye(3) - F[:, :3, :3]),
-                                    np.linalg.eigvalsh(np.eye(3) - F[:, 3:, 3:])], axis=1),
-                    axis=1) / h      # of k_p M_i and k_R Q_i
+    rates = np.sort(rates, axis=1)
+    r = rates.shape[1]
     slow = np.maximum(rates[:, 0], 1e-9)
-    c = 2.0 / (h * (slow + np.median(rates, axis=1)))
+    median = 0.5 * (rates[:, (r - 1) // 2] + rates[:, r // 2])   # np.median: 10x the cost
+    c = 2.0 / (h * (slow + np.maximum(median, slow)))
     informative = (np.einsum('eii->e', P_nbr) > 0.0).astype(float)
     c = c * np.maximum(np.bincount(edges.agent, weights=informative, minlength=n), 1.0)
-    nbr = np.einsum('e,eab->eab', np.take(c, edges.agent), G @ P_nbr @ G.transpose(0, 2, 1))
-    out = F @ P @ F.transpose(0, 2, 1) + W
-    out += edges.sum_by_agent(nbr.reshape(-1, DOF * DOF)).reshape(n, DOF, DOF)
+    per_edge = noise + np.take(c, edges.agent)[:, None, None] * (G @ P_nbr @ G.transpose(0, 2, 1))
+    out = F @ P @ F.transpose(0, 2, 1)
+    out += edges.sum_by_agent(per_edge.reshape(-1, d * d)).reshape(n, d, d)
+    out[:, 3:6, 3:6] += h * gyro_noise_density ** 2 * EYE3
+    if moved is not None:
+        out[:, :3, :3] += h * odometry_noise_density ** 2 * EYE3
     return 0.5 * (out + out.transpose(0, 2, 1))
+
+
+def tran_jacobians(h: float, edges: Edges, y: Array, dist: Array, R_hat: Array,
+                   pairs: Any, k_omega: float, k_p: float, k_c: float
+                   ) -> tuple[Array, Array, Array, Array, Array]:
+    """Tran et al.'s step (:func:`.tran_anderson_ahn.tran_step`) linearised about the truth,
+    error ``(e_i, φ_i, Ω̃_i)`` (``Ω̃`` in the body frame; its true value is 0)::
+
+        φ_i⁺ = φ_i − h R̂_i Ω̃_i + w_i
+        Ω̃_i⁺ = (1 − h k_ω) Ω̃_i + h R̂_iᵀ (σ_i + σ_c,i)
+        e_i⁺ = e_i − h k_p Σ_j (P_b (e_i − e_j) + d_ij (ν_ij − [b]x φ_i))
+
+    with ``σ_i`` of the module docstring (the torque is ``R̂_iᵀ Σ_j k_ij d_ij × y_ij``) and, for
+    two-neighbour followers, the third direction ``c = unit(b_1 × b_2)``: with ``s = ‖b_1 ×
+    b_2‖``, ``L_1 = −[b_2]x / s``, ``L_2 = [b_1]x / s`` and ``δ_k = −[b_k]x (φ_i − φ_jk) + ν_k −
+    ν'_k``, ``σ_c = k_c [c]x (L_1 δ_1 + L_2 δ_2)`` (its ``φ_i`` part is ``k_c P_c φ_i``).
+    ``pairs``: :class:`.tran_anderson_ahn.TwoNeighbourPairs`. Returns as
+    :func:`cascade_jacobians`, with 9 rows; the rates are those of ``k_p M_i`` and the real
+    parts of the roots of ``s² + k_ω s + λ = 0`` for each eigenvalue λ of ``Q_i`` (+ ``k_c
+    P_c``): the attitude loop is ``φ̈ + k_ω φ̇ + Q φ = 0`` (with ``R̂`` frozen over the decay)."""
+    k = edges.k[:, None, None]
+    eye = EYE3
+    P_b = eye - np.einsum('ea,eb->eab', y, y)
+    B = so3.hat(y)
+    M, Q, A = _sums(edges, P_b, k * P_b, dist[:, None, None] * B)
+    # σ's maps per edge: of φ_i (Q), of φ_j (Gφ), of ν (S) and ν' (−S); the pairs add σ_c.
+    Gphi = -k * P_b
+    S = k * B
+    if len(pairs.agent):
+        y1, y2 = y[pairs.first], y[pairs.second]
+        cr = so3.cross(y1, y2)
+        s = np.linalg.norm(cr, axis=1)
+        s = np.where(s > 0.0, s, 1.0)[:, None, None]
+        C = so3.hat(cr / s[:, :, 0])
+        for first, L, b in ((pairs.first, -so3.hat(y2) / s, y1),
+                            (pairs.second, so3.hat(y1) / s, y2)):
+            CL = k_c * C @ L
+            Gphi[first] += CL @ so3.hat(b)
+            S[first] += CL
+        Q = Q.copy()
+        Q[pairs.agent] += k_c * (eye - np.einsum('na,nb->nab', cr, cr) / s ** 2)
+    n = R_hat.shape[0]
+    Rt = R_hat.transpose(0, 2, 1)
+    Rt_e = np.take(Rt, edges.agent, axis=0)
+    F = np.zeros((n, 9, 9))
+    F[:, :3, :3] = eye - h * k_p * M
+    F[:, :3, 3:6] = h * k_p * A
+    F[:, 3:6, 3:6] = eye
+    F[:, 3:6, 6:] = -h * R_hat
+    F[:, 6:, 3:6] = h * Rt @ Q
+    F[:, 6:, 6:] = (1.0 - h * k_omega) * eye
+    E = len(y)
+    G = np.zeros((E, 9, DOF))
+    G[:, :3, :3] = h * k_p * P_b
+    G[:, 6:, 3:] = h * Rt_e @ Gphi
+    own = np.zeros((E, 9, 3))
+    own[:, :3] = -h * k_p * dist[:, None, None] * eye
+    own[:, 6:] = h * Rt_e @ S
+    theirs = np.zeros((E, 9, 3))
+    theirs[:, 6:] = -h * Rt_e @ S
+    lam = np.linalg.eigvalsh(np.concatenate([k_p * M, Q]))   # one call for both
+    root = np.sqrt(np.maximum(k_omega ** 2 - 4.0 * lam[n:], 0.0))
+    rates = np.concatenate([lam[:n], 0.5 * (k_omega - root), 0.5 * (k_omega + root)], axis=1)
+    return F, G, own, theirs, rates

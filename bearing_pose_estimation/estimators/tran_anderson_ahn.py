@@ -56,8 +56,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core import so3
-from .base import Array, Edges, State, StepInputs, gain
-from .bearing_leaders import EIGEN_GAP_REL, BearingLeaderEstimator, bearing_pull, repeated
+from .base import Array, Edges, StepInputs, gain
+from .bearing_leaders import (EIGEN_GAP_REL, BearingLeaderEstimator, CovState, bearing_pull,
+                              fed_forward, neighbour_cov, own_geometry, repeated)
+from .covariance import model_gain, propagate, tran_jacobians
 
 
 @dataclass(frozen=True)
@@ -70,11 +72,21 @@ class TranGains:
     k_c: float = gain(1.0, 'gain k_c of the third direction of two-neighbour followers')
     k_v: float = gain(1.0, 'odometry feed-forward of moving agents (1: on, 0: off)',
                       zero_allowed=True)
+    bias_std: float = gain(0.0, 'bearing noise std [rad] whose projector bias the position '
+                           'correction removes (0: off, the paper\'s observer; '
+                           'bearing_leaders.bearing_pull)', zero_allowed=True)
+    # The published covariance's model (covariance.py).
+    bearing_std: float = model_gain('bearing_std')
+    gyro_noise_density: float = model_gain('gyro_noise_density')
+    odometry_noise_density: float = model_gain('odometry_noise_density')
+    initial_position_std: float = model_gain('initial_position_std')
+    initial_attitude_std: float = model_gain('initial_attitude_std')
 
 
 @dataclass
-class TranState(State):
-    """Adds Tran et al.'s gyro correction ``Ω̃`` ``(N, 3)`` [rad/s], ``Ω̃(0) = 0``."""
+class TranState(CovState):
+    """Adds Tran et al.'s gyro correction ``Ω̃`` ``(N, 3)`` [rad/s], ``Ω̃(0) = 0``; ``P`` is
+    ``(N, 9, 9)``, the error ``(e, φ, Ω̃)`` (:func:`.covariance.tran_jacobians`)."""
 
     Omega_tilde: Array
 
@@ -129,7 +141,8 @@ def tran_step(R_hat: Array, Omega_tilde: Array, p_hat: Array, delta_R: Array, h:
         torque[pairs.agent] += gains.k_c * so3.cross(c_est, c_body)
     if p_own is None:
         p_own = np.take(p_hat, edges.agent, axis=0)
-    pull = bearing_pull(p_own, edges, np.einsum('eab,eb->ea', R_i, b_body), p_hat_nbr)
+    pull = bearing_pull(p_own, edges, np.einsum('eab,eb->ea', R_i, b_body), p_hat_nbr,
+                        gains.bias_std)
     p_next = p_hat - h * gains.k_p * pull
     if displacement is not None and gains.k_v != 0.0:
         p_next = p_next + gains.k_v * np.einsum('nab,nb->na', R_hat, displacement)
@@ -154,6 +167,7 @@ class TranAndersonAhn(BearingLeaderEstimator[TranGains, TranState]):
     def initial_state(self, R_hat: Array, p_hat: Array) -> TranState:
         R_hat = np.array(R_hat, dtype=float)
         return TranState(R_hat=R_hat, p_hat=np.array(p_hat, dtype=float),
+                         P=self.prior(R_hat.shape[0], dof=9),
                          Omega_tilde=np.zeros((R_hat.shape[0], 3)))
 
     def pairs(self, edges: Edges) -> TwoNeighbourPairs:
@@ -164,12 +178,21 @@ class TranAndersonAhn(BearingLeaderEstimator[TranGains, TranState]):
     def step(self, x: TranState, h: float, inputs: StepInputs,
              reorthonormalize: bool = True) -> tuple[TranState, dict[str, Array]]:
         d_world, p_nbr = self.neighbour_terms(inputs)
+        g = self.gains
+        pairs = self.pairs(inputs.edges)
         R_hat, Omega, p_hat, torque = tran_step(
             x.R_hat, x.Omega_tilde, x.p_hat, inputs.delta_R, h, inputs.edges,
-            self.pairs(inputs.edges), inputs.bearings, d_world, p_nbr, self.gains,
-            reorthonormalize, displacement=inputs.displacement,
-            p_own=inputs.p_own)
-        return TranState(R_hat=R_hat, p_hat=p_hat, Omega_tilde=Omega), {'innovation': torque}
+            pairs, inputs.bearings, d_world, p_nbr, g, reorthonormalize,
+            displacement=inputs.displacement, p_own=inputs.p_own)
+        # The covariance, linearised at the estimate before the step (covariance.py).
+        y, dist = own_geometry(x, inputs, p_nbr)
+        P = propagate(x.P, h, inputs.edges, y, neighbour_cov(inputs), g.bearing_std,
+                      g.gyro_noise_density,
+                      tran_jacobians(h, inputs.edges, y, dist, x.R_hat, pairs, g.k_omega, g.k_p,
+                                     g.k_c),
+                      fed_forward(x, inputs, g.k_v), g.odometry_noise_density)
+        return (TranState(R_hat=R_hat, p_hat=p_hat, P=P, Omega_tilde=Omega),
+                {'innovation': torque})
 
     def conditioning(self, bearings: Array, k: Array) -> Array:
         """``K_i = Σ_j k_ij b_ij b_ijᵀ``, plus ``k_c c cᵀ`` along ``c = b_ij × b_ik`` for

@@ -733,8 +733,9 @@ class EstimatorNode(Node):
             self.pub_estimate.publish(
                 wire.encode_pose(t, self.estimate_frame, est.R_hat[0], est.p_hat[0]))
             if self.pub_pose is not None:
+                P = getattr(est.x, 'P')[0]   # the pose's block: methods may hold more states
                 self.pub_pose.publish(wire.encode_pose_covariance(
-                    t, self.estimate_frame, est.R_hat[0], est.p_hat[0], getattr(est.x, "P")[0]))
+                    t, self.estimate_frame, est.R_hat[0], est.p_hat[0], P[:6, :6]))
             if self.tf is not None:
                 self.tf.sendTransform(rviz.encode_transform(
                     t, self.estimate_frame, wire.body_frame(self.agent), est.R_hat[0],

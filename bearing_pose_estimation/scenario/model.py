@@ -156,12 +156,15 @@ class SimulationRates:
         return int(round(1.0 / (rate * self.internal_step)))
 
 
-def noise_model_gains(noise: Noise, simulation: SimulationRates) -> dict[str, float]:
+def noise_model_gains(noise: Noise, simulation: SimulationRates,
+                      sensors: Sensors) -> dict[str, float]:
     """The covariance noise model (gains ``bearing_std`` [rad], ``gyro_noise_density``
-    [rad/√s]) a simulation's ``noise:`` implies: the gyro's angle random walk is its
-    per-sample std over the square root of the IMU rate."""
+    [rad/√s], ``odometry_noise_density`` [m/√s]) a simulation's ``noise:`` and ``sensors:``
+    imply: a random walk's density is the per-sample std over the square root of the rate."""
     return {'bearing_std': noise.bearing_std,
-            'gyro_noise_density': noise.gyro_std / float(np.sqrt(simulation.imu_rate))}
+            'gyro_noise_density': noise.gyro_std / float(np.sqrt(simulation.imu_rate)),
+            'odometry_noise_density': (sensors.odometry.std
+                                       / float(np.sqrt(sensors.odometry.rate)))}
 
 
 @dataclass(frozen=True)
@@ -209,7 +212,7 @@ class Scenario:
         (Same truth, initial estimates and noise: how methods are compared.)"""
         gains_cls = estimators.get(method).Gains
         mine = dataclasses.asdict(self.gains)
-        model = noise_model_gains(self.noise, self.simulation)
+        model = noise_model_gains(self.noise, self.simulation, self.sensors)
         values = {f.name: mine.get(f.name, model.get(f.name, f.default))
                   for f in dataclasses.fields(gains_cls)}
         values.update(gains)

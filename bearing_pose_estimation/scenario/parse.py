@@ -316,11 +316,12 @@ def _simulation(ctx: _Ctx, value: Any) -> SimulationRates:
     return SimulationRates(internal_step=dt, **rates)
 
 
-def _noise_model(gains: Any, given: Any, noise: Noise, simulation: SimulationRates) -> Any:
+def _noise_model(gains: Any, given: Any, noise: Noise, simulation: SimulationRates,
+                 sensors: Sensors) -> Any:
     """A method's covariance noise model not given in ``gains:`` is the simulation's own
     ``noise:`` (:func:`.model.noise_model_gains`): in a simulation the model is the truth."""
     names = {f.name for f in dataclasses.fields(gains)}
-    fill = {k: v for k, v in noise_model_gains(noise, simulation).items()
+    fill = {k: v for k, v in noise_model_gains(noise, simulation, sensors).items()
             if k in names and k not in given}
     return dataclasses.replace(gains, **fill) if fill else gains
 
@@ -424,8 +425,8 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     noise = _noise(ctx, top.get('noise', {}))
 
     simulation = _simulation(ctx, top.get('simulation', {}))
-    gains = _noise_model(gains, raw_gains, noise, simulation)
     sensors = _sensors(ctx, top.get('sensors', {}), simulation.internal_step)
+    gains = _noise_model(gains, raw_gains, noise, simulation, sensors)
     formation = (_formation(ctx, top['formation_control']) if 'formation_control' in top
                  else None)
     if formation is not None:
