@@ -94,8 +94,9 @@ def test_the_jacobians_are_the_step_s_own(method, moving):
         F, G, own, theirs, rates = cascade_jacobians(H, edges, b, dist, p + moved, GAINS.k_R,
                                                      GAINS.k_p)
     else:
-        F, G, own, theirs, rates = tran_jacobians(H, edges, b, dist, R, TwoNeighbourPairs.of(edges),
-                                           TRAN.k_omega, TRAN.k_p, TRAN.k_c)
+        F, G, own, theirs, rates = tran_jacobians(H, edges, b, dist, R,
+                                                  TwoNeighbourPairs.of(edges), TRAN.k_omega,
+                                                  TRAN.k_p, TRAN.k_c)
         assert len(TwoNeighbourPairs.of(edges).agent) == 4   # the third direction is checked
     # The rates are those of the continuous error dynamics (the real parts of its eigenvalues).
     exact = np.sort(np.linalg.eigvals((np.eye(F.shape[1]) - F) / H).real, axis=1)

@@ -68,11 +68,11 @@ from ..core import so3
 from .base import Array, Edges, StepInputs, gain
 from .bearing_leaders import (BearingLeaderEstimator, CovState, bearing_pull, fed_forward,
                               neighbour_cov, own_geometry, repeated)
-from .covariance import cascade_jacobians, model_gain, propagate
+from .covariance import CovarianceModel, cascade_jacobians, propagate
 
 
 @dataclass(frozen=True)
-class CascadeGains:
+class CascadeGains(CovarianceModel):
     """Gains of (3) and (23); per-edge ``k_ij`` live in :class:`base.Edges`."""
 
     k_R: float = gain(1.0, 'attitude gain k_R of (3)')
@@ -81,12 +81,6 @@ class CascadeGains:
                       zero_allowed=True)
     bias_std: float = gain(0.0, 'bearing noise std [rad] whose projector bias the position '
                            "correction removes (0: off, the paper's (23))", zero_allowed=True)
-    # The published covariance's model (covariance.py).
-    bearing_std: float = model_gain('bearing_std')
-    gyro_noise_density: float = model_gain('gyro_noise_density')
-    odometry_noise_density: float = model_gain('odometry_noise_density')
-    initial_position_std: float = model_gain('initial_position_std')
-    initial_attitude_std: float = model_gain('initial_attitude_std')
 
 
 def innovation(R_hat: Array, edges: Edges, b_body: Array, d_world: Array) -> tuple[Array, Array]:

@@ -10,7 +10,8 @@ R_i`` (a rotation error about the world axes [rad]).
 Linearising :func:`.boughellaba_tayebi.cascade_step` about the truth (``y_ij = R̂_i b^i_ij ≈
 b_ij + φ_i × b_ij + ν_ij``, the neighbour's ``R̂_j b^j_ij ≈ b_ij + φ_j × b_ij + ν'_ij``, each
 bearing noise ``ν ~ N(0, σ_b² P_b)``, ``d_ij = ‖p_j − p_i‖``; (23) sums its projectors
-unweighted, ``M_i = Σ_j P_{b_ij}``, while ``σ_i`` weighs with ``k_ij``, ``Q_i = Σ_j k_ij P_{b_ij}``)::
+unweighted, ``M_i = Σ_j P_{b_ij}``, while ``σ_i`` weighs with ``k_ij``,
+``Q_i = Σ_j k_ij P_{b_ij}``)::
 
     σ_i  ≈ Σ_j k_ij (P_b (φ_i − φ_j) + [b]x (ν_ij − ν'_ij))
     φ_i⁺ = φ_i − h k_R σ_i + w_i,                        w_i ~ N(0, h N_g² I)
@@ -39,6 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dataclasses import dataclass
 from typing import Any
 
 from ..core import so3
@@ -66,6 +68,19 @@ def model_gain(name: str) -> Any:
     stds default to a simulation's ``noise:`` (scenario.parse), 0 otherwise."""
     default, help = _MODEL[name]
     return gain(default, help, zero_allowed=default == 0.0, model=True)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CovarianceModel:
+    """The gains both methods' covariances read: the noise model and the prior (a base of
+    their gains dataclasses; keyword-only, so that the methods' own gains stay first in
+    their constructors)."""
+
+    bearing_std: float = model_gain('bearing_std')
+    gyro_noise_density: float = model_gain('gyro_noise_density')
+    odometry_noise_density: float = model_gain('odometry_noise_density')
+    initial_position_std: float = model_gain('initial_position_std')
+    initial_attitude_std: float = model_gain('initial_attitude_std')
 
 
 def initial_covariance(n: int, position_std: float, attitude_std: float,

@@ -59,11 +59,11 @@ from ..core import so3
 from .base import Array, Edges, StepInputs, gain
 from .bearing_leaders import (EIGEN_GAP_REL, BearingLeaderEstimator, CovState, bearing_pull,
                               fed_forward, neighbour_cov, own_geometry, repeated)
-from .covariance import model_gain, propagate, tran_jacobians
+from .covariance import CovarianceModel, propagate, tran_jacobians
 
 
 @dataclass(frozen=True)
-class TranGains:
+class TranGains(CovarianceModel):
     """``k_omega`` (k_ω, damping of Ω̃), ``k_p`` (position), ``k_c`` (the extra direction of
     two-neighbour followers); per-edge ``k_ij`` live in :class:`base.Edges`."""
 
@@ -75,12 +75,6 @@ class TranGains:
     bias_std: float = gain(0.0, 'bearing noise std [rad] whose projector bias the position '
                            'correction removes (0: off, the paper\'s observer; '
                            'bearing_leaders.bearing_pull)', zero_allowed=True)
-    # The published covariance's model (covariance.py).
-    bearing_std: float = model_gain('bearing_std')
-    gyro_noise_density: float = model_gain('gyro_noise_density')
-    odometry_noise_density: float = model_gain('odometry_noise_density')
-    initial_position_std: float = model_gain('initial_position_std')
-    initial_attitude_std: float = model_gain('initial_attitude_std')
 
 
 @dataclass

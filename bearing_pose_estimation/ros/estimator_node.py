@@ -8,10 +8,11 @@ publishes. Subscribes (relative names, remappable): ``imu`` (sensor_msgs/Imu), `
 (sensor_msgs/PointCloud2), ``known_pose`` (leaders), ``odom`` (nav_msgs/Odometry, for methods
 that use odometry: the feed-forward of moving agents), and, for each neighbour j, the topics of
 the channels the method sends (``msg_defs.CHANNELS``; both leader-follower methods:
-``/<j>/estimate`` and ``/<j>/world_bearings``). Publishes ``estimate``
-(geometry_msgs/PoseStamped in ``world``) and its other channels (``world_bearings``: what its
-listeners need) every ``publish_rate`` period, on exact multiples of it, and its health on
-``/diagnostics``. When the agent moves (odometry is live), the world bearings of an instant
+``/<j>/estimate``, ``/<j>/world_bearings`` and ``/<j>/pose``). Publishes ``estimate``
+(geometry_msgs/PoseStamped in ``world``), for methods with a covariance ``pose`` (the same
+with its covariance, geometry_msgs/PoseWithCovarianceStamped, for robot_localization) and
+its other channels (``world_bearings``: what its listeners need) every ``publish_rate``
+period, on exact multiples of it, and its health on ``/diagnostics``. When the agent moves (odometry is live), the world bearings of an instant
 wait for the own bearings measured at it (listeners pair values of one instant,
 ``msg_defs/README.md``), and are skipped if the next step comes first.
 
@@ -41,8 +42,9 @@ Parameters: either ``scenario_file`` (+ ``agent``, default: the namespace) or th
 ``initial_position``, ``initial_orientation`` (x, y, z, w), with ``method`` (empty: the
 registry's default, ``boughellaba_tayebi``); ``frequency`` [Hz], ``publish_rate`` [Hz] and the
 method's gains, named as in a scenario's ``gains:`` (``k_R``, ``k_p`` for boughellaba_tayebi;
-``k_omega``, ``k_c``, ``k_p`` for tran_anderson_ahn; ...), each declared with its effective
-value (the scenario's, or 100 Hz / 50 Hz / the method's defaults in explicit mode), so
+``k_omega``, ``k_c``, ``k_p`` for tran_anderson_ahn; ...; the covariance's noise model and
+prior, ``bearing_std``, ``gyro_noise_density``, ..., are gains too), each declared with its
+effective value (the scenario's, or 100 Hz / 50 Hz / the method's defaults in explicit mode), so
 ``ros2 param get`` tells the truth; a gain of another method is an error.
 ``start_time`` [s] (the scenario's t = 0 on the node's clock; negative: the first gyro stamp);
 the input limits ``sensor_timeout``, ``neighbour_timeout``, ``max_rate``, ``link_wait`` [s of

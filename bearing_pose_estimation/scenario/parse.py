@@ -25,8 +25,8 @@ from ..core.errors import ScenarioError
 from ..core.motion import (AngularVelocity, Component, LinearVelocity, Sinusoid, VectorProfile,
                            YawSpline, rot_z)
 from ..estimators.base import Estimator, parse_gains
-from .model import (Agent, BearingPerturbation, noise_model_gains, FormationControl, Neighbour, Noise, RandomInit,
-                    Scenario, SensorSpec, Sensors, SimulationRates)
+from .model import (Agent, BearingPerturbation, FormationControl, Neighbour, Noise, RandomInit,
+                    Scenario, SensorSpec, Sensors, SimulationRates, noise_model_gains)
 
 # Agent names become ROS namespaces and frame prefixes (`agent_3/base_link`).
 _NAME_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
