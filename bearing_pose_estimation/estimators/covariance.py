@@ -25,7 +25,8 @@ So ``x_i⁺ = F_i x_i + Σ_j G_ij x_j + noise``, and each agent propagates
 from its own geometry and noise model (``W_i``: the bearing and gyro noise, ``N_g`` the gyro's
 angle random walk [rad/√s]) and the covariances ``P_j`` its neighbours send. Solved over the
 whole fleet at once, the recursion without ``c_i`` but with the cross-covariances ``E[x_i x_jᵀ]``
-is exact to first order (on paper_noisy its NEES is 3.0-3.6 for 3 dof, bench/nees.py). An agent
+is exact to first order (on paper_noisy its NEES is 2.8-3.6 for 3 dof on 4 runs, BENCHMARKS.md,
+"The covariance"). An agent
 has neither those cross-covariances nor the neighbours' dynamics, so ``c_i`` stands for them:
 
 - a neighbour's error is slow (correlated over ~1/a), not white: over its own window agent i
@@ -38,10 +39,10 @@ has neither those cross-covariances nor the neighbours' dynamics, so ``c_i`` sta
 """
 from __future__ import annotations
 
-import numpy as np
-
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from ..core import so3
 from .base import Array, Edges, gain
@@ -65,7 +66,8 @@ _MODEL = {
 
 def model_gain(name: str) -> Any:
     """The gains field ``name`` of the covariance's model (a fresh field per class); the noise
-    stds default to a simulation's ``noise:`` (scenario.parse), 0 otherwise."""
+    densities default to a simulation's ``noise:`` and ``sensors:`` (scenario.parse), 0
+    otherwise."""
     default, help = _MODEL[name]
     return gain(default, help, zero_allowed=default == 0.0, model=True)
 
