@@ -50,39 +50,25 @@ from .base import Array, Edges, gain
 EYE3 = np.eye(3)
 DOF = 6     # what the pose covariance covers, what neighbours send: (e_i, φ_i)
 
-# The covariance's model, gains of both methods (not shown in tables of gains).
-_MODEL = {
-    'bearing_std': (0.0, 'bearing noise std [rad] per component, for the covariance'),
-    'gyro_noise_density': (0.0, 'gyro angle random walk [rad/sqrt(s)] (gyro std / sqrt(IMU '
-                                'rate)), for the covariance'),
-    'odometry_noise_density': (0.0, 'odometry velocity random walk [m/sqrt(s)] (velocity std / '
-                                    'sqrt(odometry rate)), for the covariance'),
-    'initial_position_std': (2.0, "std of the initial position estimate [m], the covariance's "
-                                  'prior'),
-    'initial_attitude_std': (1.0, "std of the initial attitude estimate [rad], the "
-                                  "covariance's prior"),
-}
-
-
-def model_gain(name: str) -> Any:
-    """The gains field ``name`` of the covariance's model (a fresh field per class); the noise
-    densities default to a simulation's ``noise:`` and ``sensors:`` (scenario.parse), 0
-    otherwise."""
-    default, help = _MODEL[name]
-    return gain(default, help, zero_allowed=default == 0.0, model=True)
-
-
 @dataclass(frozen=True, kw_only=True)
 class CovarianceModel:
-    """The gains both methods' covariances read: the noise model and the prior (a base of
+    """The gains both methods' covariances read, the noise model and the prior (a base of
     their gains dataclasses; keyword-only, so that the methods' own gains stay first in
-    their constructors)."""
+    their constructors; ``model=True``: tables of gains leave them out). The noise densities
+    default to a simulation's ``noise:`` and ``sensors:`` (scenario.parse), 0 otherwise."""
 
-    bearing_std: float = model_gain('bearing_std')
-    gyro_noise_density: float = model_gain('gyro_noise_density')
-    odometry_noise_density: float = model_gain('odometry_noise_density')
-    initial_position_std: float = model_gain('initial_position_std')
-    initial_attitude_std: float = model_gain('initial_attitude_std')
+    bearing_std: float = gain(0.0, 'bearing noise std [rad] per component, for the covariance',
+                              zero_allowed=True, model=True)
+    gyro_noise_density: float = gain(0.0, 'gyro angle random walk [rad/sqrt(s)] (gyro std / '
+                                     'sqrt(IMU rate)), for the covariance', zero_allowed=True,
+                                     model=True)
+    odometry_noise_density: float = gain(0.0, 'odometry velocity random walk [m/sqrt(s)] '
+                                         '(velocity std / sqrt(odometry rate)), for the '
+                                         'covariance', zero_allowed=True, model=True)
+    initial_position_std: float = gain(2.0, 'std of the initial position estimate [m], the '
+                                       "covariance's prior", model=True)
+    initial_attitude_std: float = gain(1.0, 'std of the initial attitude estimate [rad], the '
+                                       "covariance's prior", model=True)
 
 
 def initial_covariance(n: int, position_std: float, attitude_std: float,

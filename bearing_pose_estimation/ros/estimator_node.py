@@ -12,9 +12,10 @@ the channels the method sends (``msg_defs.CHANNELS``; both leader-follower metho
 (geometry_msgs/PoseStamped in ``world``), for methods with a covariance ``pose`` (the same
 with its covariance, geometry_msgs/PoseWithCovarianceStamped, for robot_localization) and
 its other channels (``world_bearings``: what its listeners need) every ``publish_rate``
-period, on exact multiples of it, and its health on ``/diagnostics``. When the agent moves (odometry is live), the world bearings of an instant
-wait for the own bearings measured at it (listeners pair values of one instant,
-``msg_defs/README.md``), and are skipped if the next step comes first.
+period, on exact multiples of it, and its health on ``/diagnostics``. When the agent moves
+(odometry is live), the world bearings of an instant wait for the own bearings measured at it
+(listeners pair values of one instant, ``msg_defs/README.md``), and are skipped if the next
+step comes first.
 
 Methods whose robots talk over communication links (De Carli et al.) run
 :class:`estimators.link_agent.LinkAgentEstimator` instead: the node subscribes to its own
