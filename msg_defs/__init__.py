@@ -541,7 +541,8 @@ def _encode_id_blocks(t: float, value: dict[int, Array], frame: str) -> PointClo
 # the point of the listener).
 CHANNELS = {
     'p_hat': ChannelWire(ESTIMATE, PoseStamped, '{estimate}', _decode_position, None),
-    # The leader-follower methods: P_j on the sender's `pose`, published with each estimate.
+    # The leader-follower methods and De Carli et al.: P_j on the sender's `pose`, published
+    # with each estimate.
     'pose_cov': ChannelWire(POSE, PoseWithCovarianceStamped, '{estimate}', decode_covariance,
                             None),
     'world_bearing': ChannelWire(WORLD_BEARINGS, PointCloud2, '{world}', _decode_id_vectors,

@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import yaml
 import pytest
 
 from bearing_pose_estimation.core.motion import YawSplines
@@ -174,3 +175,16 @@ def test_check_refuses_what_breaks_the_method():
 
     report = check_scenario(parse_scenario(_edited(static)))
     assert report.ok and sum('never excited' in w.problem for w in report.warnings) == 12
+
+
+def test_the_noisy_scenario_is_this_one_with_noise():
+    """config/de_carli_noisy.yaml: everything but name, description, noise and the sensors'
+    std is this file's."""
+    quiet = yaml.safe_load(CONFIG.read_text())
+    noisy = yaml.safe_load((ROOT / 'config' / 'de_carli_noisy.yaml').read_text())
+    assert noisy.pop('noise') == {'gyro_std': 0.005, 'seed': 0}
+    for name in ('odometry', 'relative_positions'):
+        assert noisy['sensors'][name].pop('std') == 0.02
+    for key in ('name', 'description'):
+        assert noisy.pop(key) != quiet.pop(key)
+    assert noisy == quiet

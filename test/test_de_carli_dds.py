@@ -5,6 +5,9 @@ process. One fleet, several checks:
 - the errors equal the batch simulator's to 1e-6 (the issue's acceptance: within 5 %);
 - the messages on the wire: ẑ_i as a complex number in the fleet's estimation frame, the
   owners' relative yaws in their body frames;
+- the pose with its covariance (de_carli_covariance.py, a noise model given) on `pose`, the
+  batch simulator's to a few per cent (a neighbour's covariance is its newest, not waited
+  for);
 - /diagnostics reports each pair's excitation: the pairs only robot 7's motion could excite are
   not excited, the others are; |ẑ_i| and the stage of each robot.
 """
@@ -31,7 +34,11 @@ DURATION = 2.0
 # Subscribed once the run is going: the simulator starts when every estimator's topics have
 # their expected subscribers, and an early observer would count as one of them.
 LATE_TOPICS = {'/robot_0/yaw_estimate': (wire.Vector3Stamped, wire.ESTIMATE_QOS),
-               '/robot_0/relative_yaws': (wire.PointCloud2, wire.ESTIMATE_QOS)}
+               '/robot_0/relative_yaws': (wire.PointCloud2, wire.ESTIMATE_QOS),
+               '/robot_0/pose': (wire.PoseWithCovarianceStamped, wire.ESTIMATE_QOS)}
+# The covariance's noise model (the scenario has no noise: it does not change the estimate).
+MODEL = {'relative_position_std': 0.02, 'odometry_noise_density': 1.4e-3,
+         'gyro_noise_density': 3.5e-4}
 
 
 @pytest.fixture(scope='module')
@@ -43,6 +50,7 @@ def run(tmp_path_factory):
     for agent in data['agents']:
         if agent['name'] == 'robot_7':
             del agent['formation_position']   # it hovers
+    data['gains'].update(MODEL)
     scenario_file = tmp / 'hover.yaml'
     scenario_file.write_text(yaml.safe_dump(data, sort_keys=False))
     scenario = load_scenario(scenario_file)
@@ -108,6 +116,20 @@ def test_yaw_estimates_travel_as_complex_numbers_in_the_estimation_frame(run):
     _, ids, values = wire.decode_vectors(pairs[-1])
     assert ids.tolist() == [2]
     assert abs(np.hypot(values[0, 0], values[0, 1]) - 1.0) < 1e-12 and values[0, 2] == 0.0
+
+
+def test_the_pose_carries_the_batch_simulator_s_covariance(run):
+    scenario_file, _, messages = run
+    frame = wire.estimation_frame(load_scenario(scenario_file).name)
+    poses = messages['/robot_0/pose']
+    assert poses and {m.header.frame_id for m in poses} == {frame}
+    t, P = wire.decode_covariance(poses[-1])
+    sim = BatchSimulator(load_scenario(scenario_file))
+    while sim.t < t - 1e-9:
+        sim.step()
+    assert sim.t == pytest.approx(t, abs=1e-9)
+    assert np.all(P[3:5] == 0.0) and np.all(P[:, 3:5] == 0.0)   # roll and pitch known
+    assert np.linalg.norm(P - sim.x.P[0]) < 0.05 * np.linalg.norm(sim.x.P[0]), (P, sim.x.P[0])
 
 
 def _state_time(messages, robot: str) -> float:

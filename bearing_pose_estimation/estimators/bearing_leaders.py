@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from ..core import graph, so3
 from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, G,
                    Index, Roles, Sensor, State, StepInputs)
-from .covariance import DOF, initial_covariance
+from .covariance import DOF, POSE_COV, initial_covariance
 
 if TYPE_CHECKING:
     from ..scenario.model import Agent, Scenario
@@ -31,10 +31,7 @@ if TYPE_CHECKING:
 P_HAT = Channel('p_hat', per='agent', frame='world', doc='p̂_j, the position estimate [m]')
 WORLD_BEARING = Channel('world_bearing', per='edge', frame='world', unit=True,
                         doc='R̂_j b^j_ji, j\'s bearing to its listener i in the world frame')
-# Optional: a neighbour whose covariance is lost still corrects the estimate; the covariance
-# then takes the prior for it (BearingLeaderEstimator.missing).
-POSE_COV = Channel('pose_cov', per='agent', frame='world', shape=(DOF, DOF), optional=True,
-                   doc='P_j, the covariance of (p̂_j, R̂_j) (covariance.py)')
+
 
 # Bearings closer than this to collinear make Σ P_b singular: an error.
 COLLINEAR_ERROR_RAD = 1e-6

@@ -45,20 +45,24 @@ from typing import Any
 import numpy as np
 
 from ..core import so3
-from .base import Array, Edges, gain
+from .base import Array, Channel, Edges, gain
 
 EYE3 = np.eye(3)
 DOF = 6     # what the pose covariance covers, what neighbours send: (e_i, φ_i)
+# Optional: a neighbour whose covariance is lost still corrects the estimate; the covariance
+# then takes the prior for it (Estimator.missing).
+POSE_COV = Channel('pose_cov', per='agent', frame='estimate', shape=(DOF, DOF), optional=True,
+                   doc="P_j, the covariance of the sender's pose estimate (position, then "
+                       'rotation; covariance.py, de_carli_covariance.py)')
 
 @dataclass(frozen=True, kw_only=True)
-class CovarianceModel:
-    """The gains both methods' covariances read, the noise model and the prior (a base of
-    their gains dataclasses; keyword-only, so that the methods' own gains stay first in
-    their constructors; ``model=True``: tables of gains leave them out). The noise densities
-    default to a simulation's ``noise:`` and ``sensors:`` (scenario.parse), 0 otherwise."""
+class PoseCovarianceModel:
+    """The gains every method's covariance reads: the motion sensors' noise and the prior (a
+    base of the methods' gains dataclasses; keyword-only, so that the methods' own gains stay
+    first in their constructors; ``model=True``: tables of gains leave them out). The noise
+    densities default to a simulation's ``noise:`` and ``sensors:`` (scenario.parse), 0
+    otherwise."""
 
-    bearing_std: float = gain(0.0, 'bearing noise std [rad] per component, for the covariance',
-                              zero_allowed=True, model=True)
     gyro_noise_density: float = gain(0.0, 'gyro angle random walk [rad/sqrt(s)] (gyro std / '
                                      'sqrt(IMU rate)), for the covariance', zero_allowed=True,
                                      model=True)
@@ -69,6 +73,14 @@ class CovarianceModel:
                                        "covariance's prior", model=True)
     initial_attitude_std: float = gain(1.0, 'std of the initial attitude estimate [rad], the '
                                        "covariance's prior", model=True)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CovarianceModel(PoseCovarianceModel):
+    """The leader-follower methods' model: the motion sensors' and the bearings' noise."""
+
+    bearing_std: float = gain(0.0, 'bearing noise std [rad] per component, for the covariance',
+                              zero_allowed=True, model=True)
 
 
 def initial_covariance(n: int, position_std: float, attitude_std: float,

@@ -79,8 +79,10 @@ from numpy.typing import NDArray
 from scipy.sparse.csgraph import connected_components
 
 from ..core.motion import rot_z, yaw_of
+from . import de_carli_covariance as cov
 from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, Index,
                    Roles, Sensor, State, StepInputs, gain)
+from .covariance import POSE_COV, PoseCovarianceModel
 
 if TYPE_CHECKING:
     from ..scenario.model import Scenario
@@ -136,8 +138,9 @@ def as_pair(z: Complex) -> Array:
 
 
 @dataclass(frozen=True)
-class DeCarliGains:
-    """Gains of (7)-(8), (13), (21) and the two slower stages' rates."""
+class DeCarliGains(PoseCovarianceModel):
+    """Gains of (7)-(8), (13), (21) and the two slower stages' rates; the covariance's model
+    (:mod:`.de_carli_covariance`)."""
 
     k_pe: float = gain(20.0, 'relative-position gain k_pe of (7)-(8) [1/s]')
     k_psi: float = gain(600.0, 'relative-yaw gain k_psi of (7)-(8) [1/m^2]')
@@ -150,6 +153,8 @@ class DeCarliGains:
     pe_threshold: float = gain(EXCITATION_M2_S, 'excitation a pair needs to join the yaw '
                                'consensus, integral of |v_xy|^2 [m^2/s] (0: every pair from the '
                                'start)', zero_allowed=True)
+    relative_position_std: float = gain(0.0, 'relative position noise std [m] per component, '
+                                        'for the covariance', zero_allowed=True, model=True)
 
 
 @dataclass
@@ -171,10 +176,12 @@ class DeCarliState(State):
     ready_pair: NDArray[np.bool_]
     excitation: Array         # (N, D) ∫ |v_xy|² dt of the pair's sensed robots [m²/s]
     excitation_recent: Array  # (N, D) the same over a 1 s exponential window
+    P: Array                  # (N, 6, 6) the pose covariance (de_carli_covariance.py)
+    P_pair: Array             # (N, D, 6, 6) each pair's (E_out, ζ, E_in); 0: not started
 
     LINK_FIELDS: ClassVar[tuple[str, ...]] = (
         'P_out', 'Pz_out', 'P_in', 'Pz_in', 'z_pair', 'd_other', 'ready_out', 'ready_in',
-        'ready_pair', 'excitation', 'excitation_recent')
+        'ready_pair', 'excitation', 'excitation_recent', 'P_pair')
 
     @property
     def slots(self) -> int:
@@ -188,7 +195,8 @@ class DeCarliState(State):
         pad = slots - self.slots
         for name in self.LINK_FIELDS:
             v = getattr(out, name)
-            setattr(out, name, np.concatenate([v, np.zeros((v.shape[0], pad), v.dtype)], 1))
+            setattr(out, name, np.concatenate(
+                [v, np.zeros((v.shape[0], pad) + v.shape[2:], v.dtype)], 1))
         return out
 
 
@@ -201,7 +209,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
     roles: ClassVar[Roles] = Roles()
     sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.ODOMETRY,
                                                      Sensor.RELATIVE_POSITIONS})
-    sends: ClassVar[tuple[Channel, ...]] = (Z_HAT, P_HAT, MEAS, RELYAW)
+    sends: ClassVar[tuple[Channel, ...]] = (Z_HAT, P_HAT, MEAS, RELYAW, POSE_COV)
     frame: ClassVar[EstimateFrame] = EstimateFrame.COMMON_YAW_TRANSLATION
     edge_gains: ClassVar[bool] = False
     links: ClassVar[Literal['sensing', 'communication']] = 'communication'
@@ -216,9 +224,21 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         links = {name: np.zeros((n, 0), complex if name.startswith(('P_', 'z_', 'd_'))
                                 else bool if name.startswith('ready') else float)
                  for name in DeCarliState.LINK_FIELDS}
+        links['P_pair'] = np.zeros((n, 0, cov.PAIR, cov.PAIR))
         return DeCarliState(R_hat=rot_z(psi), p_hat=np.array(p_hat, dtype=float),
                             z_hat=np.exp(1j * psi), d_own=np.zeros(n, complex),
-                            p_residual=np.full(n, UNKNOWN_RESIDUAL), **links)
+                            p_residual=np.full(n, UNKNOWN_RESIDUAL), P=self.prior(n), **links)
+
+    def prior(self, n: int) -> Array:
+        """The covariance of ``n`` initial estimates (the gains' ``initial_*_std``)."""
+        return cov.pose_prior(n, self.gains.initial_position_std,
+                              self.gains.initial_attitude_std)
+
+    def missing(self, channel: str) -> Array:
+        """A neighbour's covariance not received (yet): the prior."""
+        if channel != POSE_COV.name:
+            return super().missing(channel)
+        return self.prior(1)[0]
 
     def propagate(self, x: DeCarliState, delta_R: Array,
                   displacement: Array | None = None) -> DeCarliState:
@@ -243,7 +263,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
             ready = x.ready_pair[s, k]
             relyaw[inside] = np.where(ready[:, None], as_pair(unit(x.z_pair[s, k])), 0.0)
         return {'z_hat': as_pair(x.z_hat), 'p_hat': x.p_hat,
-                'meas': np.array(bearings, dtype=float), 'relyaw': relyaw}
+                'meas': np.array(bearings, dtype=float), 'relyaw': relyaw, 'pose_cov': x.P}
 
     def due(self, channel: str, t: float, h: float) -> bool:
         """``z_hat`` at the consensus and position ticks (R̂_j pairs with ʲp_ji), ``relyaw``
@@ -353,6 +373,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         e_in_z = np.where(tw & m_ok[k], out.Pz_in[a, s] - meas[k, 2], 0.0)
         z_plus = out.z_pair[a, s] - g.k_psi * (np.conj(x.d_other[a, s]) * E_out
                                               + x.d_own[a] * np.conj(E_in))
+        z_lin = out.z_pair[a, s].copy()     # where the covariance linearises the pair
         rot_i, rot_j = np.exp(-1j * dpsi_i[a]), np.exp(-1j * dpsi_j[k])
         out.P_out[a, s] = rot_i * (out.P_out[a, s] - dc_i[a] + dc_j[k] * z_plus
                                    - h * g.k_pe * E_out)
@@ -379,6 +400,27 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         out.z_hat = np.exp(1j * dpsi_i) * z_hat
         out.R_hat = rot_z(np.angle(out.z_hat))
 
+        # The covariance (de_carli_covariance.py), linearised at the state before the step.
+        z_pre = np.zeros(len(ag), complex)
+        z_pre[k] = unit(z_lin)
+        out.P_pair[ag[gone], sl[gone]] = 0.0
+        pairs, z_pair, maps, two_way = self.pair_maps(x, h, inputs, k, z_pre)
+        P = out.P_pair[ag[pairs], sl[pairs]]
+        start = np.einsum('kii->k', P) == 0.0
+        if start.any():
+            P[start] = cov.pair_prior(int(start.sum()), g.relative_position_std,
+                                      g.initial_attitude_std)
+        out.P_pair[ag[pairs], sl[pairs]] = cov.pair_step(
+            P, maps, two_way, g.relative_position_std ** 2, h * g.odometry_noise_density ** 2,
+            h * g.gyro_noise_density ** 2)
+        eps_var = np.zeros(len(ag))
+        live = out.P_pair[ag, sl, 2, 2] + out.P_pair[ag, sl, 3, 3] > 0.0
+        eps_var[live] = cov.yaw_error_var(out.P_pair[ag[live], sl[live]], z_pair[live])
+        out.P = cov.robot_step(x.P, rec[POSE_COV.name], edges,
+                               self.robot_maps(x, h, inputs, active, z_hat), eps_var,
+                               inputs.displacement is not None,
+                               h * g.odometry_noise_density ** 2, h * g.gyro_noise_density ** 2)
+
         residual = np.zeros(n)
         np.maximum.at(residual, a, np.abs(E_out))
         target = as_complex(yaw_target)
@@ -392,6 +434,70 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
                        'relative_residual_m': residual, 'yaw_residual': yaw_residual,
                        'position_residual_m': position_residual, 'stage': stage.astype(float)}
         return out, diagnostics
+
+    def robot_maps(self, x: DeCarliState, h: float, inputs: StepInputs,
+                   active: NDArray[np.bool_], z_mid: Complex) -> cov.RobotMaps:
+        """The linearised step of the robots' poses at ``x`` (de_carli_covariance.py):
+        ``active`` the pairs stage 2 used, ``z_mid`` the yaws after it."""
+        g, L, edges, rec = self.gains, inputs.links, inputs.edges, inputs.received
+        assert L is not None
+        tick = int(round(inputs.t / h))
+        every_edge = np.ones(len(edges.agent), dtype=bool)
+        fresh = every_edge if L.fresh is None else L.fresh
+        y_ok = fresh & L.senses & (every_edge if L.measured is None else L.measured)
+        m_ok = fresh & L.sensed_by & (every_edge if L.their_measured is None
+                                      else L.their_measured)
+        yaw_tick = tick % self.every(g.yaw_rate, h) == 0
+        moved = (None if inputs.displacement is None else np.einsum(
+            'nab,nb->na', rot_z(np.angle(z_mid)), np.asarray(inputs.displacement, float)))
+        return cov.robot_maps(
+            edges, self.every(g.position_rate, h) * h, g.k_p,
+            tick % self.every(g.position_rate, h) == 0,
+            self.every(g.yaw_rate, h) * h * g.k_z if yaw_tick else None,
+            rec['p_hat'] - x.p_hat[edges.agent], y_ok.astype(float), m_ok.astype(float),
+            x.z_hat, as_complex(rec['z_hat']), active.astype(float), moved,
+            g.relative_position_std ** 2)
+
+    def pair_maps(self, x: DeCarliState, h: float, inputs: StepInputs,
+                  owned: NDArray[np.bool_], z_owned: Complex
+                  ) -> tuple[Index, Complex, tuple[Array, Array], NDArray[np.bool_]]:
+        """The pairs' linearised stage 1 (de_carli_covariance.py), in the owner's orientation:
+        the owner's on the pairs it runs (``owned``; ``z_owned`` their unit relative yaws at
+        the step's start), the other robot's replica from the same odometry and
+        measurements (from the owner's ``relyaw``), so that both ends hold the same
+        covariance. Returns the links ``(K,)``, the relative yaw each link linearises at
+        ``(E,)`` (0 where none), :func:`.de_carli_covariance.pair_maps` and two-way flags."""
+        L, edges, rec = inputs.links, inputs.edges, inputs.received
+        assert L is not None and edges.slot is not None
+        ag, sl = edges.agent, edges.slot
+        every_edge = np.ones(len(ag), dtype=bool)
+        present = every_edge if L.present is None else L.present
+        fresh = every_edge if L.fresh is None else L.fresh
+        y_ok = L.senses & (every_edge if L.measured is None else L.measured)
+        m_ok = L.sensed_by & (every_edge if L.their_measured is None else L.their_measured)
+        relyaw = as_complex(rec['relyaw'])
+        replica = ~L.owns & present & fresh & (np.abs(relyaw) > 0.5)
+        z_all = np.where(owned, z_owned, np.where(replica, relyaw, 0.0))
+        e = np.flatnonzero(owned | replica)
+        o = owned[e]
+        a_, s_ = ag[e], sl[e]
+        dpsi_i = yaw_of(inputs.delta_R)[a_]
+        dpsi_j = yaw_of(L.other_delta_R)[e]
+        d_i = (np.zeros(len(e), complex) if inputs.displacement is None
+               else as_complex(np.asarray(inputs.displacement, dtype=float))[a_])
+        d_j = as_complex(L.other_displacement)[e]
+        y_c, meas_c = as_complex(L.relative_positions)[e], as_complex(rec['meas'])[e]
+        # In the owner's orientation: the owner o and the other robot x of each pair.
+        z, dpsi_o, dpsi_x = z_all[e], np.where(o, dpsi_i, dpsi_j), np.where(o, dpsi_j, dpsi_i)
+        two_way = L.senses[e] & L.sensed_by[e]
+        maps = cov.pair_maps(
+            h, self.gains.k_pe, self.gains.k_psi, z, np.exp(1j * (dpsi_x - dpsi_o)) * z,
+            np.where(o, x.d_other[a_, s_], x.d_own[a_]),
+            np.where(o, x.d_own[a_], x.d_other[a_, s_]), np.where(o, d_i, d_j),
+            np.where(o, d_j, d_i), dpsi_o, dpsi_x, np.where(o, y_c, meas_c),
+            np.where(o, meas_c, y_c), np.where(o, y_ok[e], m_ok[e]),
+            np.where(o, m_ok[e], y_ok[e]), two_way)
+        return e, z_all, maps, two_way
 
     # --- what the recordings show
     edge_error_label: ClassVar[str] = 'rel_yaw_err'

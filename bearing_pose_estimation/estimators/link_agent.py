@@ -371,7 +371,10 @@ class LinkAgentEstimator(TimedAgent):
         whatever is missing now is left out)."""
         est, h = self.estimator, self.h
         stale = set(self.stale_neighbours(t))
-        due = [c.name for c in est.sends if c.sensor is None and est.due(c.name, t, h)]
+        # Optional channels (the covariance) are never waited for: the newest value, or
+        # the method's stand-in (Estimator.missing).
+        due = [c.name for c in est.sends
+               if c.sensor is None and not c.optional and est.due(c.name, t, h)]
         if not final:
             awaited = self._awaiting(t, due, stale)
             if awaited is not None:
@@ -423,6 +426,8 @@ class LinkAgentEstimator(TimedAgent):
             for c in est.sends:
                 if c.name not in due and c.sensor is None and link.history.get(c.name):
                     received[c.name][e] = link.history[c.name][-1][1]
+                elif c.optional:
+                    received[c.name][e] = est.missing(c.name)
             flags['fresh'][e] = fresh
         for c in est.sends:
             if c.sensor is not None:

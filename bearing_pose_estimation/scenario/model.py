@@ -158,10 +158,12 @@ class SimulationRates:
 
 def noise_model_gains(noise: Noise, simulation: SimulationRates,
                       sensors: Sensors) -> dict[str, float]:
-    """The covariance noise model (gains ``bearing_std`` [rad], ``gyro_noise_density``
-    [rad/√s], ``odometry_noise_density`` [m/√s]) a simulation's ``noise:`` and ``sensors:``
-    imply: a random walk's density is the per-sample std over the square root of the rate."""
+    """The covariance noise model (gains ``bearing_std`` [rad], ``relative_position_std``
+    [m], ``gyro_noise_density`` [rad/√s], ``odometry_noise_density`` [m/√s]) a simulation's
+    ``noise:`` and ``sensors:`` imply (each method reads the ones its gains have): a random
+    walk's density is the per-sample std over the square root of the rate."""
     return {'bearing_std': noise.bearing_std,
+            'relative_position_std': sensors.relative_positions.std,
             'gyro_noise_density': noise.gyro_std / float(np.sqrt(simulation.imu_rate)),
             'odometry_noise_density': (sensors.odometry.std
                                        / float(np.sqrt(sensors.odometry.rate)))}
