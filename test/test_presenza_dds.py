@@ -50,11 +50,19 @@ def run(tmp_path_factory):
     shm = launch.shm_files()
     with observer() as obs, launch.ProcessGroup(env=launch.dds_env(DOMAIN, tmp / 'ros')) as g:
         obs.subscribe(DiagnosticArray, '/diagnostics', 50)
+        # The simulator last, once this observer hears every node's diagnostics: the run
+        # lasts ~1.5 s here, and the monitor's first reports (volatile) must not go out
+        # before the observer is matched.
         for spec in specs:
-            g.start(spec)
-        assert obs.spin_until(lambda: _status(obs.messages, 'robot_4').get(
-            'state_time_s', '-1') not in ('-1', 'n/a') and float(
-            _status(obs.messages, 'robot_4')['state_time_s']) > 0.2, 120.0), \
+            if spec.name != 'simulator':
+                g.start(spec)
+        assert obs.spin_until(lambda: obs.node.count_publishers('/diagnostics')
+                              >= len(scenario.index) + 1, 120.0)
+        g.start(next(spec for spec in specs if spec.name == 'simulator'))
+        # Until the run is going, or over (a fast machine's 2 s run can end first; the late
+        # readers still get the writers' last values, below).
+        assert obs.spin_until(lambda: g.returncode('monitor') is not None
+                              or _state_time(obs.messages, 'robot_4') > 0.2, 120.0), \
             {n: launch.log_tail(cfg.logs_dir / f'{n}.log', 5) for n in scenario.index}
         for name, (msg_type, qos) in LATE_TOPICS.items():
             obs.subscribe(msg_type, name, qos)
@@ -65,11 +73,19 @@ def run(tmp_path_factory):
         # once matched, which on a fast run can be after the monitor is done.
         assert obs.spin_until(lambda: all(obs.messages[t] for t in LATE_TOPICS), 60.0), \
             {t: len(obs.messages[t]) for t in LATE_TOPICS}
+        # Every robot's report of the end state (diagnostics are on the wall clock).
+        assert obs.spin_until(lambda: all(_state_time(obs.messages, n) >= DURATION - 0.1
+                                          for n in scenario.index), 30.0)
         g.shutdown()
         assert g.unclean() == {}
     assert launch.leaked_shm(shm) == []
     logs = {n: (cfg.logs_dir / f'{n}.log').read_text() for n in scenario.index}
     return scenario_file, cfg.out_dir, obs.messages, logs
+
+
+def _state_time(messages, robot: str) -> float:
+    value = _status(messages, robot).get('state_time_s', 'n/a')
+    return -1.0 if value == 'n/a' else float(value)
 
 
 def _status(messages, robot: str) -> dict[str, str]:

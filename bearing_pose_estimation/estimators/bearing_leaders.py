@@ -32,7 +32,6 @@ P_HAT = Channel('p_hat', per='agent', frame='world', doc='p̂_j, the position es
 WORLD_BEARING = Channel('world_bearing', per='edge', frame='world', unit=True,
                         doc='R̂_j b^j_ji, j\'s bearing to its listener i in the world frame')
 
-
 # Bearings closer than this to collinear make Σ P_b singular: an error.
 COLLINEAR_ERROR_RAD = 1e-6
 # Below this angle the position observer is badly conditioned: a warning.

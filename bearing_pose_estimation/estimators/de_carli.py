@@ -24,6 +24,9 @@ for a two-way pair, ``ʲp̂_ji`` too (fed by j's measurement). Channels:
   sense i). With ``z_hat`` of the same instant it gives ``R̂_j ʲp_ji``, the in-neighbour term of
   (21), and the owner of a two-way pair gets the measurement its ``ʲp̂_ji`` needs;
 - ``relyaw`` (per link): the owner's ``unit(ẑ_ji)`` for the other robot's (13) (Remark 4).
+- ``pose_cov`` (per robot, optional: never waited for): the covariance of its pose, from
+  :mod:`.de_carli_covariance`, on its ``pose``. Each end of a pair propagates the pair's own
+  covariance from what it has already, so none travels.
 
 The other end's odometry over the step (``δ_j``, ``Δψ_j``; :class:`base.LinkInputs`) feeds the
 owner's prediction of ``ⁱp̂_ij``.

@@ -54,7 +54,7 @@ be set while the node runs (``ros2 param set``): a change is validated (range, t
 minimum, and the method's check on the scenario) and applies from the next step, or is
 refused with the reason; every other parameter is read-only. The expected frames
 ``imu_frame``, ``bearings_frame``, ``odom_child_frame`` (empty: accept any);
-``diagnostics_period`` [s]; and the fault
+``diagnostics_period`` [s, wall clock]; and the fault
 injection for tests and studies: ``inject_drop_rate`` (probability of dropping each neighbour
 message), ``inject_delay`` [s] (extra delay of each neighbour message), ``inject_seed``.
 Integers are accepted for numbers; a wrong type or range stops the node with a one-line error,
@@ -163,7 +163,7 @@ class EstimatorNode(Node):
         self.odom_child_frame = p('odom_child_frame', wire.body_frame(self.agent),
                                   'expected Odometry child_frame_id (the twist\'s frame); '
                                   'empty: any')
-        diagnostics_period = p('diagnostics_period', 1.0, '/diagnostics period [s]',
+        diagnostics_period = p('diagnostics_period', 1.0, '/diagnostics period [s, wall clock]',
                                0.01, 3600.0)
         self.neighbour_wait = p('neighbour_wait', 0.25, 'methods that talk over communication '
                                 'links: wall time [s] a step waits for a neighbour\'s missing '
@@ -338,7 +338,10 @@ class EstimatorNode(Node):
                         qos_est))
         self._subs = subs
         self.timer = self.create_timer(self.h, self.on_timer)
-        self.diag_timer = self.create_timer(diagnostics_period, self.publish_diagnostics)
+        # Health on the wall clock: a stopped or finished simulation still reports (and a
+        # fast one gets its reports, as a monitor expects them: every period of real time).
+        self.diag_timer = self.create_timer(diagnostics_period, self.publish_diagnostics,
+                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
         # Until the first gyro sample, announce the t0 state on a wall-clock timer, but only once
         # every subscription has a publisher and every writer its neighbours' readers:
         # best-effort sensor readers drop what arrives before they are matched, and a volatile
