@@ -6,8 +6,7 @@ process. One fleet, several checks:
 - the messages on the wire: ẑ_i as a complex number in the fleet's estimation frame, the
   owners' relative yaws in their body frames;
 - the pose with its covariance (de_carli_covariance.py, a noise model given) on `pose`, the
-  batch simulator's to a few per cent (a neighbour's covariance is its newest, not waited
-  for);
+  batch simulator's to 1 % (a neighbour's covariance is its newest, not waited for);
 - /diagnostics reports each pair's excitation: the pairs only robot 7's motion could excite are
   not excited, the others are; |ẑ_i| and the stage of each robot.
 """
@@ -129,7 +128,9 @@ def test_the_pose_carries_the_batch_simulator_s_covariance(run):
         sim.step()
     assert sim.t == pytest.approx(t, abs=1e-9)
     assert np.all(P[3:5] == 0.0) and np.all(P[:, 3:5] == 0.0)   # roll and pitch known
-    assert np.linalg.norm(P - sim.x.P[0]) < 0.05 * np.linalg.norm(sim.x.P[0]), (P, sim.x.P[0])
+    # 7e-5 measured: the neighbours' covariances are their newest, a publish period old at
+    # most, and change slowly.
+    assert np.linalg.norm(P - sim.x.P[0]) < 1e-2 * np.linalg.norm(sim.x.P[0]), (P, sim.x.P[0])
 
 
 def _state_time(messages, robot: str) -> float:
