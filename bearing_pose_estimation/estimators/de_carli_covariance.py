@@ -42,7 +42,7 @@ its position is one of them: the yaw follows the pairs' slow relative yaws, not 
 consensus the linearisation describes, so the position takes ``1/ρ`` times its variance
 instead of the correlation. No covariance intersection: in a consensus the neighbours do not
 share the ancestors of a cascade. On config/de_carli_noisy.yaml (20 runs, after 10 s) this
-gives NEES 2.74 (position, 3 dof) and 1.02 (yaw, 1 dof), every robot within [2.3, 3.2] and
+gives NEES 2.77 (position, 3 dof) and 1.03 (yaw, 1 dof), every robot within [2.3, 3.2] and
 [0.6, 1.4]; the same with the neighbours' yaws as very slow inputs (``2/ρ``) and the own yaw
 through the correlation gave 3.83 and 1.9-7.7 per robot (BENCHMARKS.md, "The covariance").
 """
@@ -110,8 +110,9 @@ def pair_maps(h: float, k_pe: float, k_psi: float, z: Num, z_next: Num,
     in the owner's orientation, per pair: ``z``, ``z_next`` the relative yaw estimate before and
     after the step; ``d_reg_x``, ``d_reg_o`` the regressors ``δ'`` (previous step), ``delta_o``,
     ``delta_x`` this step's horizontal displacements, ``dpsi_*`` the yaw increments (complex
-    or real arrays ``(K,)``); ``P_out``, ``P_in`` the relative positions after the step; the
-    flags ``(K,)``: measurement of each edge present, pair two-way."""
+    or real arrays ``(K,)``); ``P_out``, ``P_in`` the relative positions the gyro noise
+    turns (the measurements: their change over a step is of second order); the flags
+    ``(K,)``: measurement of each edge present, pair two-way."""
     K = len(z)
     f_out, f_in = out_ok.astype(float), (in_ok & two_way).astype(float)
     # The correction of ζ (8), a map of s and of the noise w = (ν, ν', η_o, η_x, γ_o, γ_x).
