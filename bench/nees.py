@@ -14,6 +14,9 @@ scenario's own), per agent and the fleet's mean; methods without a covariance ar
         --methods boughellaba_tayebi,tran_anderson_ahn
     OMP_NUM_THREADS=1 .venv/bin/python bench/nees.py config/de_carli_noisy.yaml --runs 20 \
         --duration 20 --after 10
+
+``--netsim`` runs the nodes' logic instead (sim.netsim: bearings at ``simulation.bearing_rate``
+and the neighbours' values at ``publish_rate``, held between samples, as over DDS).
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ from bearing_pose_estimation.core import so3  # noqa: E402
 from bearing_pose_estimation.core.motion import rot_z, yaw_of  # noqa: E402
 from bearing_pose_estimation.estimators.base import EstimateFrame  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
+from bearing_pose_estimation.sim import netsim  # noqa: E402
 from bearing_pose_estimation.sim.batch import BatchSimulator  # noqa: E402
 
 
@@ -50,12 +54,40 @@ def errors(frame: EstimateFrame, sim: BatchSimulator) -> tuple[np.ndarray, np.nd
     return (x.p_hat - sim.p, so3.log(np.einsum('nab,ncb->nac', x.R_hat, sim.R)), [3, 4, 5])
 
 
+class _Netsim:
+    """The fleet of per-agent estimators (the nodes' logic, ``sim.netsim``) seen as the batch
+    simulator is here: ``h``, ``step()``, ``x`` (the fleet's state), ``R``, ``p`` (the truth
+    at the agents' state time)."""
+
+    def __init__(self, scenario) -> None:
+        self.net = netsim._Network(scenario, netsim.LinkFaults(), (), netsim.Garbage(),
+                                   netsim.Limits())
+        self.net.start()
+        self.h, self.tick, self.scenario = scenario.step, 0, scenario
+        self.per_step = int(round(scenario.step / self.net.world.dt))
+
+    def step(self) -> None:
+        for _ in range(self.per_step):
+            self.tick += 1
+            self.net.tick(self.tick * self.net.world.dt)
+        agents = [self.net.agents[a.name] for a in self.scenario.agents]
+        self.x = dataclasses.replace(agents[0].x, **{
+            f.name: np.concatenate([getattr(a.x, f.name) for a in agents])
+            for f in dataclasses.fields(agents[0].x)})
+        k = {int(round(a.t / self.h)) for a in agents}
+        if len(k) != 1 or k.pop() not in self.net.truth:
+            raise SystemExit('netsim: the agents are not at one state time')
+        self.R, self.p = self.net.truth[int(round(agents[0].t / self.h))]
+
+
 def nees_run(path: str, method: str, seed: int, duration: float, after: float,
-             every: float, gains: dict[str, float]) -> dict[str, tuple[float, float]]:
-    """``{agent: (position NEES, attitude NEES)}`` of one run, averaged over its samples."""
+             every: float, gains: dict[str, float],
+             network: bool = False) -> dict[str, tuple[float, float]]:
+    """``{agent: (position NEES, attitude NEES)}`` of one run, averaged over its samples;
+    ``network``: the nodes' logic (netsim) instead of the batch simulator."""
     s = load_scenario(path).with_method(method, **gains)
     s = dataclasses.replace(s, noise=dataclasses.replace(s.noise, seed=seed))
-    sim = BatchSimulator(s)
+    sim = _Netsim(s) if network else BatchSimulator(s)
     frame = s.estimator().frame
     stride = max(1, int(round(every / sim.h)))
     followers = [s.index[a.name] for a in s.followers]
@@ -86,10 +118,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument('--bias-std', type=float, default=None,
                     help="gains.bias_std (default: the scenario's noise.bearing_std)")
     ap.add_argument('--workers', type=int, default=2)
+    ap.add_argument('--netsim', action='store_true',
+                    help="the nodes' logic (sim.netsim: bearings and neighbours' values at "
+                         "their own rates, as over DDS) instead of the batch simulator")
     args = ap.parse_args(argv)
     s = load_scenario(args.scenario)
-    print(f'{args.scenario}: {args.runs} runs of {args.duration:g} s, NEES averaged over '
-          f't >= {args.after:g} s')
+    print(f'{args.scenario}: {args.runs} runs of {args.duration:g} s'
+          f'{" (netsim)" if args.netsim else ""}, NEES averaged over t >= {args.after:g} s')
     for method in (args.methods or s.method).split(','):
         est = s.with_method(method).estimator()
         state = est.initial_state(np.eye(3)[None], np.zeros((1, 3)))
@@ -103,7 +138,8 @@ def main(argv: list[str] | None = None) -> None:
         with ProcessPoolExecutor(args.workers) as pool:
             runs = list(pool.map(nees_run, [args.scenario] * args.runs, [method] * args.runs,
                                  seeds, [args.duration] * args.runs, [args.after] * args.runs,
-                                 [args.every] * args.runs, [gains] * args.runs))
+                                 [args.every] * args.runs, [gains] * args.runs,
+                                 [args.netsim] * args.runs))
         att_dof = 1 if est.frame is EstimateFrame.COMMON_YAW_TRANSLATION else 3
         band = [(chi2.ppf(0.025, d * args.runs) / args.runs,
                  chi2.ppf(0.975, d * args.runs) / args.runs) for d in (3, att_dof)]

@@ -29,6 +29,7 @@ and is propagated with the gyro (and odometry) between pose samples.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -486,6 +487,7 @@ class AgentEstimator(TimedAgent):
         each paired with the own bearing (and, with odometry, ``p̂_i``) at the stamp of what
         it sent."""
         used, p_own, values = [], [], []
+        held: list[tuple[float, float]] = []
         moving = displacement is not None  # static fleets: what was sent does not change
         names = [name for name, c in self.channels.items() if not c.optional]
         for nb in self.neighbours:
@@ -505,6 +507,8 @@ class AgentEstimator(TimedAgent):
             b = self.body_bearing(nb.agent_id, t, at=t_s if moving else None)
             if b is not None:
                 used.append((nb, b))
+                held.append((self._interval(self._bearings.get(nb.agent_id)),
+                             self._interval(nb.history.get(names[0]) if names else None)))
                 values.append({name: self._value(nb, sent, name) for name in self.channels})
                 back = self.moved_back(t, t_s) if t_s < t else None
                 if back is None and t_s < t:
@@ -518,7 +522,15 @@ class AgentEstimator(TimedAgent):
                         k=np.array([nb.k for nb, _ in used]), n_agents=1),
             bearings=np.array([b for _, b in used]) if used else np.zeros((0, 3)),
             received=received, displacement=displacement,
-            p_own=np.array(p_own) if used and moving else None)
+            p_own=np.array(p_own) if used and moving else None,
+            held=np.array(held).reshape(-1, 2))
+
+    def _interval(self, history: Sequence[tuple[float, object]] | None) -> float:
+        """Steps between the last two samples of ``history`` (``(stamp, value)`` pairs), at
+        least 1: how many steps the newest serves."""
+        if not history or len(history) < 2:
+            return 1.0
+        return max(1.0, (history[-1][0] - history[-2][0]) / self.h)
 
     def _value(self, nb: NeighbourState, sent: dict[str, Array], name: str) -> Array:
         """``name`` from what ``nb`` sent at the instant used; an optional channel's newest

@@ -340,6 +340,10 @@ class StepInputs:
     t: float = 0.0                      # the step's start time [s] (multirate methods)
     bearing_rates: Array | None = None  # (E, 3) own d/dt b^i_ij (body frame) [1/s]
     anchor: AnchorInputs | None = None  # methods with an anchor only
+    # (E, 2) steps each own bearing and each neighbour's value serve (>= 1; a node holds
+    # samples slower than its steps, and their noise with them): the covariance's bearing
+    # noise lasts that long. None: a fresh sample every step (the batch simulator).
+    held: Array | None = None
 
     def agent(self, i: int) -> StepInputs:
         """The inputs of agent ``i`` alone (``n_agents = 1``): what its node would pass."""
@@ -356,7 +360,8 @@ class StepInputs:
                           p_own=None if self.p_own is None else self.p_own[sel],
                           bearing_rates=(None if self.bearing_rates is None
                                          else self.bearing_rates[sel]),
-                          anchor=None if self.anchor is None else self.anchor.rows(i, sel))
+                          anchor=None if self.anchor is None else self.anchor.rows(i, sel),
+                          held=None if self.held is None else self.held[sel])
 
 
 # ----------------------------------------------------------------------------- findings

@@ -170,7 +170,7 @@ class BoughellabaTayebi(BearingLeaderEstimator[CascadeGains, CovState]):
         P = propagate(x.P, h, inputs.edges, y, neighbour_cov(inputs), g.bearing_std,
                       g.gyro_noise_density,
                       cascade_jacobians(h, inputs.edges, y, dist, lever, g.k_R, g.k_p),
-                      moved, g.odometry_noise_density)
+                      moved, g.odometry_noise_density, inputs.held)
         return CovState(R_hat=R_hat, p_hat=p_hat, P=P), {'innovation': sigma}
     def conditioning(self, bearings: Array, k: Array) -> Array:
         """``M_i = Σ_j k_ij b_ij b_ijᵀ`` (Lemma 1)."""

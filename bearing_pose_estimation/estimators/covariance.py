@@ -146,22 +146,28 @@ def cascade_jacobians(h: float, edges: Edges, y: Array, dist: Array, p_hat: Arra
 def propagate(P: Array, h: float, edges: Edges, y: Array, P_nbr: Array, bearing_std: float,
               gyro_noise_density: float,
               jacobians: tuple[Array, Array, Array, Array, Array],
-              moved: Array | None = None, odometry_noise_density: float = 0.0) -> Array:
+              moved: Array | None = None, odometry_noise_density: float = 0.0,
+              held: Array | None = None) -> Array:
     """``P_i⁺ = F P Fᵀ + W + c_i Σ_j G P_j Gᵀ`` of every agent (module docstring) from its ``P``
     ``(N, d, d)``, the covariances its neighbours sent ``P_nbr`` ``(E, 6, 6)`` and the method's
     ``jacobians`` ``(F (N, d, d), G (E, d, 6), own (E, d, 3), theirs (E, d, 3), rates (N, r))``,
     ``rates`` the decay rates of the agent's own error dynamics [1/s]; the gyro noise drives
     the rotation error (rows 3-5). Moving agents: ``moved`` ``(N, 3)``, the odometry
     displacement fed forward, ``k_v R̂_i δ_i`` [m] (world): its error ``φ_i × R_i δ_i`` adds
-    ``−[R̂ δ]x`` to ``∂e⁺/∂φ``, and the odometry noise ``h N_v² I`` to the position."""
+    ``−[R̂ δ]x`` to ``∂e⁺/∂φ``, and the odometry noise ``h N_v² I`` to the position. ``held``
+    ``(E, 2)``: the steps each own bearing and each neighbour's bearing serve
+    (:attr:`base.StepInputs.held`): a noise held over m steps of a slower loop counts m times
+    (its m equal draws add up, m² σ², where m fresh ones give m σ²)."""
     F, G, own, theirs, rates = jacobians
     if moved is not None:
         F = F.copy()
         F[:, :3, 3:6] -= so3.hat(moved)
     n, d = P.shape[0], P.shape[1]
     P_b = EYE3 - np.einsum('ea,eb->eab', y, y)
-    noise = bearing_std ** 2 * (own @ P_b @ own.transpose(0, 2, 1)
-                                + theirs @ P_b @ theirs.transpose(0, 2, 1))
+    m_own, m_theirs = (1.0, 1.0) if held is None else (held[:, 0, None, None],
+                                                        held[:, 1, None, None])
+    noise = bearing_std ** 2 * (m_own * own @ P_b @ own.transpose(0, 2, 1)
+                                + m_theirs * theirs @ P_b @ theirs.transpose(0, 2, 1))
     # c_i: the neighbours' errors are slow and correlated with each other (module docstring).
     rates = np.sort(rates, axis=1)
     r = rates.shape[1]

@@ -184,7 +184,7 @@ class TranAndersonAhn(BearingLeaderEstimator[TranGains, TranState]):
                       g.gyro_noise_density,
                       tran_jacobians(h, inputs.edges, y, dist, x.R_hat, pairs, g.k_omega, g.k_p,
                                      g.k_c),
-                      fed_forward(x, inputs, g.k_v), g.odometry_noise_density)
+                      fed_forward(x, inputs, g.k_v), g.odometry_noise_density, inputs.held)
         return (TranState(R_hat=R_hat, p_hat=p_hat, P=P, Omega_tilde=Omega),
                 {'innovation': torque})
 
