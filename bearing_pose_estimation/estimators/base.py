@@ -274,6 +274,19 @@ class LinkInputs:
     present: NDArray[np.bool_] | None = None
     fresh: NDArray[np.bool_] | None = None
 
+    def usable(self) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_],
+                              NDArray[np.bool_]]:
+        """``(y_ok, m_ok, present, fresh)`` ``(E,)``: i senses j and its measurement is here,
+        j senses i and j's is here, j's odometry, j's channels of this instant (what is None
+        counts as here)."""
+        every = np.ones(len(self.senses), dtype=bool)
+
+        def here(v: NDArray[np.bool_] | None) -> NDArray[np.bool_]:
+            return every if v is None else v
+
+        return (self.senses & here(self.measured), self.sensed_by & here(self.their_measured),
+                here(self.present), here(self.fresh))
+
     def rows(self, sel: Index) -> LinkInputs:
         def pick(v: NDArray[np.bool_] | None) -> NDArray[np.bool_] | None:
             return None if v is None else v[sel]

@@ -320,11 +320,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         y, meas = L.relative_positions, rec['meas']
         y_c, meas_c = as_complex(y), as_complex(meas)
         senses, sensed_by, owns = L.senses, L.sensed_by, L.owns
-        every_edge = np.ones(len(ag), dtype=bool)
-        y_ok = senses & (every_edge if L.measured is None else L.measured)
-        m_ok = sensed_by & (every_edge if L.their_measured is None else L.their_measured)
-        present = every_edge if L.present is None else L.present
-        fresh = every_edge if L.fresh is None else L.fresh
+        y_ok, m_ok, present, fresh = L.usable()
 
         # An edge whose other end's odometry is missing sits the step out; its relative
         # estimates restart from the next measurements (their prediction needs δ_j).
@@ -445,11 +441,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         g, L, edges, rec = self.gains, inputs.links, inputs.edges, inputs.received
         assert L is not None
         tick = int(round(inputs.t / h))
-        every_edge = np.ones(len(edges.agent), dtype=bool)
-        fresh = every_edge if L.fresh is None else L.fresh
-        y_ok = fresh & L.senses & (every_edge if L.measured is None else L.measured)
-        m_ok = fresh & L.sensed_by & (every_edge if L.their_measured is None
-                                      else L.their_measured)
+        y_ok, m_ok, _, fresh = L.usable()
         yaw_tick = tick % self.every(g.yaw_rate, h) == 0
         moved = (None if inputs.displacement is None else np.einsum(
             'nab,nb->na', rot_z(np.angle(z_mid)), np.asarray(inputs.displacement, float)))
@@ -457,7 +449,8 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
             edges, self.every(g.position_rate, h) * h, g.k_p,
             tick % self.every(g.position_rate, h) == 0,
             self.every(g.yaw_rate, h) * h * g.k_z if yaw_tick else None,
-            rec['p_hat'] - x.p_hat[edges.agent], y_ok.astype(float), m_ok.astype(float),
+            rec['p_hat'] - x.p_hat[edges.agent], (fresh & y_ok).astype(float),
+            (fresh & m_ok).astype(float),
             x.z_hat, as_complex(rec['z_hat']), active.astype(float), moved,
             g.relative_position_std ** 2)
 
@@ -473,11 +466,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         L, edges, rec = inputs.links, inputs.edges, inputs.received
         assert L is not None and edges.slot is not None
         ag, sl = edges.agent, edges.slot
-        every_edge = np.ones(len(ag), dtype=bool)
-        present = every_edge if L.present is None else L.present
-        fresh = every_edge if L.fresh is None else L.fresh
-        y_ok = L.senses & (every_edge if L.measured is None else L.measured)
-        m_ok = L.sensed_by & (every_edge if L.their_measured is None else L.their_measured)
+        y_ok, m_ok, present, fresh = L.usable()
         relyaw = as_complex(rec['relyaw'])
         replica = ~L.owns & present & fresh & (np.abs(relyaw) > 0.5)
         z_all = np.where(owned, z_owned, np.where(replica, relyaw, 0.0))
