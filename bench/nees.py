@@ -49,6 +49,12 @@ def errors(frame: EstimateFrame, sim: BatchSimulator) -> tuple[np.ndarray, np.nd
         e = x.p_hat - p_frame - np.mean(x.p_hat - p_frame, axis=0)
         theta = np.angle(np.exp(1j * (yaw_of(x.R_hat) - yaw_of(sim.R) - a)))
         return e, theta[:, None], [5]
+    if frame is EstimateFrame.ANCHOR_BODY:     # q_i = R_aᵀ (p_i − p_a), Q_i = R_aᵀ R_i
+        a = sim.scenario.anchor_index
+        Ra = sim.R[a]
+        q = (sim.p - sim.p[a]) @ Ra
+        Q = np.einsum('ba,nbc->nac', Ra, sim.R)
+        return x.p_hat - q, so3.log(np.einsum('nab,ncb->nac', x.R_hat, Q)), [3, 4, 5]
     if frame is not EstimateFrame.WORLD:
         raise SystemExit(f'{frame}: no NEES for this estimate frame yet')
     return (x.p_hat - sim.p, so3.log(np.einsum('nab,ncb->nac', x.R_hat, sim.R)), [3, 4, 5])

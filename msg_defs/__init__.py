@@ -48,6 +48,9 @@ ANGLE_GRADIENT = 'angle_gradient'
 ANGLE_HESSIAN = 'angle_hessian'
 ANCHOR_BEARING = 'anchor_bearing'
 VELOCITY_TERM = 'velocity_term'
+# ... and, for the listener's covariance (optional), what only the sensing robot knows of it:
+# its angle terms' and velocity term's covariances (white, slow) and the bearing's rate.
+TERM_COVARIANCE = 'term_covariance'
 DIAGNOSTICS = '/diagnostics'       # diagnostic_msgs/DiagnosticArray, out: each node's health
 GROUND_TRUTH = 'ground_truth'      # geometry_msgs/PoseStamped, simulator: true pose
 CLOCK = '/clock'                   # rosgraph_msgs/Clock, simulator (use_sim_time)
@@ -300,6 +303,11 @@ def _encode_cloud(t: float, frame_id: str, data: np.ndarray,
     return msg
 
 
+# A point of more than this many bytes is no point of ours (a fuzzed point_step of 2^31 made
+# numpy raise a bare ValueError).
+MAX_POINT_STEP = 1 << 16
+
+
 def _decode_cloud(msg: PointCloud2, want: dict[str, int]) -> tuple[float, np.ndarray]:
     """The stamp and the points of ``msg`` as a structured array of the fields ``want``
     (``{name: datatype}``), in any order and with any padding.
@@ -319,6 +327,9 @@ def _decode_cloud(msg: PointCloud2, want: dict[str, int]) -> tuple[float, np.nda
         raise WireError('big-endian PointCloud2 is not supported')
     want = {name: fields[name].datatype for name in want}   # as they come
     sizes = [_FORMATS[datatype].itemsize for datatype in want.values()]
+    if msg.point_step > MAX_POINT_STEP:   # numpy's dtypes take no larger item
+        raise WireError(f'PointCloud2 point_step {msg.point_step} is absurd (at most '
+                        f'{MAX_POINT_STEP} bytes)')
     n = msg.width * msg.height
     if msg.point_step < sum(sizes) or len(msg.data) != n * msg.point_step:
         raise WireError(f'PointCloud2 data is {len(msg.data)} bytes, expected '
@@ -417,16 +428,25 @@ def decode_covariance(msg: PoseWithCovarianceStamped) -> tuple[float, Array]:
     Raises:
         WireError: a covariance that is not finite, symmetric and positive semi-definite.
     """
-    P = np.asarray(msg.pose.covariance, dtype=float)
-    if P.size != 36 or not np.all(np.isfinite(P)):
+    return from_stamp(msg.header.stamp), checked_covariance(
+        np.asarray(msg.pose.covariance, dtype=float))
+
+
+def checked_covariance(values: Array) -> Array:
+    """The 6x6 covariance of 36 row-major ``values`` (also raw CDR's, ``cdr.py``).
+
+    Raises:
+        WireError: not 36 finite values, not symmetric or not positive semi-definite.
+    """
+    if values.size != 36 or not np.all(np.isfinite(values)):
         raise WireError('non-finite or malformed covariance')
-    P = P.reshape(6, 6)
+    P = values.reshape(6, 6)
     scale = max(float(np.abs(P).max()), 1e-300)
     if not np.allclose(P, P.T, rtol=1e-6, atol=1e-12 * scale):
         raise WireError('covariance is not symmetric')
     if np.linalg.eigvalsh(0.5 * (P + P.T))[0] < -1e-9 * scale:
         raise WireError('covariance is not positive semi-definite')
-    return from_stamp(msg.header.stamp), P
+    return P
 
 
 def decode_pose(msg: PoseStamped) -> tuple[float, Array, Array]:
@@ -534,6 +554,44 @@ def _encode_id_blocks(t: float, value: dict[int, Array], frame: str) -> PointClo
     return _encode_cloud(t, frame, data, _HESSIAN_CLOUD)
 
 
+def _block_fields(prefix: str) -> list[str]:
+    return [f'{prefix}_{f}' for f in _HESSIAN_FIELDS]
+
+
+# Presenza et al.'s term_cov (estimators/presenza_covariance.py, TERM_COV): four packed
+# symmetric blocks [1/m², 1/m², m²/s², m²/s²] and the bearing's rate ṙ_ji [1/s].
+_TERM_FIELDS = (_block_fields('angle_white') + _block_fields('angle_slow')
+                + _block_fields('velocity_white') + _block_fields('velocity_slow')
+                + ['rate_x', 'rate_y', 'rate_z'])
+_TERM_WANT = {**{f: PointField.FLOAT64 for f in _TERM_FIELDS}, 'agent_id': PointField.UINT32}
+_TERM_DTYPE, _TERM_CLOUD = _cloud_layout(_TERM_WANT)
+
+
+def _decode_id_terms(msg: PointCloud2) -> tuple[float, dict[int, Array]]:
+    """Raises WireError for non-finite values or a block that is not a covariance."""
+    t, data = _decode_cloud(msg, _TERM_WANT)
+    values = np.stack([data[f] for f in _TERM_FIELDS], axis=1).astype(float)
+    if not np.all(np.isfinite(values)):
+        raise WireError('non-finite term covariance')
+    blocks = values[:, :24].reshape(-1, 4, 6)
+    mats = np.empty(blocks.shape[:2] + (3, 3))
+    for c, (r, q) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
+        mats[..., r, q] = mats[..., q, r] = blocks[..., c]
+    lam = np.linalg.eigvalsh(mats) if len(mats) else np.zeros((0, 4, 3))
+    if np.any(lam < -1e-9 * np.maximum(np.abs(lam).max(axis=-1, keepdims=True), 1e-300)):
+        raise WireError('a term covariance block is not positive semi-definite')
+    return t, dict(zip(data['agent_id'].astype(np.uint32).tolist(), values))
+
+
+def _encode_id_terms(t: float, value: dict[int, Array], frame: str) -> PointCloud2:
+    data = np.empty(len(value), dtype=_TERM_DTYPE)
+    values = np.array(list(value.values()), dtype=float).reshape(-1, len(_TERM_FIELDS))
+    for k, f in enumerate(_TERM_FIELDS):
+        data[f] = values[:, k]
+    data['agent_id'] = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
+    return _encode_cloud(t, frame, data, _TERM_CLOUD)
+
+
 # Channel name -> wire. p_hat: the position of the sender's `estimate`; world_bearing: its
 # `world_bearings`, one point per listener; De Carli et al.'s z_hat (`yaw_estimate`, the
 # complex ẑ_j), relyaw (`relative_yaws`, one point per listener of a pair it owns, z = 0; x = y
@@ -566,6 +624,8 @@ CHANNELS = {
                                   _decode_id_vectors, _encode_id_vectors),
     'velocity_term': ChannelWire(VELOCITY_TERM, PointCloud2, '{estimate}', _decode_id_vectors,
                                  _encode_id_vectors),
+    'term_cov': ChannelWire(TERM_COVARIANCE, PointCloud2, '{estimate}', _decode_id_terms,
+                            _encode_id_terms),
 }
 
 

@@ -21,11 +21,14 @@ ROOT = Path(__file__).resolve().parents[1]
 CAMERA_RATE = ROOT / 'config' / 'presenza_case1_30hz.yaml'
 
 
-def camera_rate_case1(folder: Path, duration: float = 3.0) -> Path:
+def camera_rate_case1(folder: Path, duration: float = 3.0,
+                      gains: dict[str, float] | None = None) -> Path:
     """``config/presenza_case1_30hz.yaml`` (case 1 with the estimator and every sensor at
-    30 Hz, the preconditioned scheme) cut to ``duration`` [s], written into ``folder``."""
+    30 Hz, the preconditioned scheme) cut to ``duration`` [s], with ``gains`` updated,
+    written into ``folder``."""
     d = yaml.safe_load(CAMERA_RATE.read_text())
     d['duration'] = duration
+    d['gains'].update(gains or {})
     path = folder / CAMERA_RATE.name
     path.write_text(yaml.safe_dump(d, sort_keys=False))
     return path
@@ -54,7 +57,7 @@ class Fleet:
             src.agent_id, t, values))
         self.causes: list[str | None] = []
         for agent in self.agents.values():
-            self._send(agent, {'q_hat': agent.p_hat[0]})
+            self._send(agent, agent.outbox())
         self._publish()
         self.pump()
 
@@ -117,7 +120,7 @@ class Fleet:
                     self._send(agent, reply)
                 if agent.advance(1, impatient=impatient):
                     progress, ran = True, ran + 1
-                    self._send(agent, {'q_hat': agent.p_hat[0]})
+                    self._send(agent, agent.outbox())
         return ran
 
     def run(self, until: float, impatient: bool = False) -> None:

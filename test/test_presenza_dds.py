@@ -6,7 +6,9 @@ from the test process. One fleet, several checks:
   acceptance: within 5 %), none of their inputs left out or carried;
 - the wire: estimates in the anchor's body frame, the second round from each sensing robot to
   the robots it sees, in the anchor frame, one point per listener;
-- /diagnostics: λ_min(P̂_i) of the free robots' velocity reconstruction, no input left out.
+- /diagnostics: λ_min(P̂_i) of the free robots' velocity reconstruction, no input left out;
+- the pose with its covariance (presenza_covariance.py, a noise model given) on `pose`, the
+  batch simulator's to 1 % (the neighbours' covariances and terms are not waited for).
 """
 import os
 import sys
@@ -32,14 +34,19 @@ DURATION = 2.0
 # Subscribed once the run is going: the simulator waits for the estimators' own subscribers.
 LATE_TOPICS = {'/robot_1/angle_gradient': (wire.PointCloud2, wire.ESTIMATE_RECORD_QOS),
                '/robot_1/angle_hessian': (wire.PointCloud2, wire.ESTIMATE_RECORD_QOS),
-               '/robot_2/estimate': (wire.PoseStamped, wire.ESTIMATE_RECORD_QOS)}
+               '/robot_2/estimate': (wire.PoseStamped, wire.ESTIMATE_RECORD_QOS),
+               '/robot_2/pose': (wire.PoseWithCovarianceStamped, wire.ESTIMATE_RECORD_QOS),
+               '/robot_4/pose': (wire.PoseWithCovarianceStamped, wire.ESTIMATE_RECORD_QOS)}
+# The covariance's noise model (the scenario has no noise: it does not change the estimate).
+MODEL = {'bearing_std': 1e-3, 'bearing_rate_std': 0.01, 'relative_position_std': 0.02,
+         'odometry_noise_density': 3.7e-3, 'gyro_noise_density': 9e-4}
 
 
 @pytest.fixture(scope='module')
 def run(tmp_path_factory):
     """The fleet's run to its end: (scenario file, output dir, observer's messages)."""
     tmp = tmp_path_factory.mktemp('presenza_dds')
-    scenario_file = camera_rate_case1(tmp, duration=DURATION)
+    scenario_file = camera_rate_case1(tmp, duration=DURATION, gains=MODEL)
     scenario = load_scenario(scenario_file)
     cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp / 'out', duration=DURATION,
                            domain_id=DOMAIN, plots=False)
@@ -111,6 +118,23 @@ def test_the_fleet_reproduces_the_batch_simulator(run):
     np.testing.assert_allclose(pos_d, pos_b, rtol=1e-6)
     np.testing.assert_allclose(att_d, att_b, rtol=1e-6)
     assert pos_d[-1] < 0.5 * pos_d[0] and att_d[-1] < 0.5 * att_d[0]
+
+
+def test_the_pose_carries_the_batch_simulator_s_covariance(run):
+    """A sensing robot's and a free robot's (whose covariance reads what the sensing robots
+    send it of their terms, ``term_covariance``): in the anchor's body frame, equal to the
+    batch simulator's at the same stamp."""
+    scenario_file, _, messages, _ = run
+    for robot in ('robot_2', 'robot_4'):
+        poses = messages[f'/{robot}/pose']
+        assert poses and {m.header.frame_id for m in poses} == {'robot_1/base_link'}
+        t, P = wire.decode_covariance(poses[-1])
+        sim = BatchSimulator(load_scenario(scenario_file))
+        while sim.t < t - 1e-9:
+            sim.step()
+        assert sim.t == pytest.approx(t, abs=1e-9)
+        want = sim.x.P[load_scenario(scenario_file).index[robot]]
+        assert np.linalg.norm(P - want) < 1e-2 * np.linalg.norm(want), (robot, P, want)
 
 
 def test_the_second_round_travels_in_the_anchor_frame_one_point_per_listener(run):

@@ -163,7 +163,13 @@ def _id_past_the_point(msg: PointCloud2) -> PointCloud2:
     return msg
 
 
+def _absurd_point_step(msg: PointCloud2) -> PointCloud2:
+    msg.width, msg.data, msg.point_step = 0, b'', 1 << 31   # numpy's dtypes take no such item
+    return msg
+
+
 @pytest.mark.parametrize('spoil, match', [
+    (_absurd_point_step, 'point_step 2147483648 is absurd'),
     (_renamed,
      r"needs field 'range' of datatype 8 or 7 \(fields: \['agent_id', 'distance'\]\)"),
     (_integer_range, "needs field 'range' of datatype 8 or 7"),

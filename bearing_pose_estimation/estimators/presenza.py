@@ -23,7 +23,9 @@ or the anchor ranges the other). Two rounds of messages per step (``rounds = 2``
    𝔟̂_ji)`` (11, with the estimated distance, §4.2).
 
 Every robot also receives the anchor's gyro increment and odometry over the step
-(:class:`base.AnchorInputs`).
+(:class:`base.AnchorInputs`). For the covariance (:mod:`.presenza_covariance`), optional and
+never waited for: ``pose_cov`` (round 1, per robot, on its ``pose``) and ``term_cov`` (round
+2, per link: what only the sensing robot knows of the listener's covariance).
 
 One step ``h``, everything on the right at the step's start:
 
@@ -50,8 +52,10 @@ One step ``h``, everything on the right at the step's start:
   As ``h → 0`` this is (16)-(19). Velocities inside the terms (``u_i``, ``ω_i``, ``u_a``,
   ``ω_a``) are the step averages ``δ/h``, ``log(ΔR)/h``.
 
-The anchor runs as a sensing robot (its estimate leaves ``(I, 0)`` and returns, as in the
-paper) or, ``anchor.pinned``, holds ``(I, 0)``. Estimates are in the anchor's body frame
+The covariance ``P`` of ``(q̃_i, φ_i)`` is propagated with the step, linearised at the
+estimate before it (:mod:`.presenza_covariance`). The anchor runs as a sensing robot (its
+estimate leaves ``(I, 0)`` and returns, as in the paper) or, ``anchor.pinned``, holds ``(I, 0)``
+(and a zero covariance). Estimates are in the anchor's body frame
 (``EstimateFrame.ANCHOR_BODY``): no alignment when measuring errors (§11).
 """
 from __future__ import annotations
@@ -65,8 +69,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core import angles, so3
+from . import presenza_covariance as cov
 from .base import (AnchorInputs, Array, Channel, CheckReport, Edges, EstimateFrame, Estimator,
                    Finding, Index, Roles, Sensor, State, StepInputs, gain)
+from .covariance import POSE_COV, initial_covariance
 
 if TYPE_CHECKING:
     from ..scenario.model import Scenario
@@ -101,8 +107,9 @@ _SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 
 @dataclass(frozen=True)
-class PresenzaGains:
-    """Gains of (16)-(19) (§7: κ_Q has different units in the two attitude loops)."""
+class PresenzaGains(cov.PresenzaCovarianceModel):
+    """Gains of (16)-(19) (§7: κ_Q has different units in the two attitude loops); the
+    covariance's model (:mod:`.presenza_covariance`)."""
 
     kappa_q: float = gain(500.0, 'position gain kappa_q of (16), (18) on the angle part of the '
                                  'gradient [m^2/s]')
@@ -125,6 +132,7 @@ class PresenzaState(State):
     """``R_hat`` is ``Q̂_i`` (body → anchor frame), ``p_hat`` is ``q̂_i`` [m]."""
 
     gamma_hat: Array   # (N, 3) the last anchor-frame velocity Q_i u_i of (13) [m/s]
+    P: Array           # (N, 6, 6) the pose covariance, (q̃, φ) (presenza_covariance.py)
 
 
 @lru_cache(maxsize=64)
@@ -174,7 +182,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                                                       Sensor.ODOMETRY, Sensor.BEARING_RATES,
                                                       Sensor.RELATIVE_POSITIONS})
     sends: ClassVar[tuple[Channel, ...]] = (Q_HAT, Q_RANGED, GRADIENT, HESSIAN, ANCHOR_BEARING,
-                                            VELOCITY_TERM)
+                                            VELOCITY_TERM, POSE_COV, cov.TERM_COV)
     frame: ClassVar[EstimateFrame] = EstimateFrame.ANCHOR_BODY
     edge_gains: ClassVar[bool] = False
     links = 'communication'
@@ -190,13 +198,28 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
     def initial_state(self, R_hat: Array, p_hat: Array) -> PresenzaState:
         return PresenzaState(R_hat=np.array(R_hat, dtype=float),
                              p_hat=np.array(p_hat, dtype=float),
-                             gamma_hat=np.zeros((len(p_hat), 3)))
+                             gamma_hat=np.zeros((len(p_hat), 3)), P=self.prior(len(p_hat)))
+
+    def prior(self, n: int) -> Array:
+        """The covariance of ``n`` initial estimates (the gains' ``initial_*_std``)."""
+        return initial_covariance(n, self.gains.initial_position_std,
+                                  self.gains.initial_attitude_std)
+
+    def missing(self, channel: str) -> Array:
+        """A sensed robot's covariance not received (yet): the prior; a sensing robot's
+        terms of it: none (zeros)."""
+        if channel == POSE_COV.name:
+            return self.prior(1)[0]
+        if channel == cov.TERM_COV.name:
+            return np.zeros(cov.TERM_COV.shape)
+        return super().missing(channel)
 
     def outbox(self, x: PresenzaState, sender: Index, bearings: Array,
                slot: Index | None = None) -> dict[str, Array]:
-        """Round 1: ``q̂_j`` and, per link, the anchor's measured relative position of the
-        listener (``bearings``: zeros where the sender does not range it)."""
-        return {'q_hat': x.p_hat.copy(), 'q_ranged': np.array(bearings, dtype=float)}
+        """Round 1: ``q̂_j``, its covariance and, per link, the anchor's measured relative
+        position of the listener (``bearings``: zeros where the sender does not range it)."""
+        return {'q_hat': x.p_hat.copy(), 'q_ranged': np.array(bearings, dtype=float),
+                'pose_cov': x.P.copy()}
 
     def carry_anchor_frame(self, values: Mapping[str, Array], delta_R_a: Array,
                            delta_a: Array) -> dict[str, Array]:
@@ -210,6 +233,13 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                 out[name] = delta_R_a.T @ (v - delta_a)
             elif name == 'angle_hessian':
                 out[name] = _pack((delta_R_a.T @ _unpack(v[None])[0] @ delta_R_a)[None])[0]
+            elif name == POSE_COV.name:
+                turn = np.kron(np.eye(2), delta_R_a.T)
+                out[name] = turn @ v @ turn.T
+            elif name == cov.TERM_COV.name:
+                blocks = cov.unpack(v[:24].reshape(4, 6))
+                out[name] = np.concatenate([cov.pack(delta_R_a.T @ blocks @ delta_R_a)
+                                            .ravel(), delta_R_a.T @ v[cov.RATE]])
             else:
                 out[name] = delta_R_a.T @ v
         return out
@@ -259,41 +289,37 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                 anchor.displacement / h, anchor.delta_R, anchor.displacement)
 
     def _angle_terms(self, x: PresenzaState, inputs: StepInputs, senses: NDArray[np.bool_]
-                     ) -> tuple[Array, Array, Array, Array]:
-        """Each robot's own angle terms of ``ζ_i`` and ``D̂_i`` ``(N, 3)``, ``(N, 3, 3)``, and
-        per link what it sends the other end (``g``, its Gauss-Newton block)."""
+                     ) -> tuple[Array, Array, Array, Array, cov.AngleTerms]:
+        """Each robot's own angle terms of ``ζ_i`` and ``D̂_i`` ``(N, 3)``, ``(N, 3, 3)``, per
+        link what it sends the other end (``g``, its Gauss-Newton block), and the angles'
+        Jacobian blocks (for the covariance)."""
         n, n_edges = x.p_hat.shape[0], len(inputs.edges)
         agent = inputs.edges.agent
         e1, e2 = _pairs(agent.tobytes(), np.ascontiguousarray(senses).tobytes())
+        terms = cov.angle_terms(x.p_hat, inputs.received['q_hat'], agent, e1, e2,
+                                MIN_DISTANCE_M)
         zeta, D = np.zeros((n, 3)), np.zeros((n, 3, 3))
         g_out, D_out = np.zeros((n_edges, 3)), np.zeros((n_edges, 3, 3))
         if not len(e1):
-            return zeta, D, g_out, D_out
-        q_other = inputs.received['q_hat']
+            return zeta, D, g_out, D_out, terms
+        _, _, chi_jk, chi_kj, g_own, c = terms
         i = agent[e1]
-        d1, d2 = q_other[e1] - x.p_hat[i], q_other[e2] - x.p_hat[i]
-        r1 = np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), MIN_DISTANCE_M)
-        r2 = np.maximum(np.linalg.norm(d2, axis=1, keepdims=True), MIN_DISTANCE_M)
-        u1, u2 = d1 / r1, d2 / r2
-        c = np.sum(u1 * u2, axis=1, keepdims=True)
         b = inputs.bearings
         err = c - np.sum(b[e1] * b[e2], axis=1, keepdims=True)     # α̃_ijk
-        chi_jk, chi_kj = (u2 - c * u1) / r1, (u1 - c * u2) / r2
-        g_own = -(chi_jk + chi_kj)
         np.add.at(zeta, i, err * g_own)
         np.add.at(D, i, _outer(g_own, g_own))
         np.add.at(g_out, e1, err * chi_jk)
         np.add.at(g_out, e2, err * chi_kj)
         np.add.at(D_out, e1, _outer(chi_jk, chi_jk))
         np.add.at(D_out, e2, _outer(chi_kj, chi_kj))
-        return zeta, D, g_out, D_out
+        return zeta, D, g_out, D_out, terms
 
     def reply(self, x: PresenzaState, h: float, inputs: StepInputs) -> dict[str, Array]:
         """Round 2, from each sensing robot to each out-neighbour (zeros on other links)."""
         senses, _, sensing, _ = self._structure(x, inputs)
         agent = inputs.edges.agent
         n = x.p_hat.shape[0]
-        _, _, g_out, D_out = self._angle_terms(x, inputs, senses)
+        _, _, g_out, D_out, terms = self._angle_terms(x, inputs, senses)
         send = (senses & sensing[agent])[:, None]
         omega, u, omega_a, u_a, _, _ = self._motion(h, inputs, n)
         Q = x.R_hat[agent]
@@ -302,18 +328,29 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         upsilon = (np.einsum('nab,nb->na', x.R_hat, u) - u_a
                    - so3.cross(omega_a, x.p_hat))[agent]          # (10)
         dist = np.linalg.norm(inputs.received['q_hat'] - x.p_hat[agent], axis=1, keepdims=True)
+        g = self.gains
         if inputs.bearing_rates is None:
             velocity, b_sent = np.zeros_like(b_hat), np.zeros_like(b_hat)
+            linear = None
         else:
             derotated = inputs.bearing_rates + so3.cross(omega[agent], beta)
+            s = np.einsum('eab,eb->ea', Q, derotated)             # Q̂_j (β̇ + ω_j × β)
+            r_dot = s - so3.cross(omega_a[agent], b_hat)           # the rate of 𝔟_ji
             velocity = (upsilon - b_hat * np.sum(b_hat * upsilon, axis=1, keepdims=True)
-                        + dist * (np.einsum('eab,eb->ea', Q, derotated)
-                                  - so3.cross(omega_a[agent], b_hat)))
+                        + dist * r_dot)
             b_sent = b_hat
+            linear = cov.VelocityTerms(b_hat, dist[:, 0], r_dot, s, Q,
+                                       np.einsum('nab,nb->na', x.R_hat, u)[agent],
+                                       omega[agent], omega_a[agent])
+        term_cov = cov.sender_terms(
+            len(agent), terms, beta, x.P, inputs.received[POSE_COV.name], agent, linear,
+            g.bearing_std ** 2, g.bearing_rate_std ** 2, g.odometry_noise_density ** 2,
+            g.gyro_noise_density ** 2, h)
         return {'angle_gradient': np.where(send, g_out, 0.0),
                 'angle_hessian': np.where(send, _pack(D_out), 0.0),
                 'anchor_bearing': np.where(send, b_sent, 0.0),
-                'velocity_term': np.where(send, velocity, 0.0)}
+                'velocity_term': np.where(send, velocity, 0.0),
+                cov.TERM_COV.name: np.where(send, term_cov, 0.0)}
 
     def step(self, x: PresenzaState, h: float, inputs: StepInputs,
              reorthonormalize: bool = True) -> tuple[PresenzaState, dict[str, Array]]:
@@ -323,7 +360,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         agent = edges.agent
         n = x.p_hat.shape[0]
         _, u, omega_a, u_a, dR_a, delta_a = self._motion(h, inputs, n)
-        zeta, D, _, _ = self._angle_terms(x, inputs, senses)
+        zeta, D, _, _, terms = self._angle_terms(x, inputs, senses)
         # Received angle terms and the anchor term (6), (5).
         into = sensed_by[:, None]
         zeta += edges.sum_by_agent(np.where(into, r['angle_gradient'], 0.0))
@@ -379,7 +416,21 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         if anchor.pinned:
             hold = anchor.is_anchor
             p_new[hold], R_new[hold] = 0.0, eye
-        out = PresenzaState(R_hat=R_new, p_hat=p_new, gamma_hat=gamma_next)
+        # The covariance, linearised at the estimate before the step (presenza_covariance.py).
+        b_own = np.einsum('eab,eb->ea', x.R_hat[agent], beta)     # Q̂_i β_ij
+        P_inv = np.linalg.inv(np.where(ok[:, None, None], P, eye))
+        lin = cov.own_linearisation(
+            h, g.kappa_q, kappa_Q[:, 0], w, D, so3.matmul(x.R_hat, K, np.swapaxes(x.R_hat, -1,
+                                                                                   -2)),
+            sensing, b_own, agent, senses, move, gamma, omega_a, P_inv, ok, b_in,
+            r[cov.TERM_COV.name][:, cov.RATE], valid)
+        P_next = cov.propagate(
+            x.P, lin, dR_a, agent, used=senses, b_own=b_own, own_bearings=beta, angles=terms,
+            d_own=dist[:, 0, 0], P_nbr=r[POSE_COV.name], terms=r[cov.TERM_COV.name],
+            sensed_by=sensed_by, valid=valid, ranged_by=anchor.ranged_by,
+            is_anchor=anchor.is_anchor, sensing=sensing, gamma=gamma, R_hat=x.R_hat,
+            q_next=p_new, model=g, kappa_s=g.kappa_s, h=h, pinned=anchor.pinned)
+        out = PresenzaState(R_hat=R_new, p_hat=p_new, gamma_hat=gamma_next, P=P_next)
         diag = {'innovation': Omega, 'zeta': zeta,
                 'lambda_P': np.where(sensing, 0.0, lam_P),
                 'reconstructed': (sensing | ok).astype(float)}

@@ -26,7 +26,9 @@ sensors are ``link_wait`` ahead (or, ``impatient``, at once). What is missing th
 - the anchor's odometry: the step is not run until it comes or the anchor goes silent, then
   the anchor is taken as still (the frame's motion is lost for those steps, counted).
 
-Each cause is counted in :attr:`missing`.
+Each cause is counted in :attr:`missing`. Optional values (the covariance's, ``pose_cov`` in
+round 1 and ``term_cov`` in round 2) are never waited for: j's of ``t``, else its newest
+carried to ``t``, else the method's stand-in (:meth:`base.Estimator.missing`), uncounted.
 """
 from __future__ import annotations
 
@@ -87,6 +89,9 @@ class TwoRoundAgent(LinkAgentEstimator):
             lk.agent_id: deque(maxlen=_HISTORY) for lk in self.links if lk.senses}
         self._first = [c.name for c in estimator.sends if c.round == 1 and c.sensor is None]
         self._second = [c.name for c in estimator.sends if c.round == 2]
+        # Optional values (the covariance) are never waited for: the newest one that came,
+        # or the method's stand-in (Estimator.missing).
+        self._optional = {c.name for c in estimator.sends if c.optional}
         self._round1: StepInputs | None = None   # of step self._round1_k, replied
         self._round1_k = -1
         self._reply: dict[str, dict[int, Array]] | None = None
@@ -202,7 +207,7 @@ class TwoRoundAgent(LinkAgentEstimator):
                     return 'anchor_range'
                 if link.senses:
                     for name in self._first:
-                        if _waiting(link, name, t):
+                        if name not in self._optional and _waiting(link, name, t):
                             return name
             return None
         if behind:
@@ -210,7 +215,7 @@ class TwoRoundAgent(LinkAgentEstimator):
         for link in self.links:
             if link.sensed_by and link.name not in stale:
                 for name in self._second:
-                    if _waiting(link, name, t):
+                    if name not in self._optional and _waiting(link, name, t):
                         return name
         return None
 
@@ -243,6 +248,8 @@ class TwoRoundAgent(LinkAgentEstimator):
                 if b is not None and rate is not None and q is not None:
                     bearings[e] = b / np.linalg.norm(b)
                     rates[e], received['q_hat'][e] = rate, q
+                for name in self._optional & set(self._first):
+                    received[name][e] = self._optional_value(link, name, t)
             if self._ranged_by[e]:
                 v, _ = _interpolated(link.theirs, t, lambda s_, t_: np.eye(3))
                 if v is None:
@@ -321,6 +328,14 @@ class TwoRoundAgent(LinkAgentEstimator):
             return None if carried is None else carried[name]
         return None
 
+    def _optional_value(self, link: Link, name: str, t: float) -> Array:
+        """An optional value at ``t``: j's of ``t``, else its newest carried to ``t``, else the
+        method's stand-in (never waited for, not counted as missing)."""
+        v, _ = link.value_at(name, t)
+        if v is None:
+            v = self._newest(link, name, t)
+        return self.estimator.missing(name) if v is None else v
+
     def pending_reply(self, impatient: bool = False) -> dict[str, dict[int, Array]] | None:
         """Round 2 of the current step, once: ``{channel: {listener id: value}}`` for every
         robot this one senses (zeros where it has nothing to say, so that listeners need not
@@ -371,6 +386,9 @@ class TwoRoundAgent(LinkAgentEstimator):
             for e, link in enumerate(self.links):
                 if not link.sensed_by:
                     continue
+                if name in self._optional:
+                    values[e] = self._optional_value(link, name, t)
+                    continue
                 v, _ = link.value_at(name, t)
                 if v is None:   # late or lost: j's newest, carried to t, if any
                     v = self._newest(link, name, t)
@@ -392,9 +410,13 @@ class TwoRoundAgent(LinkAgentEstimator):
 
     # ------------------------------------------------------------------------------ outputs
     def outbox(self) -> dict[str, object]:
-        """Round 1 at the state time: ``q_hat`` (on the estimate). Round 2 goes out through
+        """Round 1 at the state time: ``q_hat`` (on the estimate) and, for a method with a
+        covariance, ``pose_cov`` (on the pose). Round 2 goes out through
         :meth:`pending_reply`."""
-        return {'q_hat': self.x.p_hat[0].copy()}
+        out: dict[str, object] = {'q_hat': self.x.p_hat[0].copy()}
+        if 'pose_cov' in self.channels:
+            out['pose_cov'] = getattr(self.x, 'P')[0].copy()
+        return out
 
 
 def _rate_problem(v: Array) -> str | None:

@@ -91,7 +91,7 @@ from ..estimators.two_round_agent import TwoRoundAgent
 from ..scenario.model import Scenario
 from ..scenario.parse import load_scenario
 from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
-from .wiring import link_subscriptions, listener_counts
+from .wiring import link_subscriptions, listener_counts, optional_first
 
 # The input limits a running node takes (with the gains and neighbour_wait).
 _LIVE_LIMITS = ('sensor_timeout', 'neighbour_timeout', 'max_rate', 'link_wait')
@@ -274,7 +274,7 @@ class EstimatorNode(Node):
         self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE,
                                                  wire.ESTIMATE_PUB_QOS)
         # The channels that need a message of their own (the others ride on the estimate).
-        self.wires = {c.name: wire.channel(c.name) for c in self.method.sends}
+        self.wires = {c.name: wire.channel(c.name) for c in optional_first(self.method.sends)}
         if self.method.rounds == 2:
             # Every step waits for these values, the first ones too: a reader that its writer
             # discovers late still gets them (transient local, as the estimate's writer).
@@ -673,7 +673,8 @@ class EstimatorNode(Node):
             reply = est.pending_reply(impatient=impatient)
             if reply is not None:
                 frame = self.estimate_frame
-                for name, value in reply.items():
+                for name in self.pub_channels:    # in optional_first order
+                    value = reply.get(name)
                     if value:
                         pub, encode = self.pub_channels[name]
                         pub.publish(encode(est.t, value, frame))
@@ -736,12 +737,14 @@ class EstimatorNode(Node):
         self._deferred = -1
         t = est.t
         if force or (estimate and self._published_k != est.k):
-            self.pub_estimate.publish(
-                wire.encode_pose(t, self.estimate_frame, est.R_hat[0], est.p_hat[0]))
+            # The pose first: neighbours never wait for its covariance, but do for the
+            # estimate, so this order usually gives their step the covariance of its instant.
             if self.pub_pose is not None:
                 P = getattr(est.x, 'P')[0]   # the pose's block: methods may hold more states
                 self.pub_pose.publish(wire.encode_pose_covariance(
                     t, self.estimate_frame, est.R_hat[0], est.p_hat[0], P[:6, :6]))
+            self.pub_estimate.publish(
+                wire.encode_pose(t, self.estimate_frame, est.R_hat[0], est.p_hat[0]))
             if self.tf is not None:
                 self.tf.sendTransform(rviz.encode_transform(
                     t, self.estimate_frame, wire.body_frame(self.agent), est.R_hat[0],

@@ -4,6 +4,7 @@ simulator node (that waits for those subscriptions before it starts the clock)."
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -12,6 +13,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from .. import msg_defs as wire
 from ..estimators.agent import AgentEstimator
+from ..estimators.base import Channel
 from ..estimators.link_agent import LinkAgentEstimator, agent_for
 
 if TYPE_CHECKING:
@@ -29,6 +31,14 @@ class NeighbourTopic:
     channel: str | None
 
 
+def optional_first(channels: Sequence[Channel]) -> list[Channel]:
+    """The optional channels (the covariance) first, the others in their order: a node
+    subscribes and publishes in this order, so that a value no step waits for usually
+    arrives before the one its neighbour's step does wait for (the step then has the value of
+    its own instant, as the batch simulator does)."""
+    return sorted(channels, key=lambda c: not c.optional)
+
+
 def link_subscriptions(template: AgentEstimator | LinkAgentEstimator) -> list[NeighbourTopic]:
     """A link agent's subscriptions to its neighbours' topics: each channel's from the
     neighbours whose values the step reads (a channel of a sensor's readings: from those
@@ -37,7 +47,7 @@ def link_subscriptions(template: AgentEstimator | LinkAgentEstimator) -> list[Ne
     if not isinstance(template, LinkAgentEstimator):
         return []
     out = []
-    for c in template.estimator.sends:
+    for c in optional_first(template.estimator.sends):
         w = wire.channel(c.name)
         for nb in template.channel_sources(c.name):
             if c.sensor is None or template.measures_me(nb):

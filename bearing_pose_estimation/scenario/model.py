@@ -158,11 +158,19 @@ class SimulationRates:
 
 def noise_model_gains(noise: Noise, simulation: SimulationRates,
                       sensors: Sensors) -> dict[str, float]:
-    """The covariance noise model (gains ``bearing_std`` [rad], ``relative_position_std``
-    [m], ``gyro_noise_density`` [rad/√s], ``odometry_noise_density`` [m/√s]) a simulation's
+    """The covariance noise model (gains ``bearing_std`` [rad], ``bearing_rate_std`` [1/s],
+    ``relative_position_std`` [m], ``gyro_noise_density`` [rad/√s], ``odometry_noise_density``
+    [m/√s]) a simulation's
     ``noise:`` and ``sensors:`` imply (each method reads the ones its gains have): a random
     walk's density is the per-sample std over the square root of the rate."""
+    rates = sensors.bearing_rates
+    # Rates differenced from consecutive bearings (at simulation.bearing_rate f): each
+    # sample's noise is σ √2 f (time correlated, which the covariance does not model); a
+    # filter's smoothing is not counted.
+    rate_std = (noise.bearing_std * float(np.sqrt(2.0)) * simulation.bearing_rate
+                if rates.from_bearings else rates.std)
     return {'bearing_std': noise.bearing_std,
+            'bearing_rate_std': rate_std,
             'relative_position_std': sensors.relative_positions.std,
             'gyro_noise_density': noise.gyro_std / float(np.sqrt(simulation.imu_rate)),
             'odometry_noise_density': (sensors.odometry.std
