@@ -214,20 +214,16 @@ def sender_terms(n_edges: int, angles: AngleTerms, bearings: Array, P_own: Array
         g_j = np.concatenate([g_own, g_own])
         b_l, b_o = bearings[ls], bearings[oth]
         # White: dα = β_oᵀ ν_l + β_lᵀ ν_o; ν_l is shared by the listener's angles, ν_o not.
-        map_l = chi_l[:, :, None] * b_o[:, None, :]                 # of ν_l, per angle
-        sum_map = np.zeros((n_edges, 3, 3))
-        np.add.at(sum_map, ls, map_l)
-        white = bearing_var * _sandwich(sum_map, projector(bearings))
-        w_o = bearing_var * np.einsum('ka,kab,kb->k', b_l, projector(b_o), b_l)
-        outer_l = chi_l[:, :, None] * chi_l[:, None, :]
-        np.add.at(white, ls, w_o[:, None, None] * outer_l)
         # Slow: the sender's q̃_j through Σ χ_l g_jᵀ (shared), the other robot's q̃_o.
-        J = np.zeros((n_edges, 3, 3))
-        np.add.at(J, ls, chi_l[:, :, None] * g_j[:, None, :])
-        P_j = P_own[agent][:, :3, :3]
-        slow = _sandwich(J, P_j)
+        w_o = bearing_var * np.einsum('ka,kab,kb->k', b_l, projector(b_o), b_l)
         v_o = np.einsum('ka,kab,kb->k', chi_o, P_other[oth][:, :3, :3], chi_o)
-        np.add.at(slow, ls, v_o[:, None, None] * outer_l)
+        outer_l = chi_l[:, :, None] * chi_l[:, None, :]
+        sum_map, J, own_white, other_slow = binned(
+            ls, n_edges, chi_l[:, :, None] * b_o[:, None, :],        # of ν_l, per angle
+            chi_l[:, :, None] * g_j[:, None, :], w_o[:, None, None] * outer_l,
+            v_o[:, None, None] * outer_l)
+        white = bearing_var * _sandwich(sum_map, projector(bearings)) + own_white
+        slow = _sandwich(J, P_own[agent][:, :3, :3]) + other_slow
         out[:, ANGLE_WHITE], out[:, ANGLE_SLOW] = pack(white), pack(slow)
     if velocity is not None:
         b, d, r_dot = velocity.b_hat, velocity.d, velocity.r_dot
@@ -246,14 +242,14 @@ def sender_terms(n_edges: int, angles: AngleTerms, bearings: Array, P_own: Array
 class OwnLinearisation(NamedTuple):
     """A robot's linearised step (module docstring) before ``ΔR_aᵀ``: ``F`` ``(N, 6, 6)`` of its
     own error, the position and attitude gains ``G_q``, ``G_Q`` ``(N, 3, 3)`` (from ζ and from
-    the anchor-frame ``Q̂ Ω``), the loops' decays ``A_q``, ``A_Q`` and, for free robots, the map
-    of ``Σ_j dn'_ji`` ``(N, 6, 3)`` (zeros for sensing robots)."""
+    the anchor-frame ``Q̂ Ω``), the slow inputs' scaling ``T`` ``(N, 6, 6)`` (``√c A^{-1/2}`` of
+    the loops' decays ``A_q = G_q D̂``, ``A_Q = G_Q K``) and, for free robots, the map of
+    ``Σ_j dn'_ji`` ``(N, 6, 3)`` (zeros for sensing robots)."""
 
     F: Array
     G_q: Array
     G_Q: Array
-    A_q: Array
-    A_Q: Array
+    T: Array
     B_v: Array
 
 
@@ -276,39 +272,55 @@ def own_linearisation(h: float, kappa_q: float, kappa_Q: Array, w: float, D: Arr
             ``b_in``, ``r_in``: ``(E, 3)`` the received ``𝔟̂_ji`` and ``ṙ_ji`` (``valid``).
     """
     n = D.shape[0]
-    G_q = h * kappa_q * np.linalg.inv(EYE3 + 2.0 * w * h * kappa_q * D).astype(float)
-    G_Q = (h * kappa_Q)[:, None, None] * np.linalg.inv(
-        EYE3 + (w * h * kappa_Q)[:, None, None] * K_a)
-    A_q, A_Q = G_q @ D, G_Q @ K_a
+    # D̂ and K commute with their gains: one eigendecomposition gives G, A and A^{-1/2}.
+    lam, V = np.linalg.eigh(np.concatenate([D, K_a]))
+    lam = np.maximum(lam, 0.0)
+    rate = np.concatenate([np.full(n, h * kappa_q), h * kappa_Q])[:, None]
+    g = rate / (1.0 + np.concatenate([np.full(n, 2.0 * w), np.full(n, w)])[:, None] * rate
+                * lam)
+    a = g * lam
+    floor = np.maximum(MIN_DECAY_RATIO * a.max(axis=1, keepdims=True), MIN_DECAY)
+    c = np.concatenate([np.full(n, C_POSITION), np.full(n, C_ATTITUDE)])[:, None]
+    Vt = _t(V)
+    G, A = (V * g[:, None, :]) @ Vt, (V * a[:, None, :]) @ Vt
+    scale = (V * np.sqrt(c / np.maximum(a, floor))[:, None, :]) @ Vt
+    G_q, G_Q = G[:n], G[n:]
+    T = np.zeros((n, DOF, DOF))
+    T[:, :3, :3], T[:, 3:, 3:] = scale[:n], scale[n:]
     F = np.zeros((n, DOF, DOF))
-    F[:, :3, :3] = EYE3 - A_q
-    F[:, 3:, 3:] = EYE3 - A_Q
+    F[:, :3, :3] = EYE3 - A[:n]
+    F[:, 3:, 3:] = EYE3 - A[n:]
     free = ~sensing
     # Sensing: the attitude innovation reads the own position, the prediction the attitude.
-    S_b = np.where(used[:, None, None], so3.hat(b_own), 0.0)
-    sum_S = np.zeros((n, 3, 3))
-    np.add.at(sum_S, agent, S_b)
-    F[:, 3:, :3] = np.where(sensing[:, None, None], -G_Q @ sum_S, 0.0)
+    sums = binned(agent, n, np.where(used[:, None, None], so3.hat(b_own), 0.0),
+                    np.where(valid[:, None, None], r_in[:, :, None] * b_in[:, None, :], 0.0))
+    F[:, 3:, :3] = np.where(sensing[:, None, None], -G_Q @ sums[0], 0.0)
     F[:, :3, 3:] = np.where(sensing[:, None, None], -so3.hat(moved), 0.0)
     # Free: γ̂ reads q̂_i through ω_a × q̂_i and the velocity terms' distances.
-    rb = np.where(valid[:, None, None], r_in[:, :, None] * b_in[:, None, :], 0.0)
-    sum_rb = np.zeros((n, 3, 3))
-    np.add.at(sum_rb, agent, rb)
-    L = so3.hat(omega_a) + P_inv @ sum_rb
+    L = so3.hat(omega_a) + P_inv @ sums[1]
     L = np.where((free & reconstructed)[:, None, None], L, 0.0)
     S_g = so3.hat(gamma)
     F[:, :3, :3] += np.where(free[:, None, None], h * L, 0.0)
     F[:, 3:, :3] += np.where(free[:, None, None], G_Q @ S_g @ L, 0.0)
     B_v = np.concatenate([h * P_inv, G_Q @ S_g @ P_inv], axis=1)
     B_v = np.where((free & reconstructed)[:, None, None], B_v, 0.0)
-    return OwnLinearisation(F, G_q, G_Q, A_q, A_Q, B_v)
+    return OwnLinearisation(F, G_q, G_Q, T, B_v)
 
 
-def _inv_sqrt(A: Array) -> Array:
-    """``sym(A)^{-1/2}``, the eigenvalues floored (:data:`MIN_DECAY_RATIO`)."""
-    lam, V = np.linalg.eigh(0.5 * (A + _t(A)))
-    floor = np.maximum(MIN_DECAY_RATIO * lam[:, -1:], MIN_DECAY)
-    return (V / np.sqrt(np.maximum(lam, floor))[:, None, :]) @ _t(V)
+def binned(index: Index, n: int, *rows: Array) -> list[Array]:
+    """``out[k] = Σ_{m: index[m] = k} rows[m]`` of each ``(M, ...)`` array, ``(n, ...)`` each
+    (e.g. over each robot's links): one product with the incidence matrix (``np.add.at``
+    costs several times as much at these sizes)."""
+    M = len(index)
+    incidence = np.zeros((n, M))
+    incidence[index, np.arange(M)] = 1.0
+    flat = incidence @ np.concatenate([x.reshape(M, -1) for x in rows], axis=1)
+    out, at = [], 0
+    for x in rows:
+        size = int(np.prod(x.shape[1:], dtype=int))
+        out.append(flat[:, at:at + size].reshape((n,) + x.shape[1:]))
+        at += size
+    return out
 
 
 def own_input_maps(lin: OwnLinearisation, agent: Index, used: Mask, b_own: Array,
@@ -324,9 +336,12 @@ def own_input_maps(lin: OwnLinearisation, agent: Index, used: Mask, b_own: Array
     e1, e2, chi_jk, chi_kj, g_own, _ = angles
     if len(e1):
         Gi = G_q[agent[e1]]
-        for e, o, chi in ((e1, e2, chi_jk), (e2, e1, chi_kj)):
-            np.add.at(V[:, :3], e, Gi @ (g_own[:, :, None] * own_bearings[o][:, None, :]))
-            np.add.at(Gn[:, :3], e, -Gi @ (g_own[:, :, None] * chi[:, None, :]))
+        both = np.concatenate([e1, e2])
+        V[:, :3], Gn[:, :3] = binned(
+            both, E, np.concatenate([Gi @ (g_own[:, :, None] * own_bearings[o][:, None, :])
+                                     for o in (e2, e1)]),
+            np.concatenate([-Gi @ (g_own[:, :, None] * chi[:, None, :])
+                            for chi in (chi_jk, chi_kj)]))
     S_b = so3.hat(b_own)
     V[:, 3:] = -G_Q[agent] @ (d_own[:, None, None] * S_b) @ R_hat[agent]
     Gn[:, 3:] = G_Q[agent] @ S_b
@@ -350,26 +365,21 @@ def propagate(P: Array, lin: OwnLinearisation, dR_a: Array, agent: Index, *, use
     position). ``gamma``, ``R_hat``: ``γ̂_i``, ``Q̂_i``; ``q_next``: ``q̂_i⁺`` (the anchor's
     gyro noise turns it)."""
     n = P.shape[0]
-    F, G_q, G_Q, A_q, A_Q, B_v = lin
+    F, G_q, G_Q, T, B_v = lin
     V, Gn = own_input_maps(lin, agent, used, b_own, own_bearings, angles, d_own, R_hat)
-    W = np.zeros((n, DOF, DOF))
-    np.add.at(W, agent, model.bearing_std ** 2 * _sandwich(V, projector(own_bearings)))
-    Y = np.zeros((n, DOF, DOF))
-    np.add.at(Y, agent, _sandwich(Gn, P_nbr[:, :3, :3]))
     # What the robots that see it sent: their angle terms' and velocity terms' covariances.
-    into = sensed_by[:, None]
-    angle_w = unpack(np.where(into, terms[:, ANGLE_WHITE], 0.0))
-    angle_s = unpack(np.where(into, terms[:, ANGLE_SLOW], 0.0))
-    vel_w = unpack(np.where(valid[:, None], terms[:, VELOCITY_WHITE], 0.0))
-    vel_s = unpack(np.where(valid[:, None], terms[:, VELOCITY_SLOW], 0.0))
-    sums = np.zeros((n, 4, 3, 3))
-    np.add.at(sums, agent, np.stack([angle_w, angle_s, vel_w, vel_s], axis=1))
+    use = np.concatenate([np.repeat(sensed_by[:, None], 12, axis=1),
+                          np.repeat(valid[:, None], 12, axis=1)], axis=1)
+    received = np.where(use, terms[:, :24], 0.0).reshape(-1, 4, 6)
+    W, Y, sums, n_ranged = binned(
+        agent, n, model.bearing_std ** 2 * _sandwich(V, projector(own_bearings)),
+        _sandwich(Gn, P_nbr[:, :3, :3]), received, ranged_by.astype(float))
+    sums = unpack(sums)
     W[:, :3, :3] += _sandwich(G_q, sums[:, 0])
     Y[:, :3, :3] += _sandwich(G_q, sums[:, 1])
     W += _sandwich(B_v, sums[:, 2])
     Y += _sandwich(B_v, sums[:, 3])
     # The anchor's relative positions of its ranged robots (the anchor term of (5)).
-    n_ranged = np.bincount(agent, weights=ranged_by.astype(float), minlength=n)
     W[:, :3, :3] += ((kappa_s * model.relative_position_std) ** 2 * n_ranged)[:, None, None] * (
         G_q @ _t(G_q))
     # Own motion sensors (the anchor's cancel with its own inputs).
@@ -381,9 +391,6 @@ def propagate(P: Array, lin: OwnLinearisation, dR_a: Array, agent: Index, *, use
                              (odo / h ** 2) * (G_Q @ S_g) @ _t(G_Q @ S_g), 0.0)
     W[:, 3:, 3:] += np.where(other[:, None, None], gyro * EYE3, 0.0)
     # Slow inputs over the robot's own loops (module docstring).
-    T = np.zeros((n, DOF, DOF))
-    T[:, :3, :3] = np.sqrt(C_POSITION) * _inv_sqrt(A_q)
-    T[:, 3:, 3:] = np.sqrt(C_ATTITUDE) * _inv_sqrt(A_Q)
     out = F @ P @ _t(F) + W + T @ Y @ T
     # Everything turns with the anchor's frame; its noise moves the other robots.
     Rt = np.zeros((n, DOF, DOF))
