@@ -563,13 +563,20 @@ def _block_fields(prefix: str) -> list[str]:
 _TERM_FIELDS = (_block_fields('angle_white') + _block_fields('angle_slow')
                 + _block_fields('velocity_white') + _block_fields('velocity_slow')
                 + ['rate_x', 'rate_y', 'rate_z'])
-_TERM_WANT = {**{f: PointField.FLOAT64 for f in _TERM_FIELDS}, 'agent_id': PointField.UINT32}
-_TERM_DTYPE, _TERM_CLOUD = _cloud_layout(_TERM_WANT)
+TERM_WANT = {**{f: PointField.FLOAT64 for f in _TERM_FIELDS}, 'agent_id': PointField.UINT32}
+_TERM_DTYPE, _TERM_CLOUD = _cloud_layout(TERM_WANT)
 
 
 def _decode_id_terms(msg: PointCloud2) -> tuple[float, dict[int, Array]]:
-    """Raises WireError for non-finite values or a block that is not a covariance."""
-    t, data = _decode_cloud(msg, _TERM_WANT)
+    return terms_from(*_decode_cloud(msg, TERM_WANT))
+
+
+def terms_from(t: float, data: np.ndarray) -> tuple[float, dict[int, Array]]:
+    """``term_cov`` values per agent id from the cloud's points (fields :data:`TERM_WANT`).
+
+    Raises:
+        WireError: non-finite values or a block that is not a covariance.
+    """
     values = np.stack([data[f] for f in _TERM_FIELDS], axis=1).astype(float)
     if not np.all(np.isfinite(values)):
         raise WireError('non-finite term covariance')

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Mapping
-from typing import NamedTuple
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,7 +29,7 @@ from sensor_msgs.msg import PointField
 
 from bearing_pose_estimation.core import so3
 
-from . import WireError, body_frame, checked_covariance, odom_frame
+from . import TERM_WANT, WireError, body_frame, checked_covariance, odom_frame, terms_from
 
 Array = NDArray[np.float64]
 Buffer = bytes | bytearray | memoryview
@@ -481,6 +481,7 @@ def _packed(want: Mapping[str, int]) -> np.dtype:
 _VECTOR_DTYPE = _packed(_VECTOR_FIELDS)
 _BLOCK_DTYPE = _packed({**{f: PointField.FLOAT64 for f in _BLOCK_FIELDS},
                         'agent_id': PointField.UINT32})
+_TERM_DTYPE = _packed(TERM_WANT)
 
 
 # The PointFields of the clouds seen (their bytes, count included, and {name: (offset,
@@ -668,3 +669,76 @@ def decode_blocks_raw(data: Buffer) -> tuple[float, NDArray[np.uint32], Array]:
     t, points = decode_cloud_raw(data, {**{f: PointField.FLOAT64 for f in _BLOCK_FIELDS},
                                         'agent_id': PointField.UINT32})
     return t, points['agent_id'].astype(np.uint32), _columns(points, _BLOCK_FIELDS)
+
+
+# ----------------------------------------------------------------------------- channels
+def _position_raw(data: Buffer) -> tuple[float, Array]:
+    t, _, p = decode_pose_raw(data)
+    return t, p
+
+
+def _id_vectors_raw(data: Buffer) -> tuple[float, dict[int, Array]]:
+    t, ids, vectors = decode_vectors_raw(data)
+    return t, dict(zip(ids.tolist(), vectors))
+
+
+def _id_pairs_raw(data: Buffer) -> tuple[float, dict[int, Array]]:
+    t, ids, vectors = decode_vectors_raw(data)
+    return t, dict(zip(ids.tolist(), vectors[:, :2]))
+
+
+def _id_blocks_raw(data: Buffer) -> tuple[float, dict[int, Array]]:
+    t, ids, packed = decode_blocks_raw(data)
+    return t, dict(zip(ids.tolist(), packed))
+
+
+def _id_terms_raw(data: Buffer) -> tuple[float, dict[int, Array]]:
+    return terms_from(*decode_cloud_raw(data, TERM_WANT))
+
+
+def _ids_values(value: Mapping[int, Array], width: int) -> tuple[NDArray[np.uint32], Array]:
+    ids = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
+    return ids, np.array(list(value.values()), dtype=float).reshape(-1, width)
+
+
+def _encode_id_vectors_raw(t: float, value: Mapping[int, Array], frame: str) -> bytes:
+    return encode_vectors_raw(t, frame, *_ids_values(value, 3))
+
+
+def _encode_id_pairs_raw(t: float, value: Mapping[int, Array], frame: str) -> bytes:
+    ids, pairs = _ids_values(value, 2)
+    return encode_vectors_raw(t, frame, ids, np.column_stack([pairs, np.zeros(len(pairs))]))
+
+
+def _encode_id_blocks_raw(t: float, value: Mapping[int, Array], frame: str) -> bytes:
+    return encode_blocks_raw(t, frame, *_ids_values(value, 6))
+
+
+def _encode_id_terms_raw(t: float, value: Mapping[int, Array], frame: str) -> bytes:
+    ids, values = _ids_values(value, len(TERM_WANT) - 1)
+    points = np.empty(len(ids), dtype=_TERM_DTYPE)
+    for k, name in enumerate(n for n in TERM_WANT if n != 'agent_id'):
+        points[name] = values[:, k]
+    points['agent_id'] = ids
+    return encode_cloud_raw(t, frame, points)
+
+
+# Channel name -> (decode, encode) on bytes: what msg_defs.CHANNELS' codecs do on messages
+# (encode None: the channel rides on a message published anyway). test_cdr.py checks that the
+# two tables name the same channels and agree on every one.
+RAW_CHANNELS: dict[str, tuple[Callable[[Buffer], tuple[float, Any]],
+                              Callable[[float, Any, str], bytes] | None]] = {
+    'p_hat': (_position_raw, None),
+    'pose_cov': (decode_covariance_raw, None),
+    'world_bearing': (_id_vectors_raw, _encode_id_vectors_raw),
+    'z_hat': (decode_complex_raw, encode_complex_raw),
+    'relyaw': (_id_pairs_raw, _encode_id_pairs_raw),
+    'meas': (_id_vectors_raw, None),
+    'q_hat': (_position_raw, None),
+    'q_ranged': (_id_vectors_raw, None),
+    'angle_gradient': (_id_vectors_raw, _encode_id_vectors_raw),
+    'angle_hessian': (_id_blocks_raw, _encode_id_blocks_raw),
+    'anchor_bearing': (_id_vectors_raw, _encode_id_vectors_raw),
+    'velocity_term': (_id_vectors_raw, _encode_id_vectors_raw),
+    'term_cov': (_id_terms_raw, _encode_id_terms_raw),
+}

@@ -575,3 +575,73 @@ def test_encoders_reject_what_cannot_be_sent():
         cdr.encode_cloud_raw(T, 'w', np.zeros(3, dtype=[('x', '>f8')]))
     clock = deserialize_message(cdr.encode_clock_raw(-1.5), Clock).clock
     assert clock == Time(sec=-2, nanosec=500_000_000)
+
+
+# ----------------------------------------------------------------------------- channels
+def _channel_value(name: str) -> Any:
+    """A value of each channel that has an encoder, as the estimator node gives it."""
+    ids = [2, 5, 7]
+    if name == 'z_hat':
+        return np.array([0.6, -0.8])
+    if name == 'relyaw':
+        return {i: RNG.normal(size=2) for i in ids}
+    if name == 'angle_hessian':
+        return {i: RNG.normal(size=6) for i in ids}
+    if name == 'term_cov':
+        blocks = [_A[:3, :3] @ _A[:3, :3].T * k for k in range(1, 5)]
+        packed = np.concatenate([[b[0, 0], b[1, 1], b[2, 2], b[0, 1], b[0, 2], b[1, 2]]
+                                 for b in blocks])
+        return {i: np.concatenate([packed, RNG.normal(size=3)]) for i in ids}
+    return {i: RNG.normal(size=3) for i in ids}
+
+
+def _same(a: Any, b: Any) -> None:
+    if isinstance(a, dict):
+        assert list(a) == list(b)
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k])
+    else:
+        np.testing.assert_array_equal(a, b)
+
+
+def test_every_channel_has_raw_codecs():
+    assert list(cdr.RAW_CHANNELS) == list(wire.CHANNELS)
+    for name, w in wire.CHANNELS.items():
+        assert (cdr.RAW_CHANNELS[name][1] is None) == (w.encode is None), name
+
+
+@pytest.mark.parametrize('name', [n for n, w in wire.CHANNELS.items() if w.encode is not None])
+def test_raw_channels_are_the_typed_ones(name):
+    """Typed encode → bytes → raw decode, and raw encode → rclpy's message → typed decode,
+    give the typed path's values."""
+    w = wire.CHANNELS[name]
+    decode_raw, encode_raw = cdr.RAW_CHANNELS[name]
+    assert encode_raw is not None
+    value = _channel_value(name)
+    msg = w.encode(T, value, 'agent_1/base_link')
+    want = w.decode(msg)
+    got = decode_raw(serialize_message(msg))
+    assert got[0] == want[0]
+    _same(got[1], want[1])
+    again = w.decode(deserialize_message(encode_raw(T, value, 'agent_1/base_link'), w.type))
+    assert again[0] == want[0]
+    _same(again[1], want[1])
+
+
+@pytest.mark.parametrize('name', [n for n, w in wire.CHANNELS.items() if w.encode is None])
+def test_raw_channels_riding_on_other_messages(name):
+    w = wire.CHANNELS[name]
+    msg = (wire.encode_pose(T, 'world', R, P_) if w.type is PoseStamped
+           else wire.encode_pose_covariance(T, 'world', R, P_, COV)
+           if w.type is PoseWithCovarianceStamped
+           else wire.encode_vectors(T, 'agent_1/base_link', [3, 4], RNG.normal(size=(2, 3))))
+    want, got = w.decode(msg), cdr.RAW_CHANNELS[name][0](serialize_message(msg))
+    assert got[0] == want[0]
+    _same(got[1], want[1])
+
+
+def test_a_raw_term_covariance_that_is_no_covariance_is_rejected():
+    value = _channel_value('term_cov')
+    value[2][0] = -1.0    # a negative variance
+    with pytest.raises(WireError, match='not positive semi-definite'):
+        cdr.RAW_CHANNELS['term_cov'][0](cdr.RAW_CHANNELS['term_cov'][1](T, value, 'f'))

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import yaml
 from rclpy.parameter import Parameter
+from rclpy.serialization import serialize_message
 
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.core import so3
@@ -154,6 +155,31 @@ def test_the_known_pose_subscription_matches_best_effort_and_reliable(context):
     try:
         sub = next(s for s in node.subscriptions if s.topic_name == '/agent_1/known_pose')
         assert sub.qos_profile.reliability == wire.SENSOR_QOS.reliability  # BEST_EFFORT
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('raw', [True, False])
+def test_messages_as_bytes_or_as_objects_give_the_same_estimate(context, raw):
+    """raw_messages (default true): every subscription takes the serialised bytes, decoded
+    with msg_defs/cdr.py; false: rclpy's message objects. The same samples give the same
+    gyro buffer either way, and bad bytes are a counted rejection, never an exception."""
+    node = _node(context, raw_messages=raw, **EXPLICIT)
+    try:
+        assert node.subscriptions and all(s.raw == raw for s in node.subscriptions)
+        for k in range(3):
+            msg = wire.encode_imu(0.005 * k, 'agent_5', np.array([0.0, 0.0, 0.1 * k]))
+            node.on_imu(serialize_message(msg) if raw else msg)
+        assert node.est.gyro.end == pytest.approx(0.01)
+        np.testing.assert_allclose(so3.log(node.est.gyro.increment(0.0, 0.01)),
+                                   [0.0, 0.0, 0.005 * 0.1 + 0.005 * 0.2], atol=1e-12)
+        elsewhere = wire.encode_imu(0.015, 'agent_4', np.zeros(3))   # another body's frame
+        node.on_imu(serialize_message(elsewhere) if raw else elsewhere)
+        assert node.rejected['wrong_frame'] == 1
+        if raw:
+            node.on_imu(serialize_message(msg)[:-5])               # truncated
+            node.on_bearings(b'\x00\x01\x00\x00garbage')
+            assert node.rejected['malformed'] == 2
     finally:
         node.destroy_node()
 

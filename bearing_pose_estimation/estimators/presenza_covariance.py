@@ -314,10 +314,10 @@ def binned(index: Index, n: int, *rows: Array) -> list[Array]:
     M = len(index)
     incidence = np.zeros((n, M))
     incidence[index, np.arange(M)] = 1.0
-    flat = incidence @ np.concatenate([x.reshape(M, -1) for x in rows], axis=1)
+    sizes = [int(np.prod(x.shape[1:], dtype=int)) for x in rows]   # (M = 0: no -1 reshape)
+    flat = incidence @ np.concatenate([x.reshape(M, k) for x, k in zip(rows, sizes)], axis=1)
     out, at = [], 0
-    for x in rows:
-        size = int(np.prod(x.shape[1:], dtype=int))
+    for x, size in zip(rows, sizes):
         out.append(flat[:, at:at + size].reshape((n,) + x.shape[1:]))
         at += size
     return out

@@ -80,11 +80,11 @@ from rclpy.parameter import Parameter
 
 from .. import estimators
 from .. import msg_defs as wire
-from ..msg_defs import rviz
+from ..msg_defs import cdr, rviz
 from ..core import so3
 from ..core.errors import ScenarioError
 from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits
-from ..estimators.base import (Channel, Estimator, Sensor, format_gains, gain_fields,
+from ..estimators.base import (Array, Channel, Estimator, Sensor, format_gains, gain_fields,
                                parse_gains)
 from ..estimators.link_agent import LinkAgentEstimator, agent_for
 from ..estimators.two_round_agent import TwoRoundAgent
@@ -92,6 +92,19 @@ from ..scenario.model import Scenario
 from ..scenario.parse import load_scenario
 from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
 from .wiring import link_subscriptions, listener_counts, optional_first
+
+# What takes each of msg_defs' decoders' place when the message comes as bytes.
+_RAW_DECODERS: dict[Callable[..., tuple], Callable[[bytes], tuple]] = {
+    wire.decode_imu: cdr.decode_imu_raw, wire.decode_vectors: cdr.decode_vectors_raw,
+    wire.decode_pose: cdr.decode_pose_raw}
+
+
+def _decode_odometry(msg: wire.Odometry | bytes,
+                     child_frame: str | None) -> tuple[float, Array, Array]:
+    if isinstance(msg, bytes):
+        return cdr.decode_odometry_raw(msg, child_frame)
+    return wire.decode_odometry(msg, child_frame)
+
 
 # The input limits a running node takes (with the gains and neighbour_wait).
 _LIVE_LIMITS = ('sensor_timeout', 'neighbour_timeout', 'max_rate', 'link_wait')
@@ -252,6 +265,14 @@ class EstimatorNode(Node):
                                          '(estimate frame -> <agent>/base_link) when tf2_ros '
                                          'is installed; false for a robot whose odometry owns '
                                          'base_link'))
+        # Messages as their serialised bytes, decoded and encoded with numpy (msg_defs/cdr.py):
+        # rclpy then builds no Python message (BENCHMARKS.md, "Raw CDR").
+        self.raw = bool(p('raw_messages', True, 'take and publish messages as serialised bytes '
+                          '(msg_defs/cdr.py); false: as rclpy message objects'))
+        self._encode_pose: Callable[..., Any] = (cdr.encode_pose_raw if self.raw
+                                                 else wire.encode_pose)
+        self._encode_pose_covariance: Callable[..., Any] = (
+            cdr.encode_pose_covariance_raw if self.raw else wire.encode_pose_covariance)
         self.h = 1.0 / frequency
         # Publish on exact multiples of the publish period, so the monitor can pair estimates
         # with ground truth at identical stamps.
@@ -279,8 +300,12 @@ class EstimatorNode(Node):
             # Every step waits for these values, the first ones too: a reader that its writer
             # discovers late still gets them (transient local, as the estimate's writer).
             qos_est = wire.ESTIMATE_RECORD_QOS
-        self.pub_channels = {name: (self.create_publisher(w.type, w.topic, qos_est), w.encode)
-                             for name, w in self.wires.items() if w.encode is not None}
+        self.pub_channels: dict[str, tuple[Any, Callable[[float, Any, str], Any]]] = {}
+        for name, w in self.wires.items():
+            encode = cdr.RAW_CHANNELS[name][1] if self.raw else w.encode
+            if encode is not None:
+                self.pub_channels[name] = (self.create_publisher(w.type, w.topic, qos_est),
+                                           encode)
         # Methods with a covariance publish the estimate with it too, on the publish grid.
         self.pub_pose = (self.create_publisher(wire.PoseWithCovarianceStamped, wire.POSE,
                                                wire.ESTIMATE_PUB_QOS)
@@ -294,45 +319,44 @@ class EstimatorNode(Node):
                    **{self.wires[name].topic: pub for name, (pub, _) in self.pub_channels.items()}}
         self._readers_wanted = [(writers[topic], n) for topic, n in listeners.items()
                                 if topic in writers]
-        subs = [self.create_subscription(wire.Imu, wire.IMU, self.on_imu, qos_in)]
+        subscribe = partial(self.create_subscription, raw=self.raw)
+        subs = [subscribe(wire.Imu, wire.IMU, self.on_imu, qos_in)]
         if self.method.uses(Sensor.BEARINGS):
-            subs.append(self.create_subscription(wire.PointCloud2, wire.BEARINGS,
-                                                 self.on_bearings, qos_in))
+            subs.append(subscribe(wire.PointCloud2, wire.BEARINGS, self.on_bearings, qos_in))
         if self.method.uses(Sensor.BEARING_RATES) and getattr(template, 'rate_tau',
                                                               None) is None:
-            subs.append(self.create_subscription(wire.PointCloud2, wire.BEARING_RATES,
-                                                 self.on_bearing_rates, qos_in))
+            subs.append(subscribe(wire.PointCloud2, wire.BEARING_RATES, self.on_bearing_rates,
+                            qos_in))
         if self.method.uses(Sensor.RELATIVE_POSITIONS):
-            subs.append(self.create_subscription(wire.PointCloud2, wire.RELATIVE_POSITIONS,
-                                                 self.on_relative_positions, qos_in))
+            subs.append(subscribe(wire.PointCloud2, wire.RELATIVE_POSITIONS,
+                            self.on_relative_positions, qos_in))
         if self.method.uses(Sensor.ODOMETRY):
-            odom = self.create_subscription(wire.Odometry, wire.ODOM, self.on_odometry, qos_in)
+            odom = subscribe(wire.Odometry, wire.ODOM, self.on_odometry, qos_in)
             if self.expect_odometry:  # the t0 announcement waits for its publisher too
                 subs.append(odom)
         if template.leader:
             # Best effort matches both a reliable publisher (the simulator) and a best-effort
             # one (many mocap and GNSS drivers); a reliable reader would miss the latter. A lost
             # sample costs nothing: the gyro carries the pose to the next one.
-            subs.append(self.create_subscription(wire.PoseStamped, wire.KNOWN_POSE,
-                                                 self.on_known_pose, qos_in))
+            subs.append(subscribe(wire.PoseStamped, wire.KNOWN_POSE, self.on_known_pose, qos_in))
         if isinstance(template, LinkAgentEstimator):
             for sub in link_subscriptions(template):
                 if sub.channel is None:   # its motion: what this robot senses of it, the anchor
-                    subs.append(self.create_subscription(
+                    subs.append(subscribe(
                         wire.Odometry, wire.topic(sub.agent, wire.ODOM, self.fleet),
                         partial(self._link, self.on_neighbour_odometry, sub.agent_id,
                                 sub.agent), qos_in))
                     continue
                 w = self.wires[sub.channel]
                 sensor = self.method_channel(sub.channel).sensor
-                subs.append(self.create_subscription(
+                subs.append(subscribe(
                     w.type, wire.topic(sub.agent, w.topic, self.fleet),
                     partial(self._link, self.on_neighbour, sub.agent_id, sub.channel,
                             sub.agent), qos_in if sensor is not None else qos_est))
         else:
             for nb in template.neighbours:
                 for name, w in self.wires.items():
-                    subs.append(self.create_subscription(
+                    subs.append(subscribe(
                         w.type, wire.topic(nb.name, w.topic, self.fleet),
                         partial(self._link, self.on_neighbour, nb.agent_id, name, nb.name),
                         qos_est))
@@ -466,14 +490,20 @@ class EstimatorNode(Node):
         self.get_logger().warning(f'rejected {detail}: {cause} ({self.rejected[cause]} so far)',
                                   throttle_duration_sec=5.0)
 
-    def _decoded(self, msg: Any, decode: Callable[[Any], tuple], frame: str,
-                 what: str) -> tuple | None:
-        """``decode(msg)``, or None after counting the rejection: wrong frame (unless ``frame``
-        is empty) or a malformed message."""
-        if frame and msg.header.frame_id != frame:
-            self._reject('wrong_frame', f'{what} in frame {msg.header.frame_id!r}')
-            return None
+    def _decoded(self, msg: Any, decode: Callable[[Any], tuple], frame: str, what: str,
+                 raw_decode: Callable[[bytes], tuple] | None = None) -> tuple | None:
+        """``decode(msg)`` (a message's bytes: ``raw_decode``, by default ``decode``'s
+        counterpart in msg_defs/cdr.py), or None after counting the rejection: wrong frame
+        (unless ``frame`` is empty) or a malformed message."""
         try:
+            if isinstance(msg, bytes):
+                frame_id = cdr.read_header(msg).frame_id
+                decode = raw_decode or _RAW_DECODERS[decode]
+            else:
+                frame_id = msg.header.frame_id
+            if frame and frame_id != frame:
+                self._reject('wrong_frame', f'{what} in frame {frame_id!r}')
+                return None
             return decode(msg)
         except wire.WireError as exc:
             self._reject('malformed', f'{what} ({exc})')
@@ -535,7 +565,7 @@ class EstimatorNode(Node):
     def on_neighbour_odometry(self, agent_id: int, name: str, msg: wire.Odometry) -> None:
         est = self.est
         try:
-            t, v, omega = wire.decode_odometry(msg, wire.body_frame(name))
+            t, v, omega = _decode_odometry(msg, wire.body_frame(name))
         except wire.WireError as exc:
             return self._reject('malformed', f'odom of agent {agent_id} ({exc})')
         if not isinstance(est, LinkAgentEstimator):
@@ -567,7 +597,7 @@ class EstimatorNode(Node):
 
     def on_odometry(self, msg: wire.Odometry) -> None:
         try:
-            t, v, omega = wire.decode_odometry(msg, self.odom_child_frame or None)
+            t, v, omega = _decode_odometry(msg, self.odom_child_frame or None)
         except wire.WireError as exc:
             return self._reject('malformed', f'odom ({exc})')
         if self.est is None:
@@ -609,7 +639,8 @@ class EstimatorNode(Node):
         w = self.wires[channel]
         what = f'{w.topic} of agent {agent_id}'
         decoded = self._decoded(msg, w.decode, w.frame_of(name, self.estimate_frame,
-                                                          self.world_frame), what)
+                                                          self.world_frame), what,
+                                cdr.RAW_CHANNELS[channel][0])
         if decoded is None or self.est is None:
             return
         t, value = decoded
@@ -741,10 +772,10 @@ class EstimatorNode(Node):
             # estimate, so this order usually gives their step the covariance of its instant.
             if self.pub_pose is not None:
                 P = getattr(est.x, 'P')[0]   # the pose's block: methods may hold more states
-                self.pub_pose.publish(wire.encode_pose_covariance(
+                self.pub_pose.publish(self._encode_pose_covariance(
                     t, self.estimate_frame, est.R_hat[0], est.p_hat[0], P[:6, :6]))
             self.pub_estimate.publish(
-                wire.encode_pose(t, self.estimate_frame, est.R_hat[0], est.p_hat[0]))
+                self._encode_pose(t, self.estimate_frame, est.R_hat[0], est.p_hat[0]))
             if self.tf is not None:
                 self.tf.sendTransform(rviz.encode_transform(
                     t, self.estimate_frame, wire.body_frame(self.agent), est.R_hat[0],

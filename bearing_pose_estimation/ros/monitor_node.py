@@ -31,6 +31,7 @@ from rclpy.task import Future
 from std_msgs.msg import Empty
 
 from .. import msg_defs as wire
+from ..msg_defs import cdr
 from ..core.errors import ScenarioError
 from ..estimators.base import EstimateFrame
 from ..scenario.model import Scenario
@@ -89,12 +90,15 @@ class MonitorNode(Node):
         self.finished = Future()  # completes once the outputs are written
         self.wall_start = time.monotonic()
         topic = partial(wire.topic, fleet=self.fleet)
+        # Poses as their serialised bytes (msg_defs/cdr.py): rclpy builds no message object.
         for k, name in enumerate(self.watched):
             self.create_subscription(wire.PoseStamped, topic(name, wire.GROUND_TRUTH),
-                                     partial(self._on_pose, self._truth, k), wire.SIM_PUB_QOS)
+                                     partial(self._on_pose, self._truth, k), wire.SIM_PUB_QOS,
+                                     raw=True)
         for k, name in enumerate(self.followers):
             self.create_subscription(wire.PoseStamped, topic(name, wire.ESTIMATE),
-                                     partial(self._on_pose, self._est, k), wire.ESTIMATE_RECORD_QOS)
+                                     partial(self._on_pose, self._est, k),
+                                     wire.ESTIMATE_RECORD_QOS, raw=True)
         self.recorder = None
         if bag:   # its subscriptions are in the ready check too: the bag starts at t = 0
             if Path(bag).exists():
@@ -116,12 +120,12 @@ class MonitorNode(Node):
             self.pub_ready.publish(Empty())
             self.ready_timer.cancel()
 
-    def _on_pose(self, table: dict, k: int, msg: wire.PoseStamped) -> None:
-        ns = wire.stamp_ns(msg.header.stamp)
-        if ns % self.record_ns or self.done or ns in self._recorded:
-            return  # only grid instants, once each (t0 estimates are announced repeatedly)
+    def _on_pose(self, table: dict, k: int, msg: bytes) -> None:
         try:
-            _, R, p = wire.decode_pose(msg)
+            ns = cdr.read_header(msg).ns
+            if ns % self.record_ns or self.done or ns in self._recorded:
+                return  # only grid instants, once each (t0 estimates are announced repeatedly)
+            _, R, p = cdr.decode_pose_raw(msg)
         except wire.WireError as exc:
             self.get_logger().warning(f'bad pose: {exc}', throttle_duration_sec=5.0)
             return

@@ -36,6 +36,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Empty
 
 from .. import msg_defs as wire
+from ..msg_defs import cdr
 from ..core.errors import ScenarioError
 from ..estimators.base import Sensor
 from .monitor_node import watched
@@ -72,6 +73,10 @@ class SimulatorNode(Node):
                                0.0, 1e6)
         # False: another node owns /clock (a bag replay, Gazebo); the stamps stay sim time.
         self.publish_clock = p('publish_clock', True, 'publish /clock (the simulated time)')
+        # Messages built as their serialised bytes (msg_defs/cdr.py), not rclpy objects.
+        raw = p('raw_messages', True, 'publish and take messages as serialised bytes '
+                '(msg_defs/cdr.py); false: as rclpy message objects')
+        self.codec = _RawCodec() if raw else _TypedCodec()
 
         if s.formation is not None and s.formation.mode == 'paper':
             raise ScenarioError(f'{s.source}: formation_control.mode: paper (the controller uses '
@@ -119,7 +124,7 @@ class SimulatorNode(Node):
         for k, name in enumerate(self.names):
             self.create_subscription(wire.PoseStamped,
                                      wire.topic(name, wire.ESTIMATE, self.fleet),
-                                     partial(self._on_estimate, k), wire.ESTIMATE_QOS)
+                                     partial(self._on_estimate, k), wire.ESTIMATE_QOS, raw=raw)
 
         self.monitor_ready = False
         if self.wait_for_monitor:
@@ -147,8 +152,13 @@ class SimulatorNode(Node):
     def _on_monitor_ready(self, _msg: Empty) -> None:
         self.monitor_ready = True
 
-    def _on_estimate(self, k: int, msg: wire.PoseStamped) -> None:
-        self.progress[k] = max(self.progress[k], wire.from_stamp(msg.header.stamp))
+    def _on_estimate(self, k: int, msg: wire.PoseStamped | bytes) -> None:
+        try:
+            t = (cdr.read_header(msg).t if isinstance(msg, bytes)
+                 else wire.from_stamp(msg.header.stamp))
+        except wire.WireError:
+            return   # the estimator's own message: its stamp is what counts here
+        self.progress[k] = max(self.progress[k], t)
 
     # --------------------------------------------------------------------------- start
     def _unmatched(self) -> list[str]:
@@ -241,20 +251,20 @@ class SimulatorNode(Node):
         w, t = self.world, self.world.t
         if w.due(w.imu_every) and w.tick > 0:  # a sample covers the period ending now
             for i, omega in enumerate(w.imu()):
-                self.pub_imu[i].publish(wire.encode_imu(t, self.names[i], omega))
+                self.pub_imu[i].publish(self.codec.imu(t, self.names[i], omega))
         if w.due(w.bearing_every):
             for i, name in enumerate(self.names):
                 j, b = w.bearings(i)
                 self.pub_bearings[i].publish(
-                    wire.encode_vectors(t, wire.body_frame(name), j + 1, b))
+                    self.codec.vectors(t, wire.body_frame(name), j + 1, b))
         for sensor, pubs in self.pub_sensors.items():
             if w.due(w.sensor_every[sensor]) and (sensor != 'odometry' or w.tick > 0):
                 self._publish_sensor(sensor, pubs, t)
         if w.due(w.truth_every):
             for i, pub in enumerate(self.pub_truth):
-                pub.publish(wire.encode_pose(t, self.scenario.world_frame, w.R[i], w.p[i]))
+                pub.publish(self.codec.pose(t, self.scenario.world_frame, w.R[i], w.p[i]))
         if clock and self.pub_clock is not None:
-            self.pub_clock.publish(ClockMsg(clock=wire.to_stamp(t)))
+            self.pub_clock.publish(self.codec.clock(t))
 
 
     def _publish_sensor(self, sensor: str, pubs: list, t: float) -> None:
@@ -262,16 +272,41 @@ class SimulatorNode(Node):
         if sensor == 'odometry':  # interval averages over the period ending now
             v, omega = w.odometry()
             for i, name in enumerate(self.names):
-                pubs[i].publish(wire.encode_odometry(t, name, v[i], omega[i], w.odom_R[i],
-                                                     w.odom_p[i], spec.std, spec.angular_std))
+                pubs[i].publish(self.codec.odometry(t, name, v[i], omega[i], w.odom_R[i],
+                                                    w.odom_p[i], spec.std, spec.angular_std))
             return
         for i, name in enumerate(self.names):
             j, values = w.sensed(sensor, i)
             if sensor == 'ranges':
-                msg = wire.encode_scalars(t, wire.body_frame(name), j + 1, values)
+                msg = self.codec.scalars(t, wire.body_frame(name), j + 1, values)
             else:
-                msg = wire.encode_vectors(t, wire.body_frame(name), j + 1, values)
+                msg = self.codec.vectors(t, wire.body_frame(name), j + 1, values)
             pubs[i].publish(msg)
+
+
+class _TypedCodec:
+    """The simulator's messages as rclpy objects (msg_defs)."""
+
+    imu = staticmethod(wire.encode_imu)
+    vectors = staticmethod(wire.encode_vectors)
+    scalars = staticmethod(wire.encode_scalars)
+    pose = staticmethod(wire.encode_pose)
+    odometry = staticmethod(wire.encode_odometry)
+
+    @staticmethod
+    def clock(t: float) -> ClockMsg:
+        return ClockMsg(clock=wire.to_stamp(t))
+
+
+class _RawCodec:
+    """The same messages as their serialised bytes (msg_defs/cdr.py)."""
+
+    imu = staticmethod(cdr.encode_imu_raw)
+    vectors = staticmethod(cdr.encode_vectors_raw)
+    scalars = staticmethod(cdr.encode_scalars_raw)
+    pose = staticmethod(cdr.encode_pose_raw)
+    odometry = staticmethod(cdr.encode_odometry_raw)
+    clock = staticmethod(cdr.encode_clock_raw)
 
 
 def main(args: list[str] | None = None) -> None:
