@@ -41,6 +41,26 @@ _DONE = re.compile(r'reached t = \S+ s in (?P<wall>\S+) s wall \(x(?P<speed>\S+)
 _MATCHED = re.compile(r'all matched after (?P<s>\S+) s')
 
 
+def run_config(scenario_file: Path, out_dir: Path, duration: float, domain_id: int,
+               agents_per_process: int = 1) -> launch.RunConfig:
+    """A fleet run as this bench makes it: paced at real time (``--real-time-factor 1``), no
+    plots, a generous timeout."""
+    return launch.RunConfig(scenario_file=scenario_file, out_dir=out_dir, duration=duration,
+                            domain_id=domain_id, real_time_factor=1.0, plots=False,
+                            agents_per_process=agents_per_process, timeout=20 * duration + 300)
+
+
+def simulator_stats(log: str) -> dict[str, float]:
+    """From a simulator's log: ``speed`` (simulated / wall seconds) and ``missed`` [% of
+    ticks] once it reached the end, ``discovery_s`` once it started the clock."""
+    out: dict[str, float] = {}
+    if (m := _DONE.search(log)):
+        out.update(speed=float(m['speed']), missed=float(m['missed']))
+    if (m := _MATCHED.search(log)):
+        out['discovery_s'] = float(m['s'])
+    return out
+
+
 def run_one(n: int, k: int, args: argparse.Namespace, tmp: Path) -> dict[str, float | str]:
     data = generate_scenario(n, seed=0)
     data['frequency'] = args.frequency
@@ -51,17 +71,11 @@ def run_one(n: int, k: int, args: argparse.Namespace, tmp: Path) -> dict[str, fl
     scenario_file = tmp / f'fleet_{n}.yaml'
     scenario_file.write_text(yaml.safe_dump(data, sort_keys=False))
     scenario = load_scenario(scenario_file)
-    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp / f'run_{n}_{k}',
-                           duration=args.duration, domain_id=1 + os.getpid() % 101,
-                           real_time_factor=1.0, plots=False, agents_per_process=k,
-                           timeout=20 * args.duration + 300)
+    cfg = run_config(scenario_file, tmp / f'run_{n}_{k}', args.duration,
+                     1 + os.getpid() % 101, k)
     result = launch.launch_run(scenario, cfg)
     row: dict[str, float | str] = {'agents': n, 'per_process': k, 'ok': str(result.ok)}
-    sim_log = (cfg.logs_dir / 'simulator.log').read_text()
-    if (m := _DONE.search(sim_log)):
-        row.update(speed=float(m['speed']), missed=float(m['missed']))
-    if (m := _MATCHED.search(sim_log)):
-        row['discovery_s'] = float(m['s'])
+    row.update(simulator_stats((cfg.logs_dir / 'simulator.log').read_text()))
     est = {name: cpu for name, cpu in result.cpu_s.items() if name not in ('simulator', 'monitor')}
     row['cpu_agent_pct'] = 100 * sum(est.values()) / n / result.wall_s
     row['cpu_sim_pct'] = 100 * result.cpu_s.get('simulator', float('nan')) / result.wall_s
