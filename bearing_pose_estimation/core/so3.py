@@ -327,3 +327,20 @@ def orthonormality_error(R: ArrayLike) -> Array:
     """``‖RᵀR - I‖_F``: how far a matrix has drifted off SO(3)."""
     R = np.asarray(R, dtype=float)
     return np.linalg.norm(np.swapaxes(R, -1, -2) @ R - _I3, axis=(-2, -1))
+
+
+# The upper triangle of a symmetric 3x3, in the order the wire carries it (msg_defs).
+SYM_INDEX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def sym_pack(m: Array) -> Array:
+    """Symmetric ``(..., 3, 3)`` → ``(..., 6)`` xx, yy, zz, xy, xz, yz."""
+    return np.stack([m[..., r, s] for r, s in SYM_INDEX], axis=-1)
+
+
+def sym_unpack(v: Array) -> Array:
+    """``(..., 6)`` xx, yy, zz, xy, xz, yz → symmetric ``(..., 3, 3)``."""
+    out = np.empty(v.shape[:-1] + (3, 3))
+    for c, (r, s) in enumerate(SYM_INDEX):
+        out[..., r, s] = out[..., s, r] = v[..., c]
+    return out

@@ -103,7 +103,6 @@ UNIT_SLACK = 0.5
 MIN_PROJECTOR_MARGIN = 1e-6
 # The explicit update is stable while h λ_max < 2 (§9).
 EULER_LIMIT = 2.0
-_SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 
 @dataclass(frozen=True)
@@ -157,18 +156,6 @@ def _triples(out: tuple[tuple[int, ...], ...]) -> Index:
 
 def _outer(a: Array, b: Array) -> Array:
     return a[:, :, None] * b[:, None, :]
-
-
-def _unpack(v: Array) -> Array:
-    """``(M, 6)`` xx, yy, zz, xy, xz, yz → symmetric ``(M, 3, 3)``."""
-    out = np.empty((v.shape[0], 3, 3))
-    for c, (r, s) in enumerate(_SYM):
-        out[:, r, s] = out[:, s, r] = v[:, c]
-    return out
-
-
-def _pack(m: Array) -> Array:
-    return np.stack([m[:, r, s] for r, s in _SYM], axis=1)
 
 
 class Presenza(Estimator[PresenzaGains, PresenzaState]):
@@ -232,13 +219,13 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
             if name == 'q_hat':
                 out[name] = delta_R_a.T @ (v - delta_a)
             elif name == 'angle_hessian':
-                out[name] = _pack((delta_R_a.T @ _unpack(v[None])[0] @ delta_R_a)[None])[0]
+                out[name] = so3.sym_pack(delta_R_a.T @ so3.sym_unpack(v) @ delta_R_a)
             elif name == POSE_COV.name:
                 turn = np.kron(np.eye(2), delta_R_a.T)
                 out[name] = turn @ v @ turn.T
             elif name == cov.TERM_COV.name:
-                blocks = cov.unpack(v[:24].reshape(4, 6))
-                out[name] = np.concatenate([cov.pack(delta_R_a.T @ blocks @ delta_R_a)
+                blocks = so3.sym_unpack(v[:24].reshape(4, 6))
+                out[name] = np.concatenate([so3.sym_pack(delta_R_a.T @ blocks @ delta_R_a)
                                             .ravel(), delta_R_a.T @ v[cov.RATE]])
             else:
                 out[name] = delta_R_a.T @ v
@@ -347,7 +334,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
             g.bearing_std ** 2, g.bearing_rate_std ** 2, g.odometry_noise_density ** 2,
             g.gyro_noise_density ** 2, h)
         return {'angle_gradient': np.where(send, g_out, 0.0),
-                'angle_hessian': np.where(send, _pack(D_out), 0.0),
+                'angle_hessian': np.where(send, so3.sym_pack(D_out), 0.0),
                 'anchor_bearing': np.where(send, b_sent, 0.0),
                 'velocity_term': np.where(send, velocity, 0.0),
                 cov.TERM_COV.name: np.where(send, term_cov, 0.0)}
@@ -377,12 +364,12 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         Q_T_d = np.einsum('eba,eb->ea', x.R_hat[agent], d_own)
         Omega = edges.sum_by_agent(np.where(senses[:, None], so3.cross(beta, Q_T_d), 0.0))
         dist = np.linalg.norm(d_own, axis=1)[:, None, None]
-        K = self._sum_blocks(edges, _pack(np.where(
+        K = self._sum_blocks(edges, so3.sym_pack(np.where(
             senses[:, None, None], dist * (np.eye(3) - _outer(beta, beta)), 0.0)))
         # Free robots' velocity reconstruction (11) and innovation (13).
         b_in = r['anchor_bearing']
         valid = sensed_by & (np.abs(np.linalg.norm(b_in, axis=1) - 1.0) < UNIT_SLACK)
-        P = self._sum_blocks(edges, _pack(np.where(valid[:, None, None],
+        P = self._sum_blocks(edges, so3.sym_pack(np.where(valid[:, None, None],
                                                    np.eye(3) - _outer(b_in, b_in), 0.0)))
         nu = edges.sum_by_agent(np.where(valid[:, None], r['velocity_term'], 0.0))
         lam_P = np.linalg.eigvalsh(P)[:, 0]
@@ -439,7 +426,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
     @staticmethod
     def _sum_blocks(edges: Edges, packed: Array) -> Array:
         """``Σ`` over each robot's links of packed symmetric blocks ``(E, 6)`` → ``(N, 3, 3)``."""
-        return _unpack(np.column_stack([edges.sum_by_agent(packed[:, :3]),
+        return so3.sym_unpack(np.column_stack([edges.sum_by_agent(packed[:, :3]),
                                         edges.sum_by_agent(packed[:, 3:])]))
 
     # --- assumptions

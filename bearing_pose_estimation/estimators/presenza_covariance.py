@@ -76,7 +76,6 @@ ANGLE_WHITE, ANGLE_SLOW, VELOCITY_WHITE, VELOCITY_SLOW = (slice(6 * k, 6 * k + 6
                                                           for k in range(4))
 RATE = slice(24, 27)
 TERM_SIZE = 27
-_SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 TERM_COV = Channel('term_cov', per='edge', frame='anchor', round=2, shape=(TERM_SIZE,),
                    optional=True,
@@ -96,19 +95,6 @@ class PresenzaCovarianceModel(CovarianceModel):
                                         zero_allowed=True, model=True)
     bearing_rate_std: float = gain(0.0, 'bearing rate noise std [1/s] per component, for the '
                                    'covariance', zero_allowed=True, model=True)
-
-
-def pack(m: Array) -> Array:
-    """Symmetric ``(..., 3, 3)`` → ``(..., 6)`` xx, yy, zz, xy, xz, yz."""
-    return np.stack([m[..., r, s] for r, s in _SYM], axis=-1)
-
-
-def unpack(v: Array) -> Array:
-    """``(..., 6)`` → symmetric ``(..., 3, 3)``."""
-    out = np.empty(v.shape[:-1] + (3, 3))
-    for c, (r, s) in enumerate(_SYM):
-        out[..., r, s] = out[..., s, r] = v[..., c]
-    return out
 
 
 def _t(a: Array) -> Array:
@@ -224,7 +210,7 @@ def sender_terms(n_edges: int, angles: AngleTerms, bearings: Array, P_own: Array
             v_o[:, None, None] * outer_l)
         white = bearing_var * _sandwich(sum_map, projector(bearings)) + own_white
         slow = _sandwich(J, P_own[agent][:, :3, :3]) + other_slow
-        out[:, ANGLE_WHITE], out[:, ANGLE_SLOW] = pack(white), pack(slow)
+        out[:, ANGLE_WHITE], out[:, ANGLE_SLOW] = so3.sym_pack(white), so3.sym_pack(slow)
     if velocity is not None:
         b, d, r_dot = velocity.b_hat, velocity.d, velocity.r_dot
         of_q, of_phi, of_nu = velocity_maps(velocity)
@@ -234,7 +220,8 @@ def sender_terms(n_edges: int, angles: AngleTerms, bearings: Array, P_own: Array
                    + (rate_var * d ** 2)[:, None, None] * EYE3
                    + (odometry_density2 / h + gyro_density2 / h * d ** 2)[:, None, None]
                    * projector(b))
-        out[:, VELOCITY_WHITE], out[:, VELOCITY_SLOW] = pack(white_v), pack(slow_v)
+        out[:, VELOCITY_WHITE] = so3.sym_pack(white_v)
+        out[:, VELOCITY_SLOW] = so3.sym_pack(slow_v)
         out[:, RATE] = r_dot
     return out
 
@@ -374,7 +361,7 @@ def propagate(P: Array, lin: OwnLinearisation, dR_a: Array, agent: Index, *, use
     W, Y, sums, n_ranged = binned(
         agent, n, model.bearing_std ** 2 * _sandwich(V, projector(own_bearings)),
         _sandwich(Gn, P_nbr[:, :3, :3]), received, ranged_by.astype(float))
-    sums = unpack(sums)
+    sums = so3.sym_unpack(sums)
     W[:, :3, :3] += _sandwich(G_q, sums[:, 0])
     Y[:, :3, :3] += _sandwich(G_q, sums[:, 1])
     W += _sandwich(B_v, sums[:, 2])
