@@ -131,3 +131,137 @@ def test_gyro_buffer_bridges_lost_samples_with_the_neighbouring_rates():
     assert bridged < 5e-5 and held > 3e-4  # measured: 2.3e-5 and 4.5e-4
     # A regular sampling period is not mistaken for a gap, even after one.
     assert np.allclose(np.diff(lossy._t[-5:]), dt)
+
+
+def _streams(scenario, name: str, duration: float, seed: int) -> dict[str, list]:
+    """Agent ``name``'s inputs over ``duration`` as the simulator sends them, one stream per
+    topic (DDS keeps each topic's order, not the order between topics): gyro at 200 Hz,
+    bearings at 50 Hz and, from each neighbour j at its 50 Hz publish instants, p̂_j and the
+    world bearing b^j_ji (noisy stand-ins: this test is about which values a step uses)."""
+    rng = np.random.default_rng(seed)
+    world = World(scenario)
+    i = scenario.index[name]
+    me = scenario.agent_id(name)
+    streams: dict[str, list] = {'gyro': [], 'bearings': []}
+    for j in scenario.agents[i].neighbours:
+        streams[j.name] = []
+    while True:   # through t = duration for the bearings and neighbours: the last step reads them
+        if world.due(world.bearing_every):
+            ids, b = world.bearings(i)
+            streams['bearings'].append((world.t, ids + 1, b))
+            for nb in scenario.agents[i].neighbours:
+                j = scenario.index[nb.name]
+                wb = world.p[i] - world.p[j]
+                wb = wb / np.linalg.norm(wb) + rng.normal(0, 1e-3, 3)
+                streams[nb.name].append((scenario.agent_id(nb.name), world.t, {
+                    'p_hat': world.p[j] + rng.normal(0, 0.1, 3),
+                    'world_bearing': {me: wb / np.linalg.norm(wb)}}))
+        if world.t >= duration - 1e-9:
+            return streams
+        world.step()
+        if world.due(world.imu_every):
+            streams['gyro'].append((world.t, world.imu()[i]))
+
+
+def _feed(agent, streams: dict[str, list], order: list[str]) -> list:
+    """Feed the streams in the interleaving ``order`` (a stream name per input), stepping
+    after each input as the node does; the estimate after every step."""
+    pos = dict.fromkeys(streams, 0)
+    out = []
+    for name in order:
+        item = streams[name][pos[name]]
+        pos[name] += 1
+        if name == 'gyro':
+            assert agent.add_gyro(*item) is None
+        elif name == 'bearings':
+            assert agent.add_bearings(*item) == []
+        else:
+            assert agent.add_neighbour(*item) is None
+        while agent.advance(1):
+            out.append((agent.t, agent.R_hat[0].copy(), agent.p_hat[0].copy()))
+    return out
+
+
+def test_the_fixed_exchange_makes_the_steps_independent_of_the_arrival_order():
+    """With an Exchange (the node under use_sim_time), step [t, t + h] uses the own bearings
+    measured by t + h and each neighbour's values of its publish instant at or before t, and
+    waits for them: whatever the interleaving of the topics, and however far the gyro runs
+    ahead (within link_wait), the estimates equal to rounding (1e-12; the gyro buffer's
+    segments depend on how far it reaches) those of the order netsim feeds them (an instant's
+    bearings before its step, the neighbours' values after). Without it, late inputs change
+    them."""
+    from bearing_pose_estimation.estimators.agent import Exchange
+
+    scenario = load_scenario(PAPER)
+    name = 'agent_6'   # three neighbours
+    streams = _streams(scenario, name, 0.5, seed=3)
+
+    def netsim_order() -> list[str]:   # by stamp; at one instant bearings, gyro (the step
+        keyed = [(item[0], 1, 'gyro') for item in streams['gyro']]   # runs), neighbours
+        keyed += [(item[0], 0, 'bearings') for item in streams['bearings']]
+        keyed += [(item[1], 2, nb) for nb in streams if nb not in ('gyro', 'bearings')
+                  for item in streams[nb]]
+        return [s for _, _, s in sorted(keyed)]
+
+    def shuffled(seed: int) -> list[str]:   # each input late by up to 0.2 s (< link_wait)
+        rng = np.random.default_rng(seed)
+        arrivals = []
+        for s in streams:
+            stamps = [item[1] if isinstance(item[0], int) else item[0] for item in streams[s]]
+            late = np.maximum.accumulate(stamps + rng.uniform(0.0, 0.2, len(stamps)))
+            arrivals += [(a, s) for a in late]   # each topic keeps its order
+        return [s for _, s in sorted(arrivals, key=lambda a: a[0])]
+
+    def run(order: list[str], exchange: bool) -> list:
+        agent = estimator_for(scenario, name)
+        if exchange:
+            agent.exchange = Exchange(0.02, 0.02, 0.02)
+        steps = _feed(agent, streams, order)
+        assert not agent.incomplete
+        return steps
+
+    reference = run(netsim_order(), exchange=False)
+    assert len(reference) == 50
+    for order in (netsim_order(), shuffled(1), shuffled(2)):
+        steps = run(order, exchange=True)
+        assert len(steps) == 50
+        for (t, R, p), (t_ref, R_ref, p_ref) in zip(steps, reference):
+            assert t == t_ref
+            np.testing.assert_allclose(R, R_ref, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(p, p_ref, rtol=0, atol=1e-12)
+    # Without the exchange, the same shuffled arrival changes the estimate.
+    ahead = run(shuffled(1), exchange=False)
+    assert max(np.abs(p - p_ref).max() for (_, _, p), (_, _, p_ref) in zip(ahead, reference)) > 1e-6
+
+
+def test_the_fixed_exchange_waits_for_a_silent_neighbour_at_most_link_wait():
+    """A lost message is known lost once a later one from the same neighbour arrives (a
+    topic keeps its order): the step reads the neighbour's newest values before it, without
+    waiting. A neighbour that falls silent (its process died) holds the steps until the gyro
+    is ``link_wait`` (0.25 s) ahead of them; they then go on, counted as incomplete."""
+    from bearing_pose_estimation.estimators.agent import Exchange
+
+    scenario = load_scenario(PAPER)
+
+    def run(streams: dict[str, list]):
+        agent = estimator_for(scenario, 'agent_6')
+        agent.exchange = Exchange(0.02, 0.02, 0.02)
+        order = sorted([(item[0], 1, 'gyro') for item in streams['gyro']]
+                       + [(item[0], 0, 'bearings') for item in streams['bearings']]
+                       + [(item[1], 2, nb) for nb in ('agent_2', 'agent_4', 'agent_5')
+                          for item in streams[nb]])
+        steps = _feed(agent, streams, [s for _, _, s in order])
+        return agent, steps
+
+    streams = _streams(scenario, 'agent_6', 0.5, seed=3)
+    full = streams['agent_4']
+    streams['agent_4'] = full[:2] + full[3:]   # its values of t = 0.04 lost
+    agent, steps = run(streams)
+    assert agent.t == pytest.approx(0.5) and not agent.incomplete
+
+    streams['agent_4'] = full[:2]              # silent after t = 0.02
+    agent, steps = run(streams)
+    # The step [0.04, 0.05] first waits; every step then runs 0.25 s of gyro late.
+    assert agent.awaited == 'agent_4'
+    assert agent.t == pytest.approx(0.5 - 0.25, abs=0.011)
+    assert agent.incomplete == {'agent_4': len(steps) - 4}

@@ -311,7 +311,7 @@ def test_a_leaders_known_pose_waits_for_the_odometry_that_carries_it():
     R, p = np.eye(3), np.array([1.0, 2.0, 3.0])
     assert est.set_known_pose(0.04, R, p) is None     # 20 ms ahead of the odometry
     est.advance()                                     # steps 0 -> 0.02: pose not applied
-    assert est._known_pose is not None
+    assert est._known_poses
     for k in range(3, 5):
         est.add_odometry(0.01 * k, v, np.zeros(3))
     est.advance()                                     # 0.02 -> 0.04: applied, carried

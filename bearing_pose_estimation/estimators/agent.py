@@ -25,10 +25,16 @@ allows. Time alignment:
 
 Leaders run the same class with ``leader=True``: their pose comes from :meth:`set_known_pose`
 and is propagated with the gyro (and odometry) between pose samples.
+
+In simulation (:class:`Exchange`, the estimator node under ``use_sim_time``) the inputs of each
+step are fixed by their stamps, not by what has arrived: step ``[t, t + h]`` uses the own
+bearings and the known pose measured by ``t + h`` and each neighbour's values of its newest
+publish instant not after ``t``, and waits for them. That is what netsim feeds it, so a DDS run
+equals netsim's to rounding whatever the machine's load.
 """
 from __future__ import annotations
 
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -66,11 +72,25 @@ class NeighbourState:
     # The last few values of each channel: j's channels travel in separate messages, and a
     # moving fleet needs them from one instant (:meth:`at_one_instant`).
     history: dict[str, deque[tuple[float, Array]]] = field(default_factory=dict)
+    # The newest stamp of each channel heard from j, used or not (``not_seen``: j's message of
+    # that instant had nothing for us): what :class:`Exchange` waits for.
+    heard: dict[str, float] = field(default_factory=dict)
 
     def clear(self) -> None:
         self.values.clear()
         self.stamps.clear()
         self.history.clear()
+        self.heard.clear()
+
+    def hear(self, name: str, stamp: float) -> None:
+        self.heard[name] = max(self.heard.get(name, -np.inf), float(stamp))
+
+    def newest_until(self, name: str, t: float) -> Array | None:
+        """The newest value of channel ``name`` stamped at or before ``t``, or None."""
+        for stamp, value in reversed(self.history.get(name, ())):
+            if stamp <= t + 1e-9:
+                return value
+        return None
 
     def at_one_instant(self, channels: list[str],
                        not_after: float) -> tuple[float, dict[str, Array]] | None:
@@ -111,12 +131,35 @@ class Limits:
     unit_tolerance: float = 1e-3    # a bearing with | ‖b‖ - 1 | above this is not a unit vector
     sensor_timeout: float = 0.5     # own bearings older than this [s] are not used
     neighbour_timeout: float = 0.5  # a neighbour silent for longer [s] is stale: not used
-    # Link methods: a step waits for a neighbour's input until its own sensors are this far
-    # [s] ahead (the estimate is then late by as much; a longer delay is a lost input).
+    # Link methods and the fixed exchange (Exchange): a step waits for a neighbour's input
+    # until its own sensors are this far [s] ahead (the estimate is then late by as much; a
+    # longer delay is a lost input).
     link_wait: float = 0.25
     max_gyro_gap: float = 0.5       # after a longer gyro gap [s] the state time restarts
     jump_back: float = 1.0          # a stamp this much [s] before the newest: clock jumped back
     max_future: float = 1.0         # stamps further ahead [s] than the newest gyro: rejected
+
+
+@dataclass(frozen=True)
+class Exchange:
+    """The deterministic exchange of a simulation (module docstring): the periods at which the
+    awaited inputs come. ``None``: the spacing of the last two samples received."""
+
+    publish_period: float                  # the neighbours' channels [s]
+    bearing_period: float | None = None    # the own bearings [s]
+    known_pose_period: float | None = None  # a leader's known pose [s]
+
+
+def _complete(stamps: Sequence[float], period: float | None, end: float) -> bool:
+    """The samples measured by ``end`` are in: the next one due (newest stamp + period) is
+    later. Unknown with one sample and no period: taken as in."""
+    if not stamps:
+        return False
+    if period is None:
+        if len(stamps) < 2:
+            return True
+        period = stamps[-1] - stamps[-2]
+    return stamps[-1] + period > end + 1e-9
 
 
 @dataclass
@@ -341,7 +384,16 @@ class AgentEstimator(TimedAgent):
         # sends its channels at one instant, or no odometry covers the delay: used as they
         # are): :attr:`unpaired`.
         self._bearings: dict[int, deque[tuple[float, Array]]] = {}
-        self._known_pose: tuple[float, Array, Array] | None = None
+        self._known_poses: deque[tuple[float, Array, Array]] = deque(maxlen=_BEARING_HISTORY)
+        # Simulation: inputs fixed by their stamps, waited for (:class:`Exchange`; None: a
+        # step uses what is here).
+        self.exchange: Exchange | None = None
+        self._bearing_stamps: deque[float] = deque(maxlen=2)   # of the bearing messages
+        self._pose_stamps: deque[float] = deque(maxlen=2)
+        self.impatient = False
+        self.awaited: str | None = None   # what the latest waiting step waited for
+        # Steps that went on without an awaited input (lost, or waited out): per what.
+        self.incomplete: Counter[str] = Counter()
 
     def add_bearings(self, stamp: float, ids: NDArray[np.integer],
                      bearings: Array) -> list[str]:
@@ -354,6 +406,8 @@ class AgentEstimator(TimedAgent):
             return ['future_stamp'] * len(ids)
         if stamp < self.gyro.start:
             return ['stale'] * len(ids)
+        if not self._bearing_stamps or stamp > self._bearing_stamps[-1]:
+            self._bearing_stamps.append(float(stamp))
         rejected = []
         for agent_id, b in zip(ids, bearings):
             agent_id = int(agent_id)
@@ -389,6 +443,8 @@ class AgentEstimator(TimedAgent):
             if channel.per == 'edge':
                 value = value.get(self.agent_id) if isinstance(value, dict) else None
                 if value is None:
+                    if np.isfinite(stamp) and stamp <= self.gyro.end + lim.max_future:
+                        nb.hear(name, stamp)   # j's message of this instant: none for us
                     return 'not_seen'
             v = np.asarray(value, dtype=float)
             if v.shape != channel.shape:
@@ -413,6 +469,7 @@ class AgentEstimator(TimedAgent):
         nb.stamps.update(dict.fromkeys(mine, float(stamp)))
         for name, v in mine.items():
             nb.history.setdefault(name, deque(maxlen=_NEIGHBOUR_HISTORY)).append((float(stamp), v))
+            nb.hear(name, stamp)
         return None
 
     def set_known_pose(self, stamp: float, R: Array, p: Array) -> str | None:
@@ -420,27 +477,90 @@ class AgentEstimator(TimedAgent):
         R, p = np.asarray(R, dtype=float), np.asarray(p, dtype=float)
         if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p)) and np.isfinite(stamp)):
             return 'non_finite'
-        self._known_pose = (float(stamp), R, p)
+        self._known_poses.append((float(stamp), R, p))
+        if not self._pose_stamps or stamp > self._pose_stamps[-1]:
+            self._pose_stamps.append(float(stamp))
         return None
 
     def _clear_inputs(self, reset_estimate: bool) -> None:
         self._bearings.clear()
+        self._bearing_stamps.clear()
+        self._pose_stamps.clear()
         if reset_estimate:
             for nb in self.neighbours:
                 nb.clear()
 
     # ------------------------------------------------------------------------------ stepping
-    def body_bearing(self, agent_id: int, t: float, at: float | None = None) -> Array | None:
+    def own_inputs_ready(self) -> bool:
+        """Own gyro (and live odometry) cover the next step: only what :class:`Exchange`
+        waits for may be missing."""
+        return super().steps_ready() > 0
+
+    def steps_ready(self) -> int:
+        """How many steps the gyro data (and live odometry) allows now; with an
+        :class:`Exchange`, only those whose awaited inputs are in (or waited out: the own
+        sensors ``link_wait`` ahead)."""
+        n = super().steps_ready()
+        if self.exchange is None or self.impatient:
+            return n
+        for s in range(n):
+            t = self.t + s * self.h
+            awaited = self._awaiting(t)
+            if awaited is not None and self.gyro.end - t <= self.limits.link_wait:
+                self.awaited = awaited
+                return s
+        return n
+
+    def advance(self, max_steps: int | None = None, impatient: bool = False) -> int:
+        """Run every step the inputs allow (at most ``max_steps``; ``impatient``: one step
+        with what is here, if the own sensors allow it); return how many ran."""
+        if impatient:
+            self.impatient = True
+            try:
+                return super().advance(1)
+            finally:
+                self.impatient = False
+        return super().advance(max_steps)
+
+    def _awaiting(self, t: float) -> str | None:
+        """What step ``[t, t + h]`` still waits for under :class:`Exchange`, or None: the own
+        bearings (and a leader's known pose) measured by ``t + h``, and the channels of each
+        live neighbour (heard within ``neighbour_timeout``, counting from t0 until it is) from
+        its publish instant at or before ``t``."""
+        ex = self.exchange
+        assert ex is not None
+        end = t + self.h
+        if not _complete(self._bearing_stamps, ex.bearing_period, end):
+            return 'bearings'
+        if self.leader:
+            return (None if _complete(self._pose_stamps, ex.known_pose_period, end)
+                    else 'known_pose')
+        # Optional channels too, from a neighbour that sends them (it has been heard on them).
+        required = [name for name, c in self.channels.items() if not c.optional]
+        alive = t - self.limits.neighbour_timeout
+        for nb in self.neighbours:
+            if max(nb.heard.values(), default=self.t0) < alive:
+                continue   # silent (since t0 if never heard): not waited for
+            for name in set(required) | set(nb.heard):
+                if nb.heard.get(name, -np.inf) + ex.publish_period <= t + 1e-9:
+                    return nb.name
+        return None
+
+    def body_bearing(self, agent_id: int, t: float, at: float | None = None,
+                     until: float = np.inf) -> Array | None:
         """Own bearing to ``agent_id`` rotated to the body frame at ``t`` with the gyro, or
         None (none, or older than ``sensor_timeout``): the newest sample the gyro can bridge
         (static fleets: every sample sees the same world bearing), or, given ``at``, the
         bearing measured at ``at`` (moving fleets): interpolated between the two samples around
-        it (rotated to t, then a normalised linear interpolation), the newest held after it."""
+        it (rotated to t, then a normalised linear interpolation), the newest held after it.
+        ``until``: no sample measured after it (the exchange's fixed inputs)."""
         hist = self._bearings.get(agent_id)
         if not hist:
             return None
         if at is None:
             for stamp, b in reversed(hist):
+                if stamp > until + 1e-9:
+                    continue
                 if t - stamp > self.limits.sensor_timeout:
                     return None
                 if self.gyro.covers(stamp, t):
@@ -494,6 +614,13 @@ class AgentEstimator(TimedAgent):
             if nb.name in stale:
                 continue
             t_s, sent = t, nb.values
+            if not moving and self.exchange is not None:   # j's values of its instant ≤ t
+                fixed = nb.at_one_instant(names, not_after=t)
+                sent = fixed[1] if fixed is not None else sent
+                for name in self.channels.keys() - sent.keys():   # optional: newest ≤ t
+                    value = nb.newest_until(name, t)
+                    if value is not None:
+                        sent = {**sent, name: value}
             if moving:  # j's values of one instant, paired with our own at that instant
                 own = self._bearings.get(nb.agent_id)
                 newest = own[-1][0] if own else t   # our bearing at t_s must be here too
@@ -504,7 +631,8 @@ class AgentEstimator(TimedAgent):
                         continue  # this step without j: exact, unlike values of two instants
                 t_s, sent = same if same is not None else (max(nb.stamps.values()), sent)
                 t_s = min(t_s, t)
-            b = self.body_bearing(nb.agent_id, t, at=t_s if moving else None)
+            b = self.body_bearing(nb.agent_id, t, at=t_s if moving else None,
+                                  until=self._until(t + self.h))
             if b is not None:
                 used.append((nb, b))
                 held.append((self._interval(self._bearings.get(nb.agent_id)),
@@ -539,9 +667,17 @@ class AgentEstimator(TimedAgent):
             return sent[name]
         return nb.values[name] if name in nb.values else self.estimator.missing(name)
 
+    def _until(self, t: float) -> float:
+        """The newest own measurement a step or message at ``t`` may use."""
+        return t if self.exchange is not None else np.inf
+
     def _step(self) -> None:
         t = self.t
         est = self.estimator
+        if self.exchange is not None:
+            awaited = self._awaiting(t)
+            if awaited is not None:
+                self.incomplete[awaited] += 1
         delta_R = self.gyro.increment(t, t + self.h)[None]
         displacement = None
         if self.odometry_live():
@@ -568,9 +704,11 @@ class AgentEstimator(TimedAgent):
         self.k += 1
 
     def _apply_known_pose(self, t: float) -> None:
-        if self._known_pose is None:
+        until = self._until(t + self.h)
+        usable = [pose for pose in self._known_poses if pose[0] <= until + 1e-9]
+        if not usable:
             return
-        stamp, R, p = self._known_pose
+        stamp, R, p = max(usable, key=lambda pose: pose[0])
         moving = self.odometry_live()
         # A pose from another instant is carried to t by the gyro and, moving, the odometry:
         # wait until both cover the way (a pose ahead of the odometry would be misplaced).
@@ -581,7 +719,9 @@ class AgentEstimator(TimedAgent):
                      else p - R_t @ self.odometry.displacement(t, stamp))
             self.x = self.estimator.with_known_pose(self.x, np.zeros(1, dtype=np.intp),
                                                     R_t[None], p[None])
-            self._known_pose = None
+            newer = [pose for pose in self._known_poses if pose[0] > stamp]
+            self._known_poses.clear()
+            self._known_poses.extend(newer)
 
     # ------------------------------------------------------------------------------ outputs
     def own_bearings(self, t: float) -> tuple[list[int], Array]:
@@ -590,7 +730,7 @@ class AgentEstimator(TimedAgent):
         ids, bearings = [], []
         at = t if self.odometry_live() else None
         for agent_id in self._bearings:
-            b = self.body_bearing(agent_id, t, at=at)
+            b = self.body_bearing(agent_id, t, at=at, until=self._until(t))
             if b is not None:
                 ids.append(agent_id)
                 bearings.append(b)

@@ -35,6 +35,14 @@ its second (``angle_gradient``, ``angle_hessian``, ``anchor_bearing``, ``velocit
 the robots it senses), then steps once the second round of the robots that sense it is in.
 Its estimate is in the anchor's body frame, ``<anchor>/base_link``.
 
+In a simulation (``fixed_exchange``, default: ``use_sim_time``) a leader-follower step does not
+use whatever has arrived: step ``[t, t + h]`` waits for the own bearings (a leader's known
+pose, simulated odometry) measured by ``t + h`` and for each neighbour's values of its publish
+instant at or before ``t`` (:class:`estimators.agent.Exchange`): what netsim feeds the same
+logic, so a run equals netsim's to rounding however loaded the machine is. An input that does
+not come is waited out once the own sensors are ``link_wait`` ahead (``incomplete_steps`` in
+the diagnostics). Off on real robots (nothing waits) and under injected faults.
+
 Bad input is rejected, counted by cause, warned about (throttled) and reported in the
 diagnostics; it never stops the node and never reaches the estimate.
 
@@ -54,7 +62,7 @@ be set while the node runs (``ros2 param set``): a change is validated (range, t
 minimum, and the method's check on the scenario) and applies from the next step, or is
 refused with the reason; every other parameter is read-only. The expected frames
 ``imu_frame``, ``bearings_frame``, ``odom_child_frame`` (empty: accept any);
-``diagnostics_period`` [s, wall clock]; and the fault
+``diagnostics_period`` [s, wall clock]; ``fixed_exchange`` (above); and the fault
 injection for tests and studies: ``inject_drop_rate`` (probability of dropping each neighbour
 message), ``inject_delay`` [s] (extra delay of each neighbour message), ``inject_seed``.
 Integers are accepted for numbers; a wrong type or range stops the node with a one-line error,
@@ -83,7 +91,7 @@ from .. import msg_defs as wire
 from ..msg_defs import cdr, rviz
 from ..core import so3
 from ..core.errors import ScenarioError
-from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits
+from ..estimators.agent import TIME_EVENTS, AgentEstimator, Exchange, Limits
 from ..estimators.base import (Array, Channel, Estimator, Sensor, format_gains, gain_fields,
                                parse_gains)
 from ..estimators.link_agent import LinkAgentEstimator, agent_for
@@ -106,6 +114,10 @@ def _decode_odometry(msg: wire.Odometry | bytes,
     return wire.decode_odometry(msg, child_frame)
 
 
+# fixed_exchange: wall time [s] a step waits with its own sensors standing still before going
+# on without an awaited input. Only a hang breaker: under lockstep nothing it awaits is lost
+# for good, and a loaded machine can stall a process for 0.25 s (README, De Carli over DDS).
+EXCHANGE_PATIENCE = 10.0
 # The input limits a running node takes (with the gains and neighbour_wait).
 _LIVE_LIMITS = ('sensor_timeout', 'neighbour_timeout', 'max_rate', 'link_wait')
 
@@ -167,8 +179,8 @@ class EstimatorNode(Node):
             max_rate=p('max_rate', d.max_rate, 'gyro rates above this are rejected [rad/s]',
                        0.0, 1e6, read_only=False),
             link_wait=p('link_wait', d.link_wait, 'methods that talk over communication '
-                        'links: a step waits for a neighbour\'s input until the own sensors '
-                        'are this far ahead [s]', 0.0, 1e6, read_only=False))
+                        'links, and fixed_exchange: a step waits for an input until the own '
+                        'sensors are this far ahead [s]', 0.0, 1e6, read_only=False))
         self.imu_frame = p('imu_frame', wire.body_frame(self.agent),
                            'expected Imu frame_id; empty: any')
         self.bearings_frame = p('bearings_frame', wire.body_frame(self.agent),
@@ -188,6 +200,17 @@ class EstimatorNode(Node):
                        'message [s]', 0.0, 60.0)
         self.rng = np.random.default_rng(p('inject_seed', 0, 'fault injection: random seed',
                                            0, 2**31 - 1))
+        # Simulation: each step's inputs fixed by their stamps and waited for (agent.Exchange),
+        # so runs do not depend on the machine's load. Off for real robots (nothing waits) and
+        # under injected faults (which are themselves random).
+        sim_time = bool(self.get_parameter('use_sim_time').value)
+        self.fixed_exchange = p('fixed_exchange', sim_time, 'leader-follower methods: a step '
+                                'uses the own measurements up to its end and each neighbour\'s '
+                                'values of its publish instant at or before its start, and '
+                                'waits for them (default: use_sim_time)')
+        if self.fixed_exchange and (self.drop_rate or self.delay):
+            self.get_logger().info('fixed_exchange off: faults are injected')
+            self.fixed_exchange = False
         explicit = {
             'agent_id': p('agent_id', 0, 'explicit mode: this agent\'s id (1-based)'),
             'leader': p('leader', False, 'explicit mode: a leader (known pose, no neighbours)'),
@@ -373,7 +396,7 @@ class EstimatorNode(Node):
         # clock only after hearing from everyone.
         self.ready_timer = self.create_timer(
             0.05, self.on_ready_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        if self.links:   # a step waiting for a lost input goes on after neighbour_wait
+        if self.links or self.fixed_exchange:   # a step waiting for a lost input goes on
             self.patience_timer = self.create_timer(
                 0.05, self.on_patience, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -480,10 +503,26 @@ class EstimatorNode(Node):
                                       step=self.h, R0=t.R0, p0=t.p0, t0=t0,
                                       known_ids=t.known_ids, limits=t.limits)
         assert isinstance(t, AgentEstimator)
-        return AgentEstimator(self.method(self.gains), agent_id=t.agent_id,
-                              neighbours=[(n.name, n.agent_id, n.k) for n in t.neighbours],
-                              step=self.h, R0=t.R0, p0=t.p0, t0=t0,
-                              leader=t.leader, known_ids=t.known_ids, limits=t.limits)
+        est = AgentEstimator(self.method(self.gains), agent_id=t.agent_id,
+                             neighbours=[(n.name, n.agent_id, n.k) for n in t.neighbours],
+                             step=self.h, R0=t.R0, p0=t.p0, t0=t0,
+                             leader=t.leader, known_ids=t.known_ids, limits=t.limits)
+        if self.fixed_exchange:
+            est.exchange = self._exchange()
+            # Simulated odometry comes with the first step's gyro (netsim feeds it first):
+            # wait for it from that step, not from its first arrival.
+            est.requires_odometry |= self.expect_odometry and est.uses_odometry
+        return est
+
+    def _exchange(self) -> Exchange:
+        """The periods of what a step waits for: the scenario's sensor rates (explicit mode:
+        the spacing of the samples received)."""
+        period = self.publish_every * self.h
+        if self.scenario is None:
+            return Exchange(period)
+        sim = self.scenario.simulation
+        return Exchange(period, sim.ticks(sim.bearing_rate) * sim.internal_step,
+                        sim.ticks(sim.ground_truth_rate) * sim.internal_step)
 
     def _reject(self, cause: str, detail: str, count: int = 1) -> None:
         self.rejected[cause] += count
@@ -594,6 +633,8 @@ class EstimatorNode(Node):
             self._publish(world=True)  # the t0 world bearings, before the first step
         elif self._deferred == self.est.k and self.est.bearings_at(self.est.t):
             self._publish(world=True)
+        if self.est.exchange is not None:
+            self.on_timer()   # a step may wait for these bearings
 
     def on_odometry(self, msg: wire.Odometry) -> None:
         try:
@@ -616,6 +657,8 @@ class EstimatorNode(Node):
             cause = self.est.set_known_pose(t, R, p)
             if cause is not None:
                 self._reject(cause, 'known_pose')
+            elif self.est.exchange is not None:
+                self.on_timer()   # a step may wait for this pose
 
     def _link(self, handler: Callable[..., None], *args: object) -> None:
         """A neighbour message through the (optional) injected loss and delay."""
@@ -652,7 +695,7 @@ class EstimatorNode(Node):
             cause = self.est.add_neighbour(agent_id, t, {channel: value})
         if cause not in (None, 'not_seen'):  # not_seen: j has no bearing to us yet
             self._reject(cause, f'{what} at {t:.6f}')
-        elif self.links:
+        elif self.links or getattr(self.est, 'exchange', None) is not None:
             self.on_timer()   # the waiting step may have what it needs now
 
     # --------------------------------------------------------------------------- stepping
@@ -673,26 +716,37 @@ class EstimatorNode(Node):
         while self.est.steps_ready() > 0:
             if self._wall_first_step is None:
                 self._wall_first_step = time.monotonic()
-            if self._deferred == self.est.k:
-                # Its bearings never came: send no world bearings for this instant rather than
-                # ones measured at another (listeners pair values of one instant).
-                self.events['world_bearings_skipped'] += 1
-                self._deferred = -1
-            self.est.advance(1)
-            self._stuck = None
             if self.links:
+                self.est.advance(1)
+                self._stuck = None
                 self._publish_links()
-                continue
-            # On the absolute grid origin + n h (k restarts after a time jump or gap).
-            if round((self.est.t - self.est.origin) / self.h) % self.publish_every == 0:
-                # Moving: what listeners pair with their own past must be measured at the stamp;
-                # the bearings of this instant may still be on their way (the simulator sends
-                # them just after the gyro sample that completed this step): the estimate goes
-                # now, the world bearings once they are here.
-                wait = self.est.odometry_live() and not self.est.bearings_at(self.est.t)
-                self._publish(world=not wait)
-                if wait:
-                    self._deferred = self.est.k
+            else:
+                self._step_and_publish()
+
+    def _step_and_publish(self, impatient: bool = False) -> bool:
+        """A leader-follower method: one step (``impatient``: with what is here), then, on
+        the publish grid, the estimate and world bearings. False if no step ran."""
+        est = self.est
+        assert isinstance(est, AgentEstimator)
+        if self._deferred == est.k:
+            # Its bearings never came: send no world bearings for this instant rather than
+            # ones measured at another (listeners pair values of one instant).
+            self.events['world_bearings_skipped'] += 1
+            self._deferred = -1
+        if not est.advance(1, impatient=impatient):
+            return False
+        self._stuck = None
+        # On the absolute grid origin + n h (k restarts after a time jump or gap).
+        if round((est.t - est.origin) / self.h) % self.publish_every == 0:
+            # Moving: what listeners pair with their own past must be measured at the stamp;
+            # the bearings of this instant may still be on their way (the simulator sends
+            # them just after the gyro sample that completed this step): the estimate goes
+            # now, the world bearings once they are here.
+            wait = est.odometry_live() and not est.bearings_at(est.t)
+            self._publish(world=not wait)
+            if wait:
+                self._deferred = est.k
+        return True
 
     def _two_rounds(self, impatient: bool = False) -> None:
         """A two-round method: send the current step's reply once its first round is in,
@@ -722,24 +776,31 @@ class EstimatorNode(Node):
     def on_patience(self) -> None:
         """A step that waits for a neighbour's input while nothing moves (its own sensors
         stopped too: a lockstep clock waiting for this agent) for ``neighbour_wait`` of wall
-        time goes on without it (e.g. two agents that lost each other's values). While the
-        own sensors advance, the estimator's own rule applies (it waits at most
-        ``neighbour_timeout`` of their time)."""
+        time goes on without it (e.g. two agents that lost each other's values). A
+        leader-follower method's ``fixed_exchange`` waits :data:`EXCHANGE_PATIENCE` instead:
+        in a simulation nothing it awaits is lost for good (a later sample tells a lost one),
+        so this only breaks a hang. While the own sensors advance, the estimator's own rule
+        applies (it waits at most ``link_wait`` of their time)."""
         est = self.est
-        if not isinstance(est, LinkAgentEstimator) or not est.own_inputs_ready():
+        if est is None or not est.own_inputs_ready() or (isinstance(est, AgentEstimator) and (
+                est.exchange is None or est.steps_ready() > 0)):
             self._stuck = None
             return
         now = time.monotonic()
         if self._stuck is None or self._stuck[:2] != (est.k, est.gyro.end):
             self._stuck = (est.k, est.gyro.end, now)
-        elif now - self._stuck[2] >= self.neighbour_wait:
+        elif now - self._stuck[2] >= (self.neighbour_wait if self.links else EXCHANGE_PATIENCE):
             self.get_logger().warning(
-                f'the step at t = {est.t:.3f} s waited {self.neighbour_wait:g} s of wall time '
+                f'the step at t = {est.t:.3f} s waited {now - self._stuck[2]:.3g} s of wall time '
                 f'for {est.awaited or "a neighbour"} with its own sensors standing still: going '
                 'on without it (counted in event_impatient_steps)', throttle_duration_sec=5.0)
             if isinstance(est, TwoRoundAgent):
                 self._stuck = None
                 self._two_rounds(impatient=True)
+            elif isinstance(est, AgentEstimator):
+                if self._step_and_publish(impatient=True):
+                    self.events['impatient_steps'] += 1
+                self.on_timer()
             elif est.advance(1, impatient=True):
                 self.events['impatient_steps'] += 1
                 self._stuck = None
@@ -823,6 +884,8 @@ class EstimatorNode(Node):
                         problems.append(problem)
             if isinstance(est, LinkAgentEstimator):
                 self._link_diagnostics(est, values)
+            elif est.exchange is not None:   # steps that went on without an awaited input
+                values['incomplete_steps'] = str(sum(est.incomplete.values()))
             values['non_finite_steps'] = str(est.non_finite_steps)
             values['gyro_gaps_bridged'] = str(est.gyro.bridged)
             if est.uses_odometry:
@@ -872,7 +935,9 @@ class EstimatorNode(Node):
                 f'neighbour values: {self.est.unpaired}'
                 + (f'; waited for: {dict(self.est.waits) or 0}; left out: '
                    f'{dict(+self.est.missing) or 0}; carried: {self.est.carried}'
-                   if isinstance(self.est, LinkAgentEstimator) else ''))
+                   if isinstance(self.est, LinkAgentEstimator) else
+                   f'; steps without an awaited input: {dict(self.est.incomplete) or 0}'
+                   if self.est.exchange is not None else ''))
         super().destroy_node()
 
 

@@ -14,9 +14,10 @@ t0 state (which it does only once its own subscriptions are matched), then start
 t = 0, so t = 0 is the same for every node and no first sample is lost.
 
 Pacing (``lockstep``, default on): the clock never runs more than ``max_lag`` seconds ahead of
-the slowest estimator's published state, like Gazebo's lockstep. Results then do not depend on
-how loaded the machine is, and runs go as fast as the estimators can. ``real_time_factor`` > 0
-also caps the clock at that multiple of wall time.
+the slowest estimator's published state, like Gazebo's lockstep: runs go as fast as the
+estimators can. (The results do not depend on the machine's load because each estimator's step
+waits for the inputs of fixed instants, ``fixed_exchange``, not because of the pacing.)
+``real_time_factor`` > 0 also caps the clock at that multiple of wall time.
 
 Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``lockstep``, ``max_lag``
 [s], ``real_time_factor``, ``wait_for_monitor``, ``wait_for_estimators``, ``start_timeout`` [s],
