@@ -16,7 +16,7 @@ A fleet "runs in real time" when speed >= 0.99 and missed < 1 %.
 
     .venv/bin/python bench/fleet_scale.py [--agents 8 16 32] [--per-process 1 4]
         [--frequency 50] [--publish-rate 50] [--imu-rate 50] [--duration 20]
-        [--executor draining|rclpy]
+        [--executor events|draining|rclpy]
 """
 from __future__ import annotations
 
@@ -33,7 +33,8 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from bearing_pose_estimation.cli import launch  # noqa: E402
 from bearing_pose_estimation.scenario.generate import generate_scenario  # noqa: E402
-from bearing_pose_estimation.ros.node_main import EXECUTOR_ENV, EXECUTORS  # noqa: E402
+from bearing_pose_estimation.ros.node_main import (  # noqa: E402
+    DEFAULT_EXECUTOR, EXECUTOR_ENV, EXECUTORS)
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 
 _DONE = re.compile(r'reached t = \S+ s in (?P<wall>\S+) s wall \(x(?P<speed>\S+) real time\).*'
@@ -100,8 +101,8 @@ def main() -> None:
     ap.add_argument('--publish-rate', type=float, default=50.0,
                     help='estimates and world bearings sent to neighbours [Hz]')
     ap.add_argument('--position-std', type=float, help='initial position error std [m]')
-    ap.add_argument('--executor', choices=sorted(EXECUTORS), default='draining',
-                    help='executor of every node (default: draining, as in production)')
+    ap.add_argument('--executor', choices=sorted(EXECUTORS), default=DEFAULT_EXECUTOR,
+                    help=f'executor of every node (default: {DEFAULT_EXECUTOR}, as in production)')
     args = ap.parse_args()
     os.environ[EXECUTOR_ENV] = args.executor  # the children inherit it
     print(f'estimators at {args.frequency:g} Hz, publishing at {args.publish_rate:g} Hz, gyro at '

@@ -1,4 +1,6 @@
-"""A lean single-threaded executor for the nodes: one wait, then every ready queue drained.
+"""A lean single-threaded executor: one wait, then every ready queue drained. The nodes ran it
+until rclpy's EventsExecutor measured cheaper (``node_main.EXECUTORS``, BENCHMARKS.md); it stays
+as ``BEARING_POSE_EXECUTOR=draining``.
 
 rclpy's ``SingleThreadedExecutor`` rebuilds its wait set in Python on every wake-up and then
 runs *one* callback, wrapped in a Task; its cost per message grows with the number of entities

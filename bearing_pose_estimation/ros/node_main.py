@@ -27,7 +27,8 @@ from typing import Any, TypeVar
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import Executor, SingleThreadedExecutor
+from rclpy.experimental.events_executor import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
@@ -42,7 +43,12 @@ from ..scenario.parse import load_scenario
 # Which executor spins the nodes: 'draining' (ours, the default; see executor.py and
 # BENCHMARKS.md) or 'rclpy' (its SingleThreadedExecutor), kept for comparisons.
 EXECUTOR_ENV = 'BEARING_POSE_EXECUTOR'
-EXECUTORS = {'draining': DrainingExecutor, 'rclpy': SingleThreadedExecutor}
+# The nodes' executor, chosen by measurement (BENCHMARKS.md, "The executor"): rclpy's
+# EventsExecutor (C++; experimental in Jazzy, in the pinned 7.1.6), 0.87x the CPU of our
+# DrainingExecutor on the paper fleet; `BEARING_POSE_EXECUTOR` picks another.
+EXECUTORS: dict[str, Callable[[], Executor]] = {
+    'events': EventsExecutor, 'draining': DrainingExecutor, 'rclpy': SingleThreadedExecutor}
+DEFAULT_EXECUTOR = 'events'
 
 
 def scenario_parameter(node: Node) -> Scenario:
@@ -209,7 +215,7 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
     executor = None
     code = 0
     try:
-        choice = os.environ.get(EXECUTOR_ENV, 'draining')
+        choice = os.environ.get(EXECUTOR_ENV, DEFAULT_EXECUTOR)
         if choice not in EXECUTORS:
             raise ScenarioError(f'{EXECUTOR_ENV}={choice!r} is not an executor. Fix: one of '
                                 f'{", ".join(EXECUTORS)}, or unset it')
