@@ -4,9 +4,10 @@ against netsim (the same agent logic without DDS, deterministic).
 
 With ``fixed_exchange`` (the estimator nodes' default under ``use_sim_time``) every step uses
 the inputs of fixed instants and waits for them, so the three agree to the rounding of
-``metrics.csv`` (10 significant digits) or, for errors below 1e-6, of the quaternions on the
-wire (~1e-16 absolute). Prints, per run, the largest relative difference of
-any follower's attitude and position error at any recorded time, the wall time, and the steps
+``metrics.csv`` (10 significant digits) or, for errors below 1e-4, of the doubles (states
+known to ~1e-16 of the positions, and the fleet adds the roundings up: an error of 1e-6 is
+then known to ~1e-8 of itself). Prints, per run, the largest relative difference of any
+follower's attitude and position error at any recorded time, the wall time, and the steps
 that went on without an awaited input.
 
     .venv/bin/python bench/determinism.py [config/paper_8_agents.yaml] [--duration 20]
@@ -34,7 +35,7 @@ from bearing_pose_estimation.sim.netsim import run_network  # noqa: E402
 from bearing_pose_estimation.studies.results import Recording  # noqa: E402
 from bearing_pose_estimation.studies.summary import read_metrics_csv  # noqa: E402
 
-FLOOR = 1e-6   # [rad, m]: below, differences are absolute
+FLOOR = 1e-4   # [rad, m]: below, differences are absolute
 _INCOMPLETE = re.compile(r'steps without an awaited input: (\{[^}]*\}|0)')
 
 

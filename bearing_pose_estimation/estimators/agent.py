@@ -391,6 +391,8 @@ class AgentEstimator(TimedAgent):
         self._bearing_stamps: deque[float] = deque(maxlen=2)   # of the bearing messages
         self._pose_stamps: deque[float] = deque(maxlen=2)
         self.impatient = False
+        self._required = [name for name, c in self.channels.items() if not c.optional]
+        self._ready_k = 0   # steps before this one had their awaited inputs (steps_ready)
         self.awaited: str | None = None   # what the latest waiting step waited for
         # Steps that went on without an awaited input (lost, or waited out): per what.
         self.incomplete: Counter[str] = Counter()
@@ -484,6 +486,7 @@ class AgentEstimator(TimedAgent):
 
     def _clear_inputs(self, reset_estimate: bool) -> None:
         self._bearings.clear()
+        self._ready_k = 0   # k restarts
         self._bearing_stamps.clear()
         self._pose_stamps.clear()
         if reset_estimate:
@@ -503,12 +506,18 @@ class AgentEstimator(TimedAgent):
         n = super().steps_ready()
         if self.exchange is None or self.impatient:
             return n
-        for s in range(n):
+        contiguous = True   # every step so far had its inputs: _step need not check again
+        for s in range(max(0, self._ready_k - self.k), n):
             t = self.t + s * self.h
             awaited = self._awaiting(t)
-            if awaited is not None and self.gyro.end - t <= self.limits.link_wait:
+            if awaited is None:
+                if contiguous:
+                    self._ready_k = self.k + s + 1
+            elif self.gyro.end - t <= self.limits.link_wait:
                 self.awaited = awaited
                 return s
+            else:
+                contiguous = False   # waited out: it goes on, counted by _step
         return n
 
     def advance(self, max_steps: int | None = None, impatient: bool = False) -> int:
@@ -536,14 +545,15 @@ class AgentEstimator(TimedAgent):
             return (None if _complete(self._pose_stamps, ex.known_pose_period, end)
                     else 'known_pose')
         # Optional channels too, from a neighbour that sends them (it has been heard on them).
-        required = [name for name, c in self.channels.items() if not c.optional]
         alive = t - self.limits.neighbour_timeout
+        due = t + 1e-9 - ex.publish_period   # a newest stamp at or before this: one is due
         for nb in self.neighbours:
-            if max(nb.heard.values(), default=self.t0) < alive:
+            heard = nb.heard
+            if max(heard.values(), default=self.t0) < alive:
                 continue   # silent (since t0 if never heard): not waited for
-            for name in set(required) | set(nb.heard):
-                if nb.heard.get(name, -np.inf) + ex.publish_period <= t + 1e-9:
-                    return nb.name
+            if (any(heard.get(name, -np.inf) <= due for name in self._required)
+                    or any(stamp <= due for stamp in heard.values())):
+                return nb.name
         return None
 
     def body_bearing(self, agent_id: int, t: float, at: float | None = None,
@@ -674,7 +684,7 @@ class AgentEstimator(TimedAgent):
     def _step(self) -> None:
         t = self.t
         est = self.estimator
-        if self.exchange is not None:
+        if self.exchange is not None and self.k >= self._ready_k:
             awaited = self._awaiting(t)
             if awaited is not None:
                 self.incomplete[awaited] += 1

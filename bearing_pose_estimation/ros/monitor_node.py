@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections import deque
 from functools import partial
 from pathlib import Path
 
@@ -43,6 +44,35 @@ from .node_main import declare, run_node, scenario_parameter, warn_unknown_param
 # After the last row, the bag keeps recording until no message came for BAG_QUIET_S [s of wall
 # time] (the simulator has stopped; what was in flight is in), BAG_DRAIN_MAX_S at most.
 BAG_QUIET_S, BAG_DRAIN_MAX_S = 0.5, 10.0
+
+
+# How many recorded instants the monitor remembers to ignore their repeats (25.6 s at 10 Hz).
+_RECENT = 256
+
+
+class _Rows:
+    """Rows of ``width`` doubles, appended one at a time, stored in chunks of ``chunk`` rows."""
+
+    def __init__(self, width: int, chunk: int = 1024) -> None:
+        self.width, self.chunk = width, chunk
+        self._chunks: list[np.ndarray] = []
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, row: np.ndarray) -> None:
+        k = self._n % self.chunk
+        if k == 0:
+            self._chunks.append(np.empty((self.chunk, self.width)))
+        self._chunks[-1][k] = row
+        self._n += 1
+
+    def array(self) -> np.ndarray:
+        """``(n, width)``, a copy."""
+        if not self._chunks:
+            return np.empty((0, self.width))
+        return np.concatenate(self._chunks)[:self._n]
 
 
 def watched(scenario: Scenario) -> list[str]:
@@ -83,8 +113,11 @@ class MonitorNode(Node):
         self._truth: dict[int, dict[int, tuple]] = {}   # ns -> watched index -> (R, p)
         self._est: dict[int, dict[int, tuple]] = {}     # ns -> follower index -> (R̂, p̂)
         self.tracks: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t, p, p̂ in world)
-        self._recorded: set[int] = set()
-        self.rows: list[tuple[float, PoseErrors]] = []
+        # The instants recorded lately (older ones are below their minimum): bounded.
+        self._recorded: deque[int] = deque(maxlen=_RECENT)
+        # t and the errors' four columns per record, as doubles in chunks: a long run's
+        # recording costs 8 bytes a value, not a Python object per row (issue 15's soak).
+        self.rows = _Rows(1 + len(PoseErrors._fields) * len(self.followers))
         self._last_progress = -np.inf
         self.done = False
         self.finished = Future()  # completes once the outputs are written
@@ -123,7 +156,8 @@ class MonitorNode(Node):
     def _on_pose(self, table: dict, k: int, msg: bytes) -> None:
         try:
             ns = cdr.read_header(msg).ns
-            if ns % self.record_ns or self.done or ns in self._recorded:
+            if ns % self.record_ns or self.done or ns in self._recorded or (
+                    len(self._recorded) == _RECENT and ns < min(self._recorded)):
                 return  # only grid instants, once each (t0 estimates are announced repeatedly)
             _, R, p = cdr.decode_pose_raw(msg)
         except wire.WireError as exc:
@@ -161,9 +195,9 @@ class MonitorNode(Node):
             if s.moves and n == len(s.agents):   # every agent estimates: the whole fleet
                 self.tracks.append((t, p, to_world(self.frame, R, p, R_hat, p_hat,
                                                    s.anchor_index)[1]))
-        self.rows.append((t, errors))
+        self.rows.append(np.concatenate([[t], *errors]))
         del self._truth[ns], self._est[ns]
-        self._recorded.add(ns)
+        self._recorded.append(ns)
         att, pos = errors.att_err, errors.pos_err
         if t - self._last_progress >= self.progress_every - 1e-9 or t >= self.duration - 1e-9:
             self._last_progress = t
@@ -173,10 +207,12 @@ class MonitorNode(Node):
             self.finish()
 
     def recording(self) -> Recording | None:
-        if not self.rows:
+        if not len(self.rows):
             return None
-        rows = sorted(self.rows, key=lambda r: r[0])
-        times, errors = [t for t, _ in rows], [e for _, e in rows]
+        rows = self.rows.array()
+        rows = rows[np.argsort(rows[:, 0], kind='stable')]
+        times = rows[:, 0].tolist()
+        errors = [PoseErrors(*np.split(r, len(PoseErrors._fields))) for r in rows[:, 1:]]
         if not self.tracks:
             return Recording.of(times, self.followers, errors)
         tracks = sorted(self.tracks, key=lambda r: r[0])
