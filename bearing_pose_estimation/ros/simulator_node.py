@@ -233,12 +233,14 @@ class SimulatorNode(Node):
             w.step()
             self._publish(clock=w.tick % self.steps_per_clock == 0)
         # How far the slowest estimator's published state trails the clock (sim seconds).
-        self.lags[int(round((w.t - float(self.progress.min())) * 1e6))] += 1
+        behind = w.t - float(self.progress.min())
+        if np.isfinite(behind):   # not before every estimator has published (no lockstep)
+            self.lags[int(round(behind * 1e6))] += 1
         if w.t >= self.duration - 1e-9:
             self.state = 'done'
             wall = time.monotonic() - self.sim_wall_start
-            lag = np.repeat(np.array(list(self.lags), dtype=float) * 1e-3,
-                            list(self.lags.values()))   # [ms], one per tick
+            lag = np.repeat(np.array(list(self.lags) or [0], dtype=float) * 1e-3,
+                            list(self.lags.values()) or [1])   # [ms], one per tick
             text = (f'reached t = {w.t:g} s in {wall:.1f} s wall (x{w.t / max(wall, 1e-9):.2f} '
                     f'real time); slowest estimate behind the clock: median '
                     f'{np.median(lag):.1f} ms, max {lag.max():.1f} ms of sim time')
