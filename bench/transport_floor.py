@@ -236,16 +236,17 @@ def agent_plan(s: Scenario, name: str, world: World) -> ProcessPlan:
         subs.append(Sub(own(wire.GROUND_TRUTH), wire.PoseStamped, qos_in))
     if links:
         for nt in link_subscriptions(template):
-            if nt.channel is None:
+            if not nt.channels:
                 subs.append(Sub(wire.topic(nt.agent, wire.ODOM), wire.Odometry, qos_in))
                 continue
-            w = wires[nt.channel]
-            sensor = next(c for c in method.sends if c.name == nt.channel).sensor
+            w = wires[nt.channels[0]]
+            sensor = any(c.sensor for c in method.sends if c.name in nt.channels)
             subs.append(Sub(wire.topic(nt.agent, w.topic), w.type,
-                            qos_in if sensor is not None else qos_est))
+                            qos_in if sensor else qos_est))
     else:
-        subs += [Sub(wire.topic(nb.name, w.topic), w.type, qos_est)
-                 for nb in template.neighbours for w in wires.values()]
+        subs += [Sub(wire.topic(nb.name, topic), wires[names[0]].type, qos_est)
+                 for nb in template.neighbours
+                 for topic, names in wire.channel_topics(wires).items()]
     subs.append(Sub(wire.CLOCK, ClockMsg, CLOCK_SUB_QOS))   # use_sim_time: the time source
     # One message of each, from the agent's own values at t = 0.
     if isinstance(template, AgentEstimator):   # world bearings for the agents it sees
@@ -273,7 +274,7 @@ def agent_plan(s: Scenario, name: str, world: World) -> ProcessPlan:
     h, every = s.step, max(1, int(round(1.0 / (s.step * s.publish_rate))))
     cycle = every * max(1, int(round(s.frequency)))
     when: dict[str, set[int]] = {n: set() for n in ['estimate', 'pose', *own_topic]}
-    rides = {n for n, w in wires.items() if w.topic == wire.ESTIMATE}
+    rides = {n for n, w in wires.items() if w.topic == wire.POSE}
     second_round = {c.name: c.round == 2 for c in method.sends}
     for k in range(cycle):
         if method.rounds == 2:   # round 2, every step, for the robots it senses
@@ -299,7 +300,7 @@ def agent_plan(s: Scenario, name: str, world: World) -> ProcessPlan:
                 frozenset(when['estimate']))]
     pubs += [Pub(own(wires[n].topic), wires[n].type, qos_est, data.get(n, b''),
                  frozenset(when[n]) if n in data else frozenset()) for n in own_topic]
-    if 'pose_cov' in wires:
+    if any(w.topic == wire.POSE for w in wires.values()):
         pubs.append(Pub(own(wire.POSE), wire.PoseWithCovarianceStamped,
                         wire.ESTIMATE_PUB_QOS, pose or b'',
                         frozenset(when['pose']) if pose else frozenset()))

@@ -8,7 +8,7 @@ one topic. Topic names are relative: each agent's node runs in the namespace ``/
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,8 +34,8 @@ BEARING_RATES = 'bearing_rates'    # sensor_msgs/PointCloud2, in: d/dt b^i_ij [1
 RANGES = 'ranges'                  # sensor_msgs/PointCloud2, in: ‖p_j - p_i‖ [m] (field `range`)
 KNOWN_POSE = 'known_pose'          # geometry_msgs/PoseStamped, in: leaders' known pose
 ESTIMATE = 'estimate'              # geometry_msgs/PoseStamped, out: (R̂_i, p̂_i) in world
-# geometry_msgs/PoseWithCovarianceStamped, out: the estimate with its covariance (methods that
-# have one), for fusion (robot_localization) and the neighbours' own covariance
+# geometry_msgs/PoseWithCovarianceStamped, out: the estimate with its covariance, for fusion
+# (robot_localization) and the neighbours (their p̂_j and P_j, in one message)
 POSE = 'pose'
 # (or the estimation frame of methods without world poses, estimation_frame)
 WORLD_BEARINGS = 'world_bearings'  # sensor_msgs/PointCloud2, out: R̂_i b^i_il for listeners l
@@ -475,7 +475,7 @@ class ChannelWire:
     ``{estimate}`` the frame of the method's estimates (:func:`estimate_frame`),
     ``{sender_body}`` the sender's body frame, ``{world}`` the world frame (the scenario's
     ``world_frame``). ``encode(t, value, frame)`` builds the message;
-    None: the channel rides on a message published anyway (the ``estimate``, or the sender's
+    None: the channel rides on a message published anyway (the ``pose``, or the sender's
     sensor topic)."""
 
     topic: str
@@ -490,8 +490,10 @@ class ChannelWire:
         return self.frame.format(estimate=estimate, sender_body=body_frame(sender), world=world)
 
 
-def _decode_position(msg: PoseStamped) -> tuple[float, Array]:
-    t, _, p = decode_pose(msg)
+def _decode_position(msg: PoseWithCovarianceStamped) -> tuple[float, Array]:
+    """The stamp and position of a ``pose``: its covariance is ``pose_cov``'s, checked on its
+    own, so that a bad covariance does not cost the position."""
+    t, _, p = decode_pose(PoseStamped(header=msg.header, pose=msg.pose.pose))
     return t, p
 
 
@@ -597,15 +599,16 @@ def _encode_id_terms(t: float, value: dict[int, Array], frame: str) -> PointClou
     return _encode_cloud(t, frame, data, _TERM_CLOUD)
 
 
-# Channel name -> wire. p_hat: the position of the sender's `estimate`; world_bearing: its
+# Channel name -> wire. p_hat: the position of the sender's `pose` (with pose_cov: one
+# message per neighbour and period, not the `estimate` and the `pose`); world_bearing: its
 # `world_bearings`, one point per listener; De Carli et al.'s z_hat (`yaw_estimate`, the
 # complex ẑ_j), relyaw (`relative_yaws`, one point per listener of a pair it owns, z = 0; x = y
 # = 0 until the owner has one) and meas (the sender's own `relative_positions` sensor topic:
 # the point of the listener).
 CHANNELS = {
-    'p_hat': ChannelWire(ESTIMATE, PoseStamped, '{estimate}', _decode_position, None),
-    # The leader-follower methods and De Carli et al.: P_j on the sender's `pose`, published
-    # with each estimate.
+    'p_hat': ChannelWire(POSE, PoseWithCovarianceStamped, '{estimate}', _decode_position,
+                         None),
+    # Every method: P_j on the sender's `pose`, published with each estimate.
     'pose_cov': ChannelWire(POSE, PoseWithCovarianceStamped, '{estimate}', decode_covariance,
                             None),
     'world_bearing': ChannelWire(WORLD_BEARINGS, PointCloud2, '{world}', _decode_id_vectors,
@@ -616,9 +619,10 @@ CHANNELS = {
                           _encode_id_pairs),
     'meas': ChannelWire(RELATIVE_POSITIONS, PointCloud2, '{sender_body}', _decode_id_vectors,
                         None),
-    # Presenza et al.: q̂_j on the estimate (anchor frame); the anchor's relative positions of
+    # Presenza et al.: q̂_j on the pose (anchor frame); the anchor's relative positions of
     # its ranged robots on its sensor topic; the second round on topics of their own.
-    'q_hat': ChannelWire(ESTIMATE, PoseStamped, '{estimate}', _decode_position, None),
+    'q_hat': ChannelWire(POSE, PoseWithCovarianceStamped, '{estimate}', _decode_position,
+                         None),
     'q_ranged': ChannelWire(RELATIVE_POSITIONS, PointCloud2, '{sender_body}',
                             _decode_id_vectors, None),
     'angle_gradient': ChannelWire(ANGLE_GRADIENT, PointCloud2, '{estimate}',
@@ -632,6 +636,20 @@ CHANNELS = {
     'term_cov': ChannelWire(TERM_COVARIANCE, PointCloud2, '{estimate}', _decode_id_terms,
                             _encode_id_terms),
 }
+
+
+def channel_topics(names: Iterable[str]) -> dict[str, tuple[str, ...]]:
+    """The topics that carry channels ``names`` (in their order), each with its channels: one
+    subscription per sender and topic (``p_hat`` and ``pose_cov`` share the ``pose``).
+
+    Raises:
+        WireError: a channel without a wire format (:func:`channel`).
+    """
+    out: dict[str, tuple[str, ...]] = {}
+    for name in names:
+        topic = channel(name).topic
+        out[topic] = out.get(topic, ()) + (name,)
+    return out
 
 
 def estimate_frame(frame: str, fleet: str, anchor: str | None = None,

@@ -673,8 +673,10 @@ def decode_blocks_raw(data: Buffer) -> tuple[float, NDArray[np.uint32], Array]:
 
 # ----------------------------------------------------------------------------- channels
 def _position_raw(data: Buffer) -> tuple[float, Array]:
-    t, _, p = decode_pose_raw(data)
-    return t, p
+    """The stamp and position of a PoseWithCovarianceStamped (its covariance: ``pose_cov``)."""
+    data = _as_bytes(data)
+    t, pos = _fixed(data, 'PoseWithCovarianceStamped', 43)
+    return t, _pose(data, pos)[1]
 
 
 def _id_vectors_raw(data: Buffer) -> tuple[float, dict[int, Array]]:

@@ -42,10 +42,45 @@ def test_explicit_parameters_build_the_estimator(context):
         assert est.gains.k_R == 1.5 and est.gains.k_p == 1.0 and est.h == pytest.approx(0.005)
         np.testing.assert_allclose(est.R_hat[0], so3.axis_angle([0, 0, 1], 0.5), atol=1e-12)
         np.testing.assert_array_equal(est.p_hat[0], [1.0, 2.0, 3.0])
-        subs = {s.topic_name for s in node.subscriptions}
-        assert {'/agent_5/imu', '/agent_5/bearings', '/agent_1/estimate',
-                '/agent_1/world_bearings', '/agent_4/estimate',
-                '/agent_4/world_bearings'} <= subs
+        subs = [s.topic_name for s in node.subscriptions]
+        assert {'/agent_5/imu', '/agent_5/bearings', '/agent_1/pose',
+                '/agent_1/world_bearings', '/agent_4/pose',
+                '/agent_4/world_bearings'} <= set(subs)
+        # One message per neighbour and period carries p̂_j and P_j: not its estimate too.
+        assert subs.count('/agent_1/pose') == 1 and '/agent_1/estimate' not in subs
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('raw', [True, False])
+def test_a_neighbours_pose_gives_its_position_even_with_a_bad_covariance(context, raw):
+    """A neighbour's `pose` carries p̂_j and P_j. A covariance that is no covariance is a
+    counted rejection of that value only: the position is still used. A pose in another
+    frame is rejected whole, once."""
+    node = _node(context, raw_messages=raw, **EXPLICIT)
+    try:
+        node.on_imu(wire.encode_imu(0.0, 'agent_5', np.zeros(3)))   # creates the estimator
+        nb = node.est.neighbours[0]
+        on_pose = next(s for s in node.subscriptions if s.topic_name == '/agent_1/pose').callback
+
+        def send(t, frame, p, P):
+            msg = wire.encode_pose_covariance(t, frame, np.eye(3), p, P)
+            on_pose(serialize_message(msg) if raw else msg)
+
+        good = np.diag([0.1, 0.1, 0.1, 0.01, 0.01, 0.01])
+        send(0.0, 'world', [1.0, 2.0, 3.0], good)
+        np.testing.assert_array_equal(nb.values['p_hat'], [1.0, 2.0, 3.0])
+        np.testing.assert_array_equal(nb.values['pose_cov'], good)
+        bad = good.copy()
+        bad[0, 1] = 5.0                                  # not symmetric
+        send(0.01, 'world', [1.5, 2.0, 3.0], bad)
+        assert node.rejected['malformed'] == 1
+        np.testing.assert_array_equal(nb.values['p_hat'], [1.5, 2.0, 3.0])
+        assert nb.stamps == {'p_hat': 0.01, 'pose_cov': 0.0}
+        np.testing.assert_array_equal(nb.values['pose_cov'], good)   # kept, not replaced
+        send(0.02, 'agent_1/odom', [9.0, 9.0, 9.0], good)
+        assert node.rejected['wrong_frame'] == 1 and node.rejected['malformed'] == 1
+        np.testing.assert_array_equal(nb.values['p_hat'], [1.5, 2.0, 3.0])
     finally:
         node.destroy_node()
 

@@ -223,8 +223,8 @@ def test_lossy_and_late_neighbour_links_over_dds(tmp_path):
     ref = BatchSimulator(parse_scenario(FOUR)).run(T, record_every=0.02)
     for k, agent in enumerate(('agent_3', 'agent_4')):
         d = diagnostics[agent]
-        # Two neighbours, each sending estimate, world_bearings and pose at 50 Hz.
-        sent = 2 * 3 * 50 * float(d['state_time_s'])
+        # Two neighbours, each sending pose and world_bearings at 50 Hz.
+        sent = 2 * 2 * 50 * float(d['state_time_s'])
         dropped = int(d.get('event_injected_drop', 0))
         assert 0.25 < dropped / sent < 0.35, (agent, dropped, sent)
         errors = _errors(obs, agent)

@@ -7,10 +7,11 @@ the gyro data covers them (checked on every gyro sample and on a timer at ``freq
 publishes. Subscribes (relative names, remappable): ``imu`` (sensor_msgs/Imu), ``bearings``
 (sensor_msgs/PointCloud2), ``known_pose`` (leaders), ``odom`` (nav_msgs/Odometry, for methods
 that use odometry: the feed-forward of moving agents), and, for each neighbour j, the topics of
-the channels the method sends (``msg_defs.CHANNELS``; both leader-follower methods:
-``/<j>/estimate``, ``/<j>/world_bearings`` and ``/<j>/pose``). Publishes ``estimate``
-(geometry_msgs/PoseStamped in ``world``), for methods with a covariance ``pose`` (the same
-with its covariance, geometry_msgs/PoseWithCovarianceStamped, for robot_localization) and
+the channels the method sends, one subscription per topic (``msg_defs.CHANNELS``; both
+leader-follower methods: ``/<j>/pose``, its p̂_j with its covariance, and
+``/<j>/world_bearings``). Publishes ``estimate`` (geometry_msgs/PoseStamped in ``world``),
+``pose`` (the same with its covariance, geometry_msgs/PoseWithCovarianceStamped: what the
+neighbours and robot_localization read) and
 its other channels (``world_bearings``: what its listeners need) every ``publish_rate``
 period, on exact multiples of it, and its health on ``/diagnostics``. When the agent moves
 (odometry is live), the world bearings of an instant wait for the own bearings measured at it
@@ -21,7 +22,7 @@ Methods whose robots talk over communication links (De Carli et al.) run
 :class:`estimators.link_agent.LinkAgentEstimator` instead: the node subscribes to its own
 ``relative_positions`` (not ``bearings``), and, for each communication neighbour j, to j's
 ``odom``, j's ``relative_positions`` where j senses this robot, and j's channel topics
-(``yaw_estimate``, ``relative_yaws``, ``estimate``); it publishes its estimate in
+(``yaw_estimate``, ``relative_yaws``, ``pose``); it publishes its estimate in
 ``<fleet>/estimation`` at ``publish_rate`` and its channels when a neighbour's next step reads
 them; steps run as soon as every input of their instant is in (``link_wait``, ``neighbour_wait``
 bound the wait). These need ``scenario_file`` (the links come from the sensing graph).
@@ -29,7 +30,7 @@ bound the wait). These need ``scenario_file`` (the links come from the sensing g
 Methods with two rounds of messages per step (Presenza et al.) run
 :class:`estimators.two_round_agent.TwoRoundAgent`: the node subscribes to its own
 ``bearings`` and ``bearing_rates`` (unless the scenario estimates the rates from the bearings),
-the ``estimate`` of each robot it senses, the anchor's ``odom`` and, for a ranged robot, the
+the ``pose`` of each robot it senses, the anchor's ``odom`` and, for a ranged robot, the
 anchor's ``relative_positions`` (``ros.wiring``); once a step's first round is in it publishes
 its second (``angle_gradient``, ``angle_hessian``, ``anchor_bearing``, ``velocity_term``, to
 the robots it senses), then steps once the second round of the robots that sense it is in.
@@ -317,7 +318,7 @@ class EstimatorNode(Node):
         qos_in, qos_est = wire.SENSOR_QOS, wire.ESTIMATE_QOS
         self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE,
                                                  wire.ESTIMATE_PUB_QOS)
-        # The channels that need a message of their own (the others ride on the estimate).
+        # The channels that need a message of their own (the others ride on the pose).
         self.wires = {c.name: wire.channel(c.name) for c in optional_first(self.method.sends)}
         if self.method.rounds == 2:
             # Every step waits for these values, the first ones too: a reader that its writer
@@ -329,10 +330,10 @@ class EstimatorNode(Node):
             if encode is not None:
                 self.pub_channels[name] = (self.create_publisher(w.type, w.topic, qos_est),
                                            encode)
-        # Methods with a covariance publish the estimate with it too, on the publish grid.
+        # The estimate with its covariance, on the publish grid: what the neighbours read.
         self.pub_pose = (self.create_publisher(wire.PoseWithCovarianceStamped, wire.POSE,
                                                wire.ESTIMATE_PUB_QOS)
-                         if 'pose_cov' in self.wires else None)
+                         if any(w.topic == wire.POSE for w in self.wires.values()) else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, wire.DIAGNOSTICS, 10)
         # The neighbours' readers of each writer: the t0 state is announced once they are
         # matched, so the simulator's clock starts only when every value sent reaches them
@@ -364,24 +365,24 @@ class EstimatorNode(Node):
             subs.append(subscribe(wire.PoseStamped, wire.KNOWN_POSE, self.on_known_pose, qos_in))
         if isinstance(template, LinkAgentEstimator):
             for sub in link_subscriptions(template):
-                if sub.channel is None:   # its motion: what this robot senses of it, the anchor
+                if not sub.channels:   # its motion: what this robot senses of it, the anchor
                     subs.append(subscribe(
                         wire.Odometry, wire.topic(sub.agent, wire.ODOM, self.fleet),
                         partial(self._link, self.on_neighbour_odometry, sub.agent_id,
                                 sub.agent), qos_in))
                     continue
-                w = self.wires[sub.channel]
-                sensor = self.method_channel(sub.channel).sensor
+                w = self.wires[sub.channels[0]]
+                sensor = any(self.method_channel(c).sensor for c in sub.channels)
                 subs.append(subscribe(
                     w.type, wire.topic(sub.agent, w.topic, self.fleet),
-                    partial(self._link, self.on_neighbour, sub.agent_id, sub.channel,
-                            sub.agent), qos_in if sensor is not None else qos_est))
+                    partial(self._link, self.on_neighbour, sub.agent_id, sub.channels,
+                            sub.agent), qos_in if sensor else qos_est))
         else:
             for nb in template.neighbours:
-                for name, w in self.wires.items():
+                for topic, names in wire.channel_topics(self.wires).items():
                     subs.append(subscribe(
-                        w.type, wire.topic(nb.name, w.topic, self.fleet),
-                        partial(self._link, self.on_neighbour, nb.agent_id, name, nb.name),
+                        self.wires[names[0]].type, wire.topic(nb.name, topic, self.fleet),
+                        partial(self._link, self.on_neighbour, nb.agent_id, names, nb.name),
                         qos_est))
         self._subs = subs
         self.timer = self.create_timer(self.h, self.on_timer)
@@ -534,19 +535,31 @@ class EstimatorNode(Node):
         """``decode(msg)`` (a message's bytes: ``raw_decode``, by default ``decode``'s
         counterpart in msg_defs/cdr.py), or None after counting the rejection: wrong frame
         (unless ``frame`` is empty) or a malformed message."""
+        if not self._frame_ok(msg, frame, what):
+            return None
         try:
             if isinstance(msg, bytes):
-                frame_id = cdr.read_header(msg).frame_id
                 decode = raw_decode or _RAW_DECODERS[decode]
-            else:
-                frame_id = msg.header.frame_id
-            if frame and frame_id != frame:
-                self._reject('wrong_frame', f'{what} in frame {frame_id!r}')
-                return None
             return decode(msg)
         except wire.WireError as exc:
             self._reject('malformed', f'{what} ({exc})')
             return None
+
+    def _frame_ok(self, msg: Any, frame: str, what: str) -> bool:
+        """Whether the message's frame id is ``frame`` (anything for an empty ``frame``), after
+        counting the rejection if not (or if its bytes have no header)."""
+        if not frame:
+            return True
+        try:
+            frame_id = (cdr.read_header(msg).frame_id if isinstance(msg, bytes)
+                        else msg.header.frame_id)
+        except wire.WireError as exc:
+            self._reject('malformed', f'{what} ({exc})')
+            return False
+        if frame_id != frame:
+            self._reject('wrong_frame', f'{what} in frame {frame_id!r}')
+            return False
+        return True
 
     def _now(self) -> float | None:
         """The node's clock [s], or None before a simulated clock has ticked (a late joiner's
@@ -677,22 +690,33 @@ class EstimatorNode(Node):
         while self._delayed and self._delayed[0][0] <= now:
             heapq.heappop(self._delayed)[2]()
 
-    def on_neighbour(self, agent_id: int, channel: str, name: str, msg: object) -> None:
-        """Neighbour j's value of one channel (from its ``estimate``, ``world_bearings``, ...)."""
-        w = self.wires[channel]
+    def on_neighbour(self, agent_id: int, channels: tuple[str, ...], name: str,
+                     msg: object) -> None:
+        """Neighbour j's message with its values of ``channels`` (its ``pose``: p̂_j and
+        P_j; its ``world_bearings``, ...). A channel whose value is malformed is counted and
+        left out; the others are used."""
+        w = self.wires[channels[0]]
         what = f'{w.topic} of agent {agent_id}'
-        decoded = self._decoded(msg, w.decode, w.frame_of(name, self.estimate_frame,
-                                                          self.world_frame), what,
-                                cdr.RAW_CHANNELS[channel][0])
-        if decoded is None or self.est is None:
+        frame = w.frame_of(name, self.estimate_frame, self.world_frame)
+        if not self._frame_ok(msg, frame, what):
             return
-        t, value = decoded
-        if isinstance(self.est, LinkAgentEstimator) and self.method_channel(channel).sensor:
+        values: dict[str, object] = {}
+        t = 0.0
+        for channel in channels:
+            decoded = self._decoded(msg, self.wires[channel].decode, '', what,
+                                    cdr.RAW_CHANNELS[channel][0])
+            if decoded is not None:
+                t, values[channel] = decoded
+        if not values or self.est is None:
+            return
+        if isinstance(self.est, LinkAgentEstimator) and self.method_channel(channels[0]).sensor:
+            value = values[channels[0]]
+            assert isinstance(value, dict)
             ids = np.fromiter(value.keys(), dtype=np.int64, count=len(value))
             cause = self.est.add_neighbour_measurements(
                 agent_id, t, ids, np.array(list(value.values())).reshape(-1, 3))
         else:
-            cause = self.est.add_neighbour(agent_id, t, {channel: value})
+            cause = self.est.add_neighbour(agent_id, t, values)
         if cause not in (None, 'not_seen'):  # not_seen: j has no bearing to us yet
             self._reject(cause, f'{what} at {t:.6f}')
         elif self.links or getattr(self.est, 'exchange', None) is not None:
@@ -813,8 +837,8 @@ class EstimatorNode(Node):
         est = self.est
         assert est is not None
         due = {name for name in self.wires if est.estimator.due(name, est.t, self.h)}
-        # Channels without a message of their own ride on the estimate.
-        rides = {name for name, w in self.wires.items() if w.topic == wire.ESTIMATE}
+        # Channels without a message of their own ride on the pose.
+        rides = {name for name, w in self.wires.items() if w.topic == wire.POSE}
         estimate = (round((est.t - est.origin) / self.h) % self.publish_every == 0
                     or bool(due & rides))
         world = bool(due & set(self.pub_channels))
@@ -829,8 +853,7 @@ class EstimatorNode(Node):
         self._deferred = -1
         t = est.t
         if force or (estimate and self._published_k != est.k):
-            # The pose first: neighbours never wait for its covariance, but do for the
-            # estimate, so this order usually gives their step the covariance of its instant.
+            # The pose first: what the neighbours' steps wait for.
             if self.pub_pose is not None:
                 P = getattr(est.x, 'P')[0]   # the pose's block: methods may hold more states
                 self.pub_pose.publish(self._encode_pose_covariance(

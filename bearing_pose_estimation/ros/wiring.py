@@ -23,12 +23,12 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class NeighbourTopic:
     """One subscription of an estimator to neighbour ``agent``'s ``topic`` (relative name):
-    a method channel's (``channel``; None: the neighbour's odometry)."""
+    the method channels it carries (``channels``; none: the neighbour's odometry)."""
 
     agent: str
     agent_id: int
     topic: str
-    channel: str | None
+    channels: tuple[str, ...]
 
 
 def optional_first(channels: Sequence[Channel]) -> list[Channel]:
@@ -46,13 +46,15 @@ def link_subscriptions(template: AgentEstimator | LinkAgentEstimator) -> list[Ne
     for other agents (their node subscribes to each neighbour's channel topics)."""
     if not isinstance(template, LinkAgentEstimator):
         return []
-    out = []
+    wanted: dict[tuple[str, int, str], tuple[str, ...]] = {}
     for c in optional_first(template.estimator.sends):
-        w = wire.channel(c.name)
+        topic = wire.channel(c.name).topic
         for nb in template.channel_sources(c.name):
             if c.sensor is None or template.measures_me(nb):
-                out.append(NeighbourTopic(nb.name, nb.agent_id, w.topic, c.name))
-    out += [NeighbourTopic(name, agent_id, wire.ODOM, None)
+                key = (nb.name, nb.agent_id, topic)
+                wanted[key] = wanted.get(key, ()) + (c.name,)
+    out = [NeighbourTopic(*key, channels) for key, channels in wanted.items()]
+    out += [NeighbourTopic(name, agent_id, wire.ODOM, ())
             for name, agent_id in template.odometry_sources()]
     return out
 
