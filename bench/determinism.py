@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
-import re
 import tempfile
 import time
 from pathlib import Path
@@ -29,6 +28,7 @@ import yaml
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from bearing_pose_estimation.cli import launch  # noqa: E402
+from bearing_pose_estimation.ros.estimator_node import INCOMPLETE_LOG  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 from bearing_pose_estimation.scenario.generate import generate_scenario  # noqa: E402
 from bearing_pose_estimation.sim.netsim import run_network  # noqa: E402
@@ -36,7 +36,6 @@ from bearing_pose_estimation.studies.results import Recording  # noqa: E402
 from bearing_pose_estimation.studies.summary import read_metrics_csv  # noqa: E402
 
 FLOOR = 1e-4   # [rad, m]: below, differences are absolute
-_INCOMPLETE = re.compile(r'steps without an awaited input: (\{[^}]*\}|0)')
 
 
 def _burn(stop: mp.synchronize.Event) -> None:
@@ -88,7 +87,7 @@ def run_dds(scenario_file: Path, out: Path, duration: float, domain: int,
     assert result.ok, f'the run failed: see {cfg.logs_dir}'
     incomplete = []
     for log in sorted(cfg.logs_dir.glob('agent_*.log')):
-        m = _INCOMPLETE.search(log.read_text())
+        m = INCOMPLETE_LOG.search(log.read_text())
         if m and m[1] != '0':
             incomplete.append(f'{log.stem}: {m[1]}')
     return read_metrics_csv(out / 'metrics.csv'), wall, incomplete

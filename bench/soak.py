@@ -22,11 +22,11 @@ import numpy as np
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from bearing_pose_estimation.cli import launch  # noqa: E402
+from bearing_pose_estimation.ros.estimator_node import INCOMPLETE_LOG  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 from bearing_pose_estimation.studies.summary import read_metrics_csv  # noqa: E402
 
 _STEPS = re.compile(r'(\d+) steps \(([\d.]+) s of state time\)')
-_INCOMPLETE = re.compile(r'steps without an awaited input: (\{[^}]*\}|0)')
 _LAG = re.compile(r'slowest estimate behind the clock: median (\S+) ms, max (\S+) ms')
 
 
@@ -116,7 +116,7 @@ def main() -> None:
         print(f'\nsteps (want {want} per estimator), steps without an awaited input:')
         for log in sorted(cfg.logs_dir.glob('*.log')):
             text = log.read_text()
-            steps, inc = _STEPS.search(text), _INCOMPLETE.search(text)
+            steps, inc = _STEPS.search(text), INCOMPLETE_LOG.search(text)
             if steps:
                 print(f'  {log.stem}: {steps[1]} steps, {inc[1] if inc else "n/a"}')
         lag = _LAG.search((cfg.logs_dir / 'simulator.log').read_text())

@@ -16,7 +16,7 @@ rates, but nothing else:
   (``raw=True``) with a callback that only counts. It publishes, on a wall-clock timer, the
   messages the node publishes at the instants the node publishes them: ``pose``, ``estimate``
   and the channels with a topic of their own on the publish grid (link methods: also when a
-  channel riding on the estimate is due, the channels when due, ``Estimator.due``), a
+  channel riding on the pose is due, the channels when due, ``Estimator.due``), a
   two-round method's round-2 channels every step, ``/diagnostics`` every second;
 - the simulator process publishes what the simulator node publishes (per agent ``imu``,
   ``bearings``, ``ground_truth`` and the sensors the scenario simulates, each at its rate,
@@ -30,7 +30,7 @@ Each message is built once, with msg_defs' encoders from the scenario's own valu
 simulator's ``sim.world.World`` at one instant, each agent's ``outbox()``), serialised with
 ``rclpy.serialization.serialize_message``, and the bytes are published (rclpy 7.1.6's
 ``Publisher.publish`` takes bytes: ``publish_raw``). Every process is spun like a node
-(``ros.node_main.run_node``: the package's DrainingExecutor). Each process polls its own
+(``ros.node_main.run_node``: the package's executor, ``DEFAULT_EXECUTOR``). Each process polls its own
 publishers' and subscriptions' match counts until every one has the peers the fleet gives
 it, then starts its timer with step 0 on a multiple of its cycle on the monotonic clock, so
 that every process publishes at the same instants, as the nodes do (each estimator publishes
@@ -545,8 +545,10 @@ def _log(path: Path) -> str:
 
 def run_floor(scenario_file: Path, scenario: Scenario, plans: dict[str, ProcessPlan],
               duration: float, warmup: float, domain_id: int, work: Path,
-              phases: str = 'aligned', omit: Sequence[str] = ()) -> Measured:
-    """Start the floor's processes, wait until every one is matched, measure the window."""
+              phases: str = 'aligned', omit: Sequence[str] = (),
+              match_timeout: float = MATCH_TIMEOUT_S) -> Measured:
+    """Start the floor's processes, wait until every one is matched (at most
+    ``match_timeout`` s), measure the window."""
     logs = work / 'logs'
     env = launch.dds_env(domain_id, logs / 'ros')
     me = [sys.executable, str(Path(__file__).resolve()), '--scenario', str(scenario_file),
@@ -558,12 +560,12 @@ def run_floor(scenario_file: Path, scenario: Scenario, plans: dict[str, ProcessP
     with launch.ProcessGroup(env) as group:
         for spec in specs:
             group.start(spec)
-        deadline = time.monotonic() + MATCH_TIMEOUT_S
+        deadline = time.monotonic() + match_timeout
         while not all(_MATCHED.search(_log(spec.log)) for spec in specs):
             dead = [n for n in plans if group.returncode(n) is not None]
             if dead or time.monotonic() > deadline:
                 group.shutdown()
-                why = f'{dead[0]} exited' if dead else f'not matched in {MATCH_TIMEOUT_S:g} s'
+                why = f'{dead[0]} exited' if dead else f'not matched in {match_timeout:g} s'
                 raise RuntimeError(f'floor: {why}; logs in {logs}')
             time.sleep(0.05)
         time.sleep(warmup)   # everything is matched: the first messages settle
@@ -872,6 +874,8 @@ def main() -> None:
     ap.add_argument('--omit', nargs='+', default=[], metavar='TOPIC',
                     help='leave these topics (last name: clock, pose, ...) out of the floor')
     ap.add_argument('--logs', help='keep every run\'s files in this directory')
+    ap.add_argument('--match-timeout', type=float, default=MATCH_TIMEOUT_S, metavar='S',
+                    help='wall seconds the floor\'s processes may take to match (large fleets)')
     ap.add_argument('--quiet-below', type=float, default=30.0, metavar='PCT',
                     help='before each run, wait (at most 10 min) until the rest of the machine '
                          'uses less than this [%% of a core]')
@@ -899,7 +903,7 @@ def main() -> None:
                 wait_quiet(args.quiet_below)
                 floors.append(run_floor(path, scenario, plans, args.duration, args.warmup,
                                         domain(), work / f'{path.stem}_floor_{r}',
-                                        args.phases, args.omit))
+                                        args.phases, args.omit, args.match_timeout))
                 print(f'  floor run {r + 1}: agents {floors[-1].agent_median:.1f} % (median), '
                       f'simulator {floors[-1].simulator_pct:.1f} %, monitor '
                       f'{floors[-1].monitor_pct:.1f} %; agents moved {100 * floors[-1].rate:.0f} %'

@@ -216,6 +216,39 @@ def test_bad_command_lines_exit_2(capsys):
     assert '--domain-id must be in 0..232' in capsys.readouterr().err
 
 
+def test_a_run_stays_within_the_processes_discovery_connects():
+    """Two processes of a domain whose DDS participant ids are both 32 or more never discover
+    each other on localhost (BENCHMARKS.md, "Discovery"): a run needs at most 32 processes,
+    agents share processes when they must, and a K that needs more is an error naming the
+    fix."""
+    assert launch.fit_agents_per_process(30, None) == 1                  # 30 + 2 = 32
+    assert launch.fit_agents_per_process(31, None) == 2                  # 16 + 2
+    assert launch.fit_agents_per_process(30, None, rviz=True) == 2       # fleet_markers too
+    assert launch.fit_agents_per_process(100, None) == 4                 # 25 + 2
+    assert launch.fit_agents_per_process(100, 8) == 8
+    with pytest.raises(launch.LaunchError, match=r'40 agents at 1 per process need 42 '
+                       r'processes.*Fix: --agents-per-process 2 or more'):
+        launch.fit_agents_per_process(40, 1)
+
+
+def test_large_fleets_share_processes(tmp_path, monkeypatch, capsys):
+    """`run` on 40 agents runs them 2 per process (a note says why), and with
+    --agents-per-process 1 refuses to start, with the fix."""
+    big = tmp_path / 'big.yaml'
+    assert main(['generate', '--agents', '40', '--out', str(big)]) == 0
+    started = []
+    monkeypatch.setattr(launch, 'launch_run', lambda scenario, cfg, **_: (
+        started.append(cfg), launch.RunResult(ok=False, wall_s=0.0))[1])
+    assert main(['run', str(big), '--out', str(tmp_path / 'one'), '--duration', '1',
+                 '--agents-per-process', '1']) == 1
+    err = capsys.readouterr().err
+    assert 'need 42 processes' in err and 'Fix: --agents-per-process 2 or more' in err
+    assert not started
+    main(['run', str(big), '--out', str(tmp_path / 'out'), '--duration', '1'])
+    assert '40 agents run 2 per process' in capsys.readouterr().err
+    assert [cfg.agents_per_process for cfg in started] == [2]
+
+
 def test_missing_executables_name_the_fix(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv(launch.BIN_DIR_ENV, str(tmp_path))
     assert main(['run', str(PAPER), '--out', str(tmp_path / 'out')]) == 1

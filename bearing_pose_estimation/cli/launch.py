@@ -47,6 +47,41 @@ class LaunchError(RuntimeError):
     """The run cannot start or did not finish. The message names the cause and the fix."""
 
 
+# With ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (every run here), Fast DDS (rclpy 7.1.6's
+# rmw_fastrtps) finds the other participants of a domain at the ports of participant ids
+# 0-31: two processes that both got an id of 32 or more never discover each other (measured:
+# the 33rd and 34th processes of a domain never matched, the 32nd and 33rd did at once;
+# BENCHMARKS.md, "Discovery"). A run therefore uses at most this many processes, which also
+# leaves any number of observers (RViz, ros2 CLI) able to see the whole fleet.
+MAX_PROCESSES = 32
+
+
+def processes_needed(n_agents: int, agents_per_process: int, rviz: bool = False) -> int:
+    """The processes of a run: the estimators', the monitor, the simulator (and
+    fleet_markers with ``rviz``)."""
+    return -(-n_agents // max(1, agents_per_process)) + 2 + int(rviz)
+
+
+def fit_agents_per_process(n_agents: int, requested: int | None, rviz: bool = False) -> int:
+    """``requested`` agents per process, or for None the fewest that keep the run within
+    :data:`MAX_PROCESSES` (1 when one process per agent fits).
+
+    Raises:
+        LaunchError: ``requested`` needs more processes than discovery on localhost allows.
+    """
+    fewest = next(k for k in range(1, max(n_agents, 1) + 1)
+                  if processes_needed(n_agents, k, rviz) <= MAX_PROCESSES)
+    if requested is None:
+        return fewest
+    if processes_needed(n_agents, requested, rviz) > MAX_PROCESSES:
+        raise LaunchError(
+            f'{n_agents} agents at {requested} per process need '
+            f'{processes_needed(n_agents, requested, rviz)} processes, but DDS discovery on '
+            f'localhost connects at most {MAX_PROCESSES} processes of a domain (the others '
+            f'would never match). Fix: --agents-per-process {fewest} or more (or leave it out)')
+    return requested
+
+
 # ----------------------------------------------------------------------------- set-up
 def find_executable(name: str, bin_dir: Path | None = None) -> Path:
     """Locate a node executable as ``ros2 run`` would: each ``AMENT_PREFIX_PATH`` prefix's
@@ -111,22 +146,24 @@ def _shm_in_use() -> set[str]:
     return used
 
 
-def leaked_shm(before: set[str]) -> list[str]:
+def leaked_shm(before: set[str], lockless: bool = False) -> list[str]:
     """Fast DDS files created since ``before`` that no live process uses: what a participant
-    killed without a clean shutdown leaves. Other processes' live files do not count, so this
-    works on a machine where other ROS programs (or test runs) are active."""
+    killed without a clean shutdown leaves (with ``lockless``, also the port files Fast DDS
+    keeps after clean exits, :func:`_lockless_port`). Other processes' live files do not
+    count, so this works on a machine where other ROS programs (or test runs) are active."""
     new = shm_files() - before
     if not new:
         return []
     used = _shm_in_use()
     return sorted(f for f in new
                   if f not in used and f.removesuffix('_el') not in used
-                  and f + '_el' not in used and not _lockless_port(f))
+                  and f + '_el' not in used and (lockless or not _lockless_port(f)))
 
 
 def _lockless_port(path: str) -> bool:
-    """A shared port file without its ``_el`` lock. Fast DDS occasionally keeps one after
-    every process exited cleanly (seen twice in ~40 runs here, never reproducible), and
+    """A shared port file without its ``_el`` lock. Fast DDS sometimes keeps one after every
+    process exited cleanly: rarely in runs (twice in ~40), but in one run out of two or three
+    with 20 to 34 processes of one domain (``bench/discovery_limit.py``, 2026-12-06), and
     ``fastdds shm clean`` does not count it as a zombie. What a killed participant leaves is
     its own segment and lock, which are still reported."""
     name = Path(path).name
@@ -706,7 +743,13 @@ class RunResult:
 
 def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = None) -> RunResult:
     """Write the parameter files, start every process, wait for the monitor, stop the rest.
-    Ctrl-C (KeyboardInterrupt) stops everything and propagates."""
+    Ctrl-C (KeyboardInterrupt) stops everything and propagates.
+
+    Raises:
+        LaunchError: more processes than discovery on localhost connects
+            (:func:`fit_agents_per_process`), a missing executable, a failed start.
+    """
+    fit_agents_per_process(len(scenario.agents), cfg.agents_per_process, cfg.rviz)
     needed = ('estimators' if cfg.agents_per_process > 1 else 'estimator', 'simulator', 'monitor',
               *([MARKERS] if cfg.rviz else []))
     exes = {name: find_executable(name, bin_dir) for name in needed}

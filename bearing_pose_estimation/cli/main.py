@@ -319,11 +319,21 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
     how = 'from --domain-id' if args.domain_id is not None else 'private to this run'
     if args.domain_id is None and os.environ.get('ROS_DOMAIN_ID'):
         how += f"; the caller's ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} is not used"
+    rviz = getattr(args, 'rviz', False)
+    try:
+        per_process = launch.fit_agents_per_process(len(scenario.agents),
+                                                    args.agents_per_process, rviz)
+    except launch.LaunchError as exc:
+        raise ScenarioError(str(exc)) from exc
+    if args.agents_per_process is None and per_process > 1:
+        print(f'note: {len(scenario.agents)} agents run {per_process} per process, so that '
+              f'the run needs at most {launch.MAX_PROCESSES} processes (DDS discovery on '
+              'localhost connects no more; --agents-per-process sets it)', file=sys.stderr)
     cfg = launch.RunConfig(
         scenario_file=scenario_file.resolve(), out_dir=out.resolve(), duration=duration,
         domain_id=domain_id, real_time_factor=args.real_time_factor, plots=not args.no_plots,
-        timeout=args.timeout, agents_per_process=args.agents_per_process,
-        record=getattr(args, 'record', False), rviz=getattr(args, 'rviz', False),
+        timeout=args.timeout, agents_per_process=per_process,
+        record=getattr(args, 'record', False), rviz=rviz,
         fleet_namespace=args.fleet_namespace)
     pace = (f'at most {cfg.real_time_factor:g}x real time' if cfg.real_time_factor > 0
             else 'as fast as the estimators keep up')
@@ -479,9 +489,11 @@ def _add_dds_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--real-time-factor', type=float, default=0.0, metavar='F',
                    help='cap on simulated seconds per wall second; 0: no cap, as fast as the '
                    'estimators keep up (default: 0)')
-    p.add_argument('--agents-per-process', type=int, default=1, metavar='K',
+    p.add_argument('--agents-per-process', type=int, metavar='K',
                    help='run K agents per process (one executor, one node each) with the '
-                   '`estimators` executable; 1: one `estimator` process per agent (default)')
+                   '`estimators` executable; 1: one `estimator` process per agent (default: '
+                   '1, or the fewest that keep the run within 32 processes, the most DDS '
+                   'discovery on localhost connects)')
     p.add_argument('--fleet-namespace', default='', metavar='NS',
                    help='run every node and topic under /NS/ (/NS/<agent>/estimate, '
                    '/NS/clock, ...), so that several fleets share a domain (default: none)')
@@ -677,7 +689,7 @@ def main(argv: list[str] | None = None) -> int:
         stray = sorted(set(args.gain_overrides) - set(args.methods))
         if stray:
             parser.error(f'--gains sets gains of {stray[0]}, which is not in --methods')
-    if getattr(args, 'agents_per_process', 1) < 1:
+    if getattr(args, 'agents_per_process', None) is not None and args.agents_per_process < 1:
         parser.error('--agents-per-process must be at least 1')
     fleet_ns = getattr(args, 'fleet_namespace', '')
     if fleet_ns and not re.fullmatch(r'[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*',
