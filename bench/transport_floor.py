@@ -71,6 +71,11 @@ and ranges.
         [--scenario config/paper_8_agents.yaml[:METHOD] ...] [--method METHOD]
         [--duration 20] [--repeat 2] [--warmup 2] [--domain-id 60] [--floor-only]
         [--phases aligned|spread] [--omit TOPIC ...] [--quiet-below 30] [--logs DIR]
+        [--per-process K]
+
+``--per-process K`` runs K consecutive agents in one process, floor and nodes, as ``bearing-pose
+run --agents-per-process K`` does (one ``estimators`` process, one executor, one participant):
+an agent's figure is then its process's CPU divided by its agents.
 """
 from __future__ import annotations
 
@@ -117,6 +122,7 @@ from bearing_pose_estimation.estimators.link_agent import (LinkAgentEstimator,  
                                                            agent_for)
 from bearing_pose_estimation.estimators.two_round_agent import TwoRoundAgent  # noqa: E402
 from bearing_pose_estimation.ros.monitor_node import watched  # noqa: E402
+from bearing_pose_estimation.ros.estimator_group import parse_args as group_args  # noqa: E402
 from bearing_pose_estimation.ros.node_main import run_node  # noqa: E402
 from bearing_pose_estimation.ros.wiring import link_subscriptions, optional_first  # noqa: E402
 from bearing_pose_estimation.scenario import (Scenario, check_scenario,  # noqa: E402
@@ -132,7 +138,8 @@ MATCH_TIMEOUT_S = 90.0
 SAMPLE_S = 0.1                  # the real run's CPU sampling period [s]
 
 _MATCHED = re.compile(r'FLOOR matched after (?P<s>\S+) s')
-_COUNTS = re.compile(r'\[(?P<stamp>\d+\.\d+)\] \[[^]]*\]: FLOOR count (?P<pub>\d+) (?P<sub>\d+)')
+_COUNTS = re.compile(r'\[(?P<stamp>\d+\.\d+)\] \[(?P<node>[^]]*)\]: FLOOR count (?P<pub>\d+) '
+                     r'(?P<sub>\d+)')
 COUNT_PERIOD_S = 0.5            # how often a floor process logs its message counts
 _CLOCK_STARTS = re.compile(r'\[(?P<stamp>\d+\.\d+)\] \[\S*simulator\]: all matched after .*'
                            r'clock starts')
@@ -509,11 +516,28 @@ class FloorNode(Node):
 
 
 def process_main(role: str, scenario_file: str, aligned: bool, omit: Collection[str]) -> None:
-    """One process of the floor (``--role``)."""
+    """One process of the floor (``--role``: a plan's name, or agents' names joined by commas
+    for agents that share a process, as an ``estimators`` process runs them)."""
     scenario = load_scenario(scenario_file)
     plans = fleet_plan(scenario, omit)
     readers, writers = peers(plans)
-    raise SystemExit(run_node(lambda: FloorNode(plans[role], readers, writers, aligned), role))
+    names = role.split(',')
+    raise SystemExit(run_node(
+        lambda: [FloorNode(plans[n], readers, writers, aligned) for n in names], names[0]))
+
+
+def process_groups(agents: Sequence[str], others: Iterable[str],
+                   per_process: int) -> dict[str, list[str]]:
+    """A run's processes: name -> what it runs. Consecutive agents share a process as
+    ``launch.plan_processes`` groups them (``estimators_<g>``); the ``others`` (monitor,
+    simulator) and, with ``per_process`` 1, each agent run alone."""
+    if per_process <= 1:
+        out = {name: [name] for name in agents}
+    else:
+        out = {f'estimators_{g}': list(agents[start:start + per_process])
+               for g, start in enumerate(range(0, len(agents), per_process))}
+    out.update({name: [name] for name in others})
+    return out
 
 
 # ----------------------------------------------------------------------------- measuring
@@ -521,7 +545,7 @@ def process_main(role: str, scenario_file: str, aligned: bool, omit: Collection[
 class Measured:
     """One run: CPU per second [% of a core] of each process, its kind's figures."""
 
-    agent_pct: list[float]
+    agent_pct: list[float]          # per agent process (shared: its CPU / its agents)
     simulator_pct: float
     monitor_pct: float
     speed: float                    # the nodes: simulated / wall seconds in the window
@@ -546,23 +570,26 @@ def _log(path: Path) -> str:
 def run_floor(scenario_file: Path, scenario: Scenario, plans: dict[str, ProcessPlan],
               duration: float, warmup: float, domain_id: int, work: Path,
               phases: str = 'aligned', omit: Sequence[str] = (),
-              match_timeout: float = MATCH_TIMEOUT_S) -> Measured:
-    """Start the floor's processes, wait until every one is matched (at most
-    ``match_timeout`` s), measure the window."""
+              match_timeout: float = MATCH_TIMEOUT_S, per_process: int = 1) -> Measured:
+    """Start the floor's processes (``per_process`` agents in each agent process), wait until
+    every node is matched (at most ``match_timeout`` s), measure the window."""
     logs = work / 'logs'
     env = launch.dds_env(domain_id, logs / 'ros')
     me = [sys.executable, str(Path(__file__).resolve()), '--scenario', str(scenario_file),
           '--phases', phases, *(['--omit', *omit] if omit else [])]
-    specs = [launch.ProcessSpec(name, 'floor', tuple(me + ['--role', name]),
-                                logs / f'{name}.log') for name in plans]
+    agents = [a.name for a in scenario.agents]
+    groups = process_groups(agents, [n for n in plans if n not in agents], per_process)
+    specs = [launch.ProcessSpec(name, 'floor', tuple(me + ['--role', ','.join(members)]),
+                                logs / f'{name}.log') for name, members in groups.items()]
     before = launch.shm_files()
     notes = []
     with launch.ProcessGroup(env) as group:
         for spec in specs:
             group.start(spec)
         deadline = time.monotonic() + match_timeout
-        while not all(_MATCHED.search(_log(spec.log)) for spec in specs):
-            dead = [n for n in plans if group.returncode(n) is not None]
+        while not all(len(_MATCHED.findall(_log(spec.log))) >= len(groups[spec.name])
+                      for spec in specs):
+            dead = [n for n in groups if group.returncode(n) is not None]
             if dead or time.monotonic() > deadline:
                 group.shutdown()
                 why = f'{dead[0]} exited' if dead else f'not matched in {match_timeout:g} s'
@@ -584,21 +611,24 @@ def run_floor(scenario_file: Path, scenario: Scenario, plans: dict[str, ProcessP
     flow = traffic(plans)
     done, moved = {}, {}
     for spec in specs:
-        counts = [(float(m['stamp']), int(m['pub']) + int(m['sub']))
-                  for m in _COUNTS.finditer(_log(spec.log))]
-        moved[spec.name] = _at(counts, t1) - _at(counts, t0)
-        planned = flow[spec.name]['received'] + flow[spec.name]['published']
+        counts: dict[str, list[tuple[float, float]]] = {}   # per node of the process
+        for m in _COUNTS.finditer(_log(spec.log)):
+            counts.setdefault(m['node'], []).append(
+                (float(m['stamp']), int(m['pub']) + int(m['sub'])))
+        moved[spec.name] = sum(_at(c, t1) - _at(c, t0) for c in counts.values())
+        planned = sum(flow[n]['received'] + flow[n]['published'] for n in groups[spec.name])
         if planned > 0:
             done[spec.name] = moved[spec.name] / (planned * (t1 - t0))
-    pct = {n: 100.0 * (cpu1[n] - cpu0[n]) / (t1 - t0) / done.get(n, 1.0)
-           for n in plans if n in cpu0 and n in cpu1}
-    agents = [a.name for a in scenario.agents if a.name in pct]
+    # An agent process's CPU is shared by its agents.
+    pct = {n: 100.0 * (cpu1[n] - cpu0[n]) / (t1 - t0) / done.get(n, 1.0) / len(groups[n])
+           for n in groups if n in cpu0 and n in cpu1}
+    procs = [n for n in groups if n not in ('simulator', 'monitor') and n in pct]
     notes.append(f'simulator sent {100 * done.get("simulator", math.nan):.0f} % of the plan')
     return Measured(
-        [pct[a] for a in agents], pct.get('simulator', math.nan), pct.get('monitor', math.nan),
-        speed=1.0, rate=statistics.median(done.get(a, math.nan) for a in agents),
+        [pct[n] for n in procs], pct.get('simulator', math.nan), pct.get('monitor', math.nan),
+        speed=1.0, rate=statistics.median(done.get(n, math.nan) for n in procs),
         window_s=t1 - t0, notes=notes,
-        us_per_message=[1e6 * (cpu1[a] - cpu0[a]) / moved[a] for a in agents if moved[a] > 0],
+        us_per_message=[1e6 * (cpu1[n] - cpu0[n]) / moved[n] for n in procs if moved[n] > 0],
         others_pct=100.0 * (others1 - others0) / (t1 - t0))
 
 
@@ -621,7 +651,8 @@ def _stat(proc: Path) -> list[str]:
 
 
 def _children() -> dict[str, int]:
-    """This process's children (a run's nodes) by name (an estimator's: its namespace)."""
+    """This process's children (a run's nodes) by name (an estimator's: its namespace; an
+    ``estimators`` process's: ``estimators:`` and its agents joined by commas)."""
     out = {}
     me = os.getpid()
     for proc in Path('/proc').glob('[0-9]*'):
@@ -629,11 +660,13 @@ def _children() -> dict[str, int]:
         if not fields or int(fields[1]) != me:
             continue
         try:
-            args = (proc / 'cmdline').read_bytes().decode(errors='replace').split('\0')
+            args = (proc / 'cmdline').read_bytes().decode(errors='replace').rstrip('\0').split('\0')
         except OSError:
             continue
         name = Path(args[1]).name if len(args) > 1 else '?'
         ns = next((a.split(':=', 1)[1].strip('/') for a in args if a.startswith('__ns:=')), '')
+        if name == 'estimators':
+            ns = 'estimators:' + ','.join(group_args(args[1:]).agents)
         out[ns or name] = int(proc.name)
     return out
 
@@ -736,12 +769,14 @@ class _RunSampler(threading.Thread):
 
 
 def run_nodes(scenario_file: Path, scenario: Scenario, duration: float, warmup: float,
-              domain_id: int, work: Path) -> Measured:
-    """``bearing-pose run`` of the scenario (fleet_scale's configuration), measured over the
-    window."""
-    cfg = run_config(scenario_file, work, warmup + duration, domain_id)
+              domain_id: int, work: Path, per_process: int = 1) -> Measured:
+    """``bearing-pose run`` of the scenario (fleet_scale's configuration, ``per_process``
+    agents in each estimator process), measured over the window."""
+    cfg = run_config(scenario_file, work, warmup + duration, domain_id, per_process)
     work.mkdir(parents=True, exist_ok=True)
-    sampler = _RunSampler(cfg.logs_dir, len(scenario.agents) + 2, warmup, duration)
+    processes = process_groups([a.name for a in scenario.agents], ['simulator', 'monitor'],
+                               per_process)
+    sampler = _RunSampler(cfg.logs_dir, len(processes), warmup, duration)
     before = launch.shm_files()
     sampler.start()
     try:
@@ -763,8 +798,8 @@ def run_nodes(scenario_file: Path, scenario: Scenario, duration: float, warmup: 
     if s1 is None and (m := _REACHED.search(log)) and float(m['stamp']) <= w1:
         w1, s1 = float(m['stamp']), float(m['t'])   # it ended just before we stopped it
     if s1 is None:   # stopped by us: where the estimators' state was
-        times = [float(m['t']) for a in scenario.agents
-                 if (m := _STATE_TIME.search(_log(cfg.logs_dir / f'{a.name}.log')))]
+        times = [float(m['t']) for name in processes if name not in ('simulator', 'monitor')
+                 for m in _STATE_TIME.finditer(_log(cfg.logs_dir / f'{name}.log'))]
         s1 = statistics.median(times) if times else math.nan
         notes.append(f'stopped at t = {s1:.2f} s (simulated)')
     # The clock's pace over the run, taken as constant to place the window's start.
@@ -773,6 +808,9 @@ def run_nodes(scenario_file: Path, scenario: Scenario, duration: float, warmup: 
     sim_s = s1 - speed * warmup
     cpu0, cpu1 = sampler.cpu_at(w0), sampler.cpu_at(w1)
     pct = {n: 100.0 * (cpu1[n] - cpu0[n]) / sim_s for n in cpu0.keys() & cpu1.keys()}
+    shared = {n: n.split(':', 1)[1].split(',') for n in pct if n.startswith('estimators:')}
+    for n, members in shared.items():   # an estimators process: its CPU per agent
+        pct.update(dict.fromkeys(members, pct.pop(n) / len(members)))
     stats = simulator_stats(log)
     if 'missed' in stats:
         notes.append(f'missed {stats["missed"]:.1f} %')
@@ -879,6 +917,9 @@ def main() -> None:
     ap.add_argument('--quiet-below', type=float, default=30.0, metavar='PCT',
                     help='before each run, wait (at most 10 min) until the rest of the machine '
                          'uses less than this [%% of a core]')
+    ap.add_argument('--per-process', type=int, default=1, metavar='K',
+                    help='agents per estimator process, floor and nodes (bearing-pose run '
+                         '--agents-per-process)')
     ap.add_argument('--role', help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.role:
@@ -903,7 +944,8 @@ def main() -> None:
                 wait_quiet(args.quiet_below)
                 floors.append(run_floor(path, scenario, plans, args.duration, args.warmup,
                                         domain(), work / f'{path.stem}_floor_{r}',
-                                        args.phases, args.omit, args.match_timeout))
+                                        args.phases, args.omit, args.match_timeout,
+                                        args.per_process))
                 print(f'  floor run {r + 1}: agents {floors[-1].agent_median:.1f} % (median), '
                       f'simulator {floors[-1].simulator_pct:.1f} %, monitor '
                       f'{floors[-1].monitor_pct:.1f} %; agents moved {100 * floors[-1].rate:.0f} %'
@@ -913,13 +955,14 @@ def main() -> None:
                     continue
                 wait_quiet(args.quiet_below)
                 nodes.append(run_nodes(path, scenario, args.duration, args.warmup, domain(),
-                                       work / f'{path.stem}_nodes_{r}'))
+                                       work / f'{path.stem}_nodes_{r}', args.per_process))
                 print(f'  nodes run {r + 1}: agents {nodes[-1].agent_median:.1f} % (median), '
                       f'simulator {nodes[-1].simulator_pct:.1f} %, monitor '
                       f'{nodes[-1].monitor_pct:.1f} %, speed {nodes[-1].speed:.2f}x over '
                       f'{nodes[-1].window_s:.1f} s; others {nodes[-1].others_pct:.0f} %; '
                       f'{"; ".join(nodes[-1].notes)}', flush=True)
-            rows.append((label, len(scenario.agents), floors, nodes))
+            shared = f', {args.per_process} per process' if args.per_process > 1 else ''
+            rows.append((label + shared, len(scenario.agents), floors, nodes))
     print(f'\nStarted {start}, load average before {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, '
           f'after {" ".join(f"{v:.2f}" for v in os.getloadavg())}; {args.repeat} run(s) each, '
           f'window {args.duration:g} s after {args.warmup:g} s; medians (ranges). CPU in % of '

@@ -24,7 +24,8 @@ from .node_main import run_node
 from ..core.errors import ScenarioError
 
 
-def _parse(argv: list[str]) -> argparse.Namespace:
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    """An ``estimators`` command line (``argv[0]``: the program), ROS arguments left out."""
     parser = argparse.ArgumentParser(prog='estimators', description=__doc__.split('\n')[0])
     parser.add_argument('--params-dir', required=True, type=Path,
                         help='folder with one <agent>.yaml parameter file per agent')
@@ -55,7 +56,7 @@ def _nodes(opts: argparse.Namespace) -> list[EstimatorNode]:
 
 def main(args: list[str] | None = None) -> None:
     argv = sys.argv if args is None else args
-    opts = _parse(argv)
+    opts = parse_args(argv)
     raise SystemExit(run_node(lambda: _nodes(opts), 'estimators', argv))
 
 
