@@ -825,10 +825,15 @@ def _remove(path: str) -> None:
 def _clean_shm(before: set[str], err: IO[str] | None = None) -> list[str]:
     """Remove the Fast DDS files this run left in /dev/shm (created since ``before``, used by
     no live process: what a participant that was never released leaves, e.g. after the
-    teardown watchdog ended a Fast DDS deadlock), saying so; return those that remain."""
+    teardown watchdog ended a Fast DDS deadlock), saying so; return those that remain. The
+    lock-less port files Fast DDS keeps after clean exits go too, silently."""
     err = err or sys.stderr
     leaked = leaked_shm(before)
     for f in leaked:
+        _remove(f)
+    # Fast DDS's own lock-less port files (:func:`_lockless_port`), kept after clean exits:
+    # not a failure, but litter once no process uses them (large fleets leave them often).
+    for f in set(leaked_shm(before, lockless=True)) - set(leaked):
         _remove(f)
     remaining = [f for f in leaked if os.path.exists(f)]
     if len(remaining) < len(leaked):
