@@ -438,11 +438,14 @@ def checked_covariance(values: Array) -> Array:
     Raises:
         WireError: not 36 finite values, not symmetric or not positive semi-definite.
     """
-    if values.size != 36 or not np.all(np.isfinite(values)):
+    if values.size != 36 or not np.isfinite(values).all():
         raise WireError('non-finite or malformed covariance')
     P = values.reshape(6, 6)
-    scale = max(float(np.abs(P).max()), 1e-300)
-    if not np.allclose(P, P.T, rtol=1e-6, atol=1e-12 * scale):
+    magnitude = np.abs(P)
+    scale = max(float(magnitude.max()), 1e-300)
+    # np.allclose(P, P.T, rtol=1e-6, atol=1e-12 scale) written out: a neighbour's pose
+    # arrives 50 times a second, and allclose alone cost 18 µs of its 35.
+    if (np.abs(P - P.T) > 1e-12 * scale + 1e-6 * magnitude.T).any():
         raise WireError('covariance is not symmetric')
     if np.linalg.eigvalsh(0.5 * (P + P.T))[0] < -1e-9 * scale:
         raise WireError('covariance is not positive semi-definite')
