@@ -121,8 +121,8 @@ from bearing_pose_estimation.estimators.base import Sensor  # noqa: E402
 from bearing_pose_estimation.estimators.link_agent import (LinkAgentEstimator,  # noqa: E402
                                                            agent_for)
 from bearing_pose_estimation.estimators.two_round_agent import TwoRoundAgent  # noqa: E402
-from bearing_pose_estimation.ros.monitor_node import watched  # noqa: E402
 from bearing_pose_estimation.ros.estimator_group import parse_args as group_args  # noqa: E402
+from bearing_pose_estimation.ros.monitor_node import watched  # noqa: E402
 from bearing_pose_estimation.ros.node_main import run_node  # noqa: E402
 from bearing_pose_estimation.ros.wiring import link_subscriptions, optional_first  # noqa: E402
 from bearing_pose_estimation.scenario import (Scenario, check_scenario,  # noqa: E402
@@ -660,7 +660,8 @@ def _children() -> dict[str, int]:
         if not fields or int(fields[1]) != me:
             continue
         try:
-            args = (proc / 'cmdline').read_bytes().decode(errors='replace').rstrip('\0').split('\0')
+            raw = (proc / 'cmdline').read_bytes().decode(errors='replace')
+            args = raw.rstrip('\0').split('\0')
         except OSError:
             continue
         name = Path(args[1]).name if len(args) > 1 else '?'
