@@ -56,6 +56,18 @@ class Observer:
         return condition()
 
 
+def assert_no_shm_left(group: launch.ProcessGroup, before: set[str]) -> None:
+    """Nothing the group's processes created is left in /dev/shm (call it once the test's own
+    participants are gone). A node that the teardown watchdog ended (the Fast DDS deadlock,
+    eProsima/Fast-DDS#6502, about one process in 200) leaves its participant's files: its
+    group removed those no process used, but a test's observer still used some (the ports it
+    sent to), so they are orphans only now; remove them as ``bearing-pose run`` would, where
+    every participant is a child that is gone by then."""
+    if group.hung_teardowns():
+        launch.clean_shm(before)
+    assert launch.leaked_shm(before) == [], 'Fast DDS files left in /dev/shm'
+
+
 @contextmanager
 def observer(name: str = 'test_observer') -> Iterator[Observer]:
     context = Context()

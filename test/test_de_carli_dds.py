@@ -25,7 +25,7 @@ from bearing_pose_estimation.scenario.parse import read_scenario_data
 from bearing_pose_estimation.sim.batch import BatchSimulator
 from bearing_pose_estimation.studies.summary import read_metrics_csv
 
-from ros_helpers import PATIENT, observer, with_parameters
+from ros_helpers import PATIENT, assert_no_shm_left, observer, with_parameters
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'de_carli_8_quadrotors.yaml'
 DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
@@ -72,7 +72,7 @@ def run(tmp_path_factory):
         assert g.returncode('monitor') in launch.CLEAN_EXITS
         g.shutdown()
         assert g.unclean() == {}
-    assert launch.leaked_shm(shm) == []
+    assert_no_shm_left(g, shm)
     return scenario_file, cfg.out_dir, obs.messages
 
 

@@ -17,7 +17,7 @@ from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.scenario import load_scenario, parse_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
 
-from ros_helpers import error_at, observer, paired_errors
+from ros_helpers import assert_no_shm_left, error_at, observer, paired_errors
 
 DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
 FOUR = {
@@ -69,7 +69,7 @@ def _fleet(tmp_path, lockstep: bool = False, real_time_factor: float = 0.5,
         group.shutdown()
         bad = group.unclean()
         assert bad == {}, (bad, {n: launch.log_tail(specs[n].log, 30) for n in bad})
-    assert launch.leaked_shm(shm) == []
+    assert_no_shm_left(group, shm)
 
 
 @pytest.fixture()

@@ -24,7 +24,7 @@ from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
 from bearing_pose_estimation.studies.summary import read_metrics_csv
 
-from ros_helpers import PATIENT, observer, with_parameters
+from ros_helpers import PATIENT, assert_no_shm_left, observer, with_parameters
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from presenza_fleet import camera_rate_case1  # noqa: E402
@@ -85,7 +85,7 @@ def run(tmp_path_factory):
                                           for n in scenario.index), 30.0)
         g.shutdown()
         assert g.unclean() == {}
-    assert launch.leaked_shm(shm) == []
+    assert_no_shm_left(g, shm)
     logs = {n: (cfg.logs_dir / f'{n}.log').read_text() for n in scenario.index}
     return scenario_file, cfg.out_dir, obs.messages, logs
 

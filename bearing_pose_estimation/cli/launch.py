@@ -557,6 +557,12 @@ class ProcessGroup:
     def returncode(self, name: str) -> int | None:
         return self._children[name].proc.poll()
 
+    def hung_teardowns(self) -> list[str]:
+        """The children the teardown watchdog ended (TEARDOWN_HUNG): their participants'
+        files may stay in /dev/shm while another process still uses them (:func:`clean_shm`
+        removes them once none does)."""
+        return [name for name, c in self._children.items() if c.proc.poll() == TEARDOWN_HUNG]
+
     def unclean(self) -> dict[str, int | None]:
         """The children that did not end cleanly, with their codes (None: still running).
         Clean is exit code 0, or the teardown watchdog's end (TEARDOWN_HUNG): the work was
@@ -660,8 +666,8 @@ class ProcessGroup:
         """Say which children the teardown watchdog ended (once each), and remove the Fast
         DDS files their participants left: created since this group started, used by no live
         process."""
-        hung = [c for name, c in self._children.items()
-                if c.proc.poll() == TEARDOWN_HUNG and name not in self._hung_reported]
+        hung = [self._children[name] for name in self.hung_teardowns()
+                if name not in self._hung_reported]
         if not hung:
             return
         err = self._stderr or sys.stderr
@@ -669,7 +675,7 @@ class ProcessGroup:
             self._hung_reported.add(child.spec.name)
             print(f'note: {child.spec.label} {describe_exit(TEARDOWN_HUNG)}; counted as a clean '
                   f'stop. Its stacks are in {child.spec.log}', file=err)
-        _clean_shm(self._shm_before, err)
+        clean_shm(self._shm_before, err)
 
     def _stop(self, children: list[_Child], grace: float, term_grace: float) -> list[str]:
         err = self._stderr or sys.stderr
@@ -782,7 +788,7 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
             result.exit_codes = {s.name: group.returncode(s.name) for s in specs}
     finally:
         result.wall_s = time.perf_counter() - wall
-        left_in_shm = _clean_shm(shm_before)
+        left_in_shm = clean_shm(shm_before)
     result.files = _fresh_files(cfg.out_dir, started)
     if cfg.record and (cfg.bag_dir / 'metadata.yaml').exists():
         result.files.append(cfg.bag_dir)
@@ -822,7 +828,7 @@ def _remove(path: str) -> None:
         os.remove(path)
 
 
-def _clean_shm(before: set[str], err: IO[str] | None = None) -> list[str]:
+def clean_shm(before: set[str], err: IO[str] | None = None) -> list[str]:
     """Remove the Fast DDS files this run left in /dev/shm (created since ``before``, used by
     no live process: what a participant that was never released leaves, e.g. after the
     teardown watchdog ended a Fast DDS deadlock), saying so; return those that remain. The
