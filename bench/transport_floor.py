@@ -12,7 +12,8 @@ rates, but nothing else:
   ``ros.wiring.link_subscriptions`` for link methods, each neighbour's channel topics
   ``msg_defs.CHANNELS`` for the others, the sensor topics the method uses, a leader's
   ``known_pose`` remapped to ``ground_truth`` as the launcher does, and ``/clock`` as rclpy's
-  time source subscribes to it under ``use_sim_time``). Every subscription is raw
+  time source subscribes to it under ``use_sim_time``, once per process with ``--per-process``:
+  ``ros.estimator_group.share_clock``). Every subscription is raw
   (``raw=True``) with a callback that only counts. It publishes, on a wall-clock timer, the
   messages the node publishes at the instants the node publishes them: ``pose``, ``estimate``
   and the channels with a topic of their own on the publish grid (link methods: also when a
@@ -390,12 +391,19 @@ def monitor_plan(s: Scenario) -> ProcessPlan:
     return ProcessPlan('monitor', 'monitor', '/', 1.0, 1, pubs, tuple(subs))
 
 
-def fleet_plan(s: Scenario, omit: Collection[str] = ()) -> dict[str, ProcessPlan]:
+def fleet_plan(s: Scenario, omit: Collection[str] = (),
+               per_process: int = 1) -> dict[str, ProcessPlan]:
     """Every process of the floor, in the launcher's start order (agents, monitor,
     simulator); without the topics whose last name is in ``omit`` (``clock``, ``pose``:
-    what one kind of message costs is the difference)."""
+    what one kind of message costs is the difference). With ``per_process`` agents in a
+    process, only the first of them reads ``/clock`` (``estimator_group.share_clock``)."""
     world = World(s)
     plans = {a.name: agent_plan(s, a.name, world) for a in s.agents}
+    agents = list(plans)
+    for name in agents:
+        if agents.index(name) % max(1, per_process):
+            p = plans[name]
+            plans[name] = replace(p, subs=tuple(x for x in p.subs if x.topic != wire.CLOCK))
     plans['monitor'] = monitor_plan(s)
     plans['simulator'] = simulator_plan(s)
     kept = lambda topic: topic.rsplit('/', 1)[-1] not in omit  # noqa: E731
@@ -515,11 +523,12 @@ class FloorNode(Node):
             self.published += 1
 
 
-def process_main(role: str, scenario_file: str, aligned: bool, omit: Collection[str]) -> None:
+def process_main(role: str, scenario_file: str, aligned: bool, omit: Collection[str],
+                 per_process: int) -> None:
     """One process of the floor (``--role``: a plan's name, or agents' names joined by commas
     for agents that share a process, as an ``estimators`` process runs them)."""
     scenario = load_scenario(scenario_file)
-    plans = fleet_plan(scenario, omit)
+    plans = fleet_plan(scenario, omit, per_process)
     readers, writers = peers(plans)
     names = role.split(',')
     raise SystemExit(run_node(
@@ -576,7 +585,8 @@ def run_floor(scenario_file: Path, scenario: Scenario, plans: dict[str, ProcessP
     logs = work / 'logs'
     env = launch.dds_env(domain_id, logs / 'ros')
     me = [sys.executable, str(Path(__file__).resolve()), '--scenario', str(scenario_file),
-          '--phases', phases, *(['--omit', *omit] if omit else [])]
+          '--phases', phases, *(['--omit', *omit] if omit else []),
+          '--per-process', str(per_process)]
     agents = [a.name for a in scenario.agents]
     groups = process_groups(agents, [n for n in plans if n not in agents], per_process)
     specs = [launch.ProcessSpec(name, 'floor', tuple(me + ['--role', ','.join(members)]),
@@ -924,7 +934,8 @@ def main() -> None:
     ap.add_argument('--role', help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.role:
-        return process_main(args.role, args.scenario[0], args.phases == 'aligned', args.omit)
+        return process_main(args.role, args.scenario[0], args.phases == 'aligned', args.omit,
+                            args.per_process)
     start = time.strftime('%Y-%m-%d %H:%M')
     load = os.getloadavg()
     rows = []
@@ -938,7 +949,7 @@ def main() -> None:
     with _workdir(args.logs) as work:
         for spec in args.scenario:
             label, path, scenario = prepare(spec, args.method, work)
-            plans = fleet_plan(scenario, args.omit)
+            plans = fleet_plan(scenario, args.omit, args.per_process)
             describe(label, plans)
             floors, nodes = [], []
             for r in range(args.repeat):

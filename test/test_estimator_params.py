@@ -52,6 +52,32 @@ def test_explicit_parameters_build_the_estimator(context):
         node.destroy_node()
 
 
+def test_agents_sharing_a_process_read_the_clock_once(context):
+    """An `estimators` process under use_sim_time subscribes to /clock once: the first agent's
+    time source sets every agent's clock. An agent on wall time keeps its own clock."""
+    from rosgraph_msgs.msg import Clock
+
+    from bearing_pose_estimation.ros.estimator_group import share_clock
+
+    nodes = [EstimatorNode(namespace=f'/agent_{i}', context=context, parameter_overrides=[
+        Parameter(k, value=v) for k, v in {**EXPLICIT, 'agent_id': i,
+                                           'use_sim_time': i < 8}.items()])
+        for i in (5, 6, 7, 8)]
+    try:
+        clock_subs = lambda: [n.get_name() + n.get_namespace() for n in nodes  # noqa: E731
+                              for sub in n.subscriptions if sub.topic_name == '/clock']
+        assert len(clock_subs()) == 3      # rclpy's default: one per node on simulated time
+        share_clock(nodes)
+        assert clock_subs() == ['estimator/agent_5']
+        on_clock = next(sub for sub in nodes[0].subscriptions if sub.topic_name == '/clock')
+        on_clock.callback(Clock(clock=wire.to_stamp(12.5)))
+        assert [n.get_clock().now().nanoseconds for n in nodes[:3]] == [12_500_000_000] * 3
+        assert nodes[3].get_clock().now().nanoseconds > 10 ** 18   # wall time, untouched
+    finally:
+        for node in nodes:
+            node.destroy_node()
+
+
 @pytest.mark.parametrize('raw', [True, False])
 def test_a_neighbours_pose_gives_its_position_even_with_a_bad_covariance(context, raw):
     """A neighbour's `pose` carries p̂_j and P_j. A covariance that is no covariance is a

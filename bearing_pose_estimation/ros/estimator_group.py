@@ -9,13 +9,20 @@ interpreter and a DDS participant) is shared.
 
 ``DIR/<agent>.yaml`` is each agent's parameter file (what ``bearing-pose run`` writes);
 ``--leader A`` (repeatable) remaps agent A's ``known_pose`` to ``ground_truth`` (simulation).
+
+With ``use_sim_time``, the process reads ``/clock`` once: the first agent's time source drives
+every agent's clock (:func:`share_clock`). The first agent's ``use_sim_time`` then rules them
+all.
 """
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
+from rclpy.clock import ROSClock
+from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
 
 from .. import msg_defs as wire
@@ -51,7 +58,24 @@ def _nodes(opts: argparse.Namespace) -> list[EstimatorNode]:
         if ns:
             cli += ['-r', f'{wire.CLOCK}:={wire.fleet_topic(wire.CLOCK, ns)}']
         nodes.append(EstimatorNode(namespace=f'{ns}/{agent}', cli_args=cli))
+    share_clock(nodes)
     return nodes
+
+
+def share_clock(nodes: Sequence[Node]) -> None:
+    """One ``/clock`` subscription for nodes that share a process: under ``use_sim_time`` each
+    node's time source subscribes on its own, so every tick would reach the process once per
+    node (a message costs ~40-90 µs here, BENCHMARKS.md). The first node's time source drives
+    the clocks of the others that use simulated time; theirs let go of the topic. (rclpy 7.1.6
+    keeps a node's time source in ``Node._time_source``, the wheels' pinned version.)"""
+    lead = nodes[0]
+    if not lead.get_parameter('use_sim_time').value:
+        return
+    for node in nodes[1:]:
+        clock = node.get_clock()
+        if node.get_parameter('use_sim_time').value and isinstance(clock, ROSClock):
+            node._time_source.detach_node()
+            lead._time_source.attach_clock(clock)
 
 
 def main(args: list[str] | None = None) -> None:
