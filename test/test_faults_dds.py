@@ -36,9 +36,9 @@ TOPICS = {**{f'/agent_{k}/estimate': (wire.PoseStamped, wire.ESTIMATE_QOS) for k
 
 
 @contextmanager
-def _fleet(tmp_path, lockstep: bool = False, real_time_factor: float = 0.5,
+def _fleet(tmp_path, lockstep: bool = False, real_time_factor: float = 0.75,
            follower_params: dict | None = None):
-    """Start the four-agent fleet (no monitor). By default the simulator runs at half real time
+    """Start the four-agent fleet (no monitor). By default the simulator runs at 0.75x real time
     without lockstep, so a dead agent cannot stop the clock. ``follower_params`` are added to
     both followers' parameter files. Yields (group, observer, specs); on leaving, every process
     must exit 0 on SIGINT and nothing may be left in /dev/shm."""
