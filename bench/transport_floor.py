@@ -399,9 +399,8 @@ def fleet_plan(s: Scenario, omit: Collection[str] = (),
     process, only the first of them reads ``/clock`` (``estimator_group.share_clock``)."""
     world = World(s)
     plans = {a.name: agent_plan(s, a.name, world) for a in s.agents}
-    agents = list(plans)
-    for name in agents:
-        if agents.index(name) % max(1, per_process):
+    for k, name in enumerate([a.name for a in s.agents]):
+        if k % max(1, per_process):
             p = plans[name]
             plans[name] = replace(p, subs=tuple(x for x in p.subs if x.topic != wire.CLOCK))
     plans['monitor'] = monitor_plan(s)
@@ -538,13 +537,10 @@ def process_main(role: str, scenario_file: str, aligned: bool, omit: Collection[
 def process_groups(agents: Sequence[str], others: Iterable[str],
                    per_process: int) -> dict[str, list[str]]:
     """A run's processes: name -> what it runs. Consecutive agents share a process as
-    ``launch.plan_processes`` groups them (``estimators_<g>``); the ``others`` (monitor,
-    simulator) and, with ``per_process`` 1, each agent run alone."""
-    if per_process <= 1:
-        out = {name: [name] for name in agents}
-    else:
-        out = {f'estimators_{g}': list(agents[start:start + per_process])
-               for g, start in enumerate(range(0, len(agents), per_process))}
+    ``launch.plan_processes`` groups them (:func:`launch.estimator_groups`); the ``others``
+    (monitor, simulator) and, with ``per_process`` 1, each agent run alone."""
+    out = ({name: [name] for name in agents} if per_process <= 1
+           else launch.estimator_groups(agents, per_process))
     out.update({name: [name] for name in others})
     return out
 

@@ -16,7 +16,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Collection, Iterator, Mapping
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -260,6 +260,13 @@ def _fleet_ns(fleet: str) -> str:
     return f'/{fleet.strip("/")}' if fleet.strip('/') else ''
 
 
+def estimator_groups(agents: Sequence[str], agents_per_process: int) -> dict[str, list[str]]:
+    """The ``estimators`` processes of :func:`plan_processes` for ``agents_per_process`` > 1:
+    name (``estimators_<g>``) -> its consecutive agents."""
+    return {f'estimators_{g}': list(agents[start:start + agents_per_process])
+            for g, start in enumerate(range(0, len(agents), agents_per_process))}
+
+
 def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Path,
                    exe: Callable[[str], Path], agents_per_process: int = 1,
                    fleet: str = '') -> list[ProcessSpec]:
@@ -280,15 +287,13 @@ def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Pat
             argv += ['--params-file', str(params[agent])]
             specs.append(ProcessSpec(agent, 'estimator', tuple(argv), logs_dir / f'{agent}.log'))
     else:
-        for g, start in enumerate(range(0, len(agents), agents_per_process)):
-            group = agents[start:start + agents_per_process]
+        for name, group in estimator_groups(agents, agents_per_process).items():
             argv = [str(exe('estimators')), '--params-dir', str(params[group[0]].parent)]
             argv += ['--fleet-namespace', fleet.strip('/')] if ns else []
             for agent in group:
                 if agent in scenario.leaders:
                     argv += ['--leader', agent]
             argv += group
-            name = f'estimators_{g}'
             specs.append(ProcessSpec(name, 'estimators', tuple(argv), logs_dir / f'{name}.log'))
     for name in ('monitor', MARKERS, 'simulator'):
         if name not in params:   # fleet_markers: only with --rviz
@@ -834,12 +839,12 @@ def clean_shm(before: set[str], err: IO[str] | None = None) -> list[str]:
     teardown watchdog ended a Fast DDS deadlock), saying so; return those that remain. The
     lock-less port files Fast DDS keeps after clean exits go too, silently."""
     err = err or sys.stderr
-    leaked = leaked_shm(before)
-    for f in leaked:
-        _remove(f)
-    # Fast DDS's own lock-less port files (:func:`_lockless_port`), kept after clean exits:
-    # not a failure, but litter once no process uses them (large fleets leave them often).
-    for f in set(leaked_shm(before, lockless=True)) - set(leaked):
+    # One scan of /proc. Fast DDS's own lock-less port files (:func:`_lockless_port`), kept
+    # after clean exits, are not a failure, but litter once no process uses them (large fleets
+    # leave them often): removed without a word.
+    unused = leaked_shm(before, lockless=True)
+    leaked = [f for f in unused if not _lockless_port(f)]
+    for f in unused:
         _remove(f)
     remaining = [f for f in leaked if os.path.exists(f)]
     if len(remaining) < len(leaked):
