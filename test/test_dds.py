@@ -79,6 +79,13 @@ def _start(group: launch.ProcessGroup, scenario_file: Path, out: Path, duration:
         group.start(spec)
 
 
+ALL_POSE_MARKERS = {(ns, k) for ns in ('estimate', 'truth') for k in range(3)}
+
+
+def _pose_markers(array) -> set[tuple[str, int]]:
+    return {(x.ns, x.id) for x in array.markers if x.ns in ('estimate', 'truth')}
+
+
 def test_messages_on_the_wire(tmp_path, no_leftovers):
     """Types, frames and stamps as msg_defs documents them, and the time consistency of what a
     leader sends: R̂_1 b^1_13 must be the true world bearing at every stamp, although agent_1
@@ -110,8 +117,11 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
             # participant can lag: wait until every source has delivered a second of data.
             m = obs.messages
             est, imu = m['/agent_3/estimate'], m['/agent_3/imu']
+            # fleet_markers draws what it has: under load its first arrays may lack an agent
+            # it has not discovered yet (CI saw one without agent_1's estimate).
             return (len(imu) > 100 and len(m['/agent_1/world_bearings']) > 30
                     and all(len(m[t]) > 10 for t in topics)
+                    and _pose_markers(m[rviz.MARKERS][-1]) == ALL_POSE_MARKERS
                     and wire.from_stamp(est[-1].header.stamp)
                     >= wire.from_stamp(est[0].header.stamp) + 1.0)
         assert obs.spin_until(enough, timeout=120), {k: len(v) for k, v in obs.messages.items()}
@@ -156,8 +166,7 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
 
     # fleet_markers (--rviz): the three agents' estimated and true poses, in map.
     markers = m[rviz.MARKERS][-1].markers
-    assert {(x.ns, x.id) for x in markers if x.ns in ('estimate', 'truth')} == {
-        (ns, k) for ns in ('estimate', 'truth') for k in range(3)}
+    assert _pose_markers(m[rviz.MARKERS][-1]) == ALL_POSE_MARKERS
     assert {x.header.frame_id for x in markers} == {'map'}
 
     truth = m['/agent_1/ground_truth']
