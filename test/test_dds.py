@@ -6,6 +6,7 @@ this run's private ROS_DOMAIN_ID (see conftest.py), and stops them with SIGINT.
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -277,6 +278,9 @@ def test_several_agents_per_process_recorded_and_evaluated_with_evo(tmp_path, no
     assert sorted(p.name for p in (out / 'logs').glob('estimators_*.log')) == [
         'estimators_0.log', 'estimators_1.log']
     _assert_equals_netsim(out / 'metrics.csv', PAPER)
+    # ... although each process ran its agents' steps together (ros/step_batch.py).
+    for log in ('estimators_0.log', 'estimators_1.log'):
+        assert _agents_per_round(out / 'logs' / log) > 1.5
 
     scenario = load_scenario(PAPER)
     typestore = get_typestore(Stores.ROS2_JAZZY)
@@ -308,6 +312,15 @@ def test_several_agents_per_process_recorded_and_evaluated_with_evo(tmp_path, no
         np.testing.assert_allclose(ape.error[on_grid], rec.pos_err[:, k], rtol=1e-8)
 
 
+def _agents_per_round(log: Path) -> float:
+    """How many agents' steps an ``estimators`` process ran in one call, on average (its
+    last words, :meth:`ros.step_batch.StepBatch.summary`)."""
+    found = re.findall(r'steps run together: \d+ steps of \d+ agents in \d+ rounds '
+                       r'\(([\d.]+) agents per round\)', log.read_text())
+    assert found, f'{log}: no "steps run together" line'
+    return float(found[-1])
+
+
 def test_tran_method_over_dds_through_compare_distributed(tmp_path, no_leftovers):
     """`compare --distributed` with method tran_anderson_ahn (four agents per process, to keep
     it short): it derives the scenario file, the nodes run Tran, Anderson & Ahn's observer
@@ -326,6 +339,7 @@ def test_tran_method_over_dds_through_compare_distributed(tmp_path, no_leftovers
                                 'initial_position_std': 2.0, 'initial_attitude_std': 1.0}
     assert 'k_omega=2.5' in (method_dir / 'logs' / 'estimators_0.log').read_text()
     _assert_equals_netsim(method_dir / 'metrics.csv', method_dir / 'scenario.yaml')
+    assert _agents_per_round(method_dir / 'logs' / 'estimators_1.log') > 1.5
     dds = _read_metrics(method_dir / 'metrics.csv')
     assert dds[10.0][0] < 0.1 * dds[0.0][0]
     with (out / 'compare.csv').open() as fh:

@@ -175,6 +175,16 @@ class StepInfo:
     diagnostics: dict[str, Array] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class _Prepared:
+    """A follower's step up to its method's own: its start time, the neighbours left out for
+    being silent, and its inputs."""
+
+    t: float
+    stale: tuple[str, ...]
+    inputs: StepInputs
+
+
 def _vector_problem(v: Array, tolerance: float) -> str | None:
     """Why ``v`` is not a usable unit vector, or None."""
     if not np.all(np.isfinite(v)):
@@ -682,6 +692,13 @@ class AgentEstimator(TimedAgent):
         return t if self.exchange is not None else np.inf
 
     def _step(self) -> None:
+        prepared = self._begin_step()
+        if prepared is not None:
+            self._end_step(prepared, *self.estimator.step(self.x, self.h, prepared.inputs))
+
+    def _begin_step(self) -> _Prepared | None:
+        """A step up to the method's own (:func:`advance_together` runs that for several
+        agents at once): its inputs, or None for a leader, whose whole step this is."""
         t = self.t
         est = self.estimator
         if self.exchange is not None and self.k >= self._ready_k:
@@ -699,18 +716,22 @@ class AgentEstimator(TimedAgent):
             self._apply_known_pose(t)
             self.x = est.propagate(self.x, delta_R, displacement)
             self.last = StepInfo(t=t, odometry=displacement is not None)
-        else:
-            stale = self.stale_neighbours(t)
-            inputs = self.step_inputs(t, delta_R, stale, displacement)
-            x, diagnostics = est.step(self.x, self.h, inputs)
-            if x.is_finite():
-                self.x = x
-            else:  # cannot happen with validated inputs; never let it reach the estimate
-                self.non_finite_steps += 1
-                self.x = est.propagate(self.x, delta_R, displacement)
-            self.last = StepInfo(t=t, edges_used=len(inputs.edges), stale=tuple(stale),
-                                 odometry=displacement is not None,
-                                 diagnostics={k: v[0] for k, v in diagnostics.items()})
+            self.k += 1
+            return None
+        stale = self.stale_neighbours(t)
+        return _Prepared(t, tuple(stale), self.step_inputs(t, delta_R, stale, displacement))
+
+    def _end_step(self, prepared: _Prepared, x: State, diagnostics: dict[str, Array]) -> None:
+        """The step's end, from the new state ``x`` (one row) the method's step returned."""
+        inputs = prepared.inputs
+        if x.is_finite():
+            self.x = x
+        else:  # cannot happen with validated inputs; never let it reach the estimate
+            self.non_finite_steps += 1
+            self.x = self.estimator.propagate(self.x, inputs.delta_R, inputs.displacement)
+        self.last = StepInfo(t=prepared.t, edges_used=len(inputs.edges), stale=prepared.stale,
+                             odometry=inputs.displacement is not None,
+                             diagnostics={k: v[0] for k, v in diagnostics.items()})
         self.k += 1
 
     def _apply_known_pose(self, t: float) -> None:
@@ -770,6 +791,46 @@ class AgentEstimator(TimedAgent):
         matrix = self.estimator.conditioning(np.array(bearings),
                                              np.array([nb.k for nb in self.neighbours]))
         return None if matrix is None else np.linalg.eigvalsh(matrix).astype(np.float64)
+
+
+def advance_together(agents: Sequence[AgentEstimator]) -> list[AgentEstimator]:
+    """One step of every agent that has one ready (each as its own ``advance(1)``), the steps
+    of followers whose estimators are of one method with equal gains in one call of that
+    method's step: a step treats its agents' rows independently, so each agent gets what its
+    own step gives, and the call's cost (numpy's, per call) is paid once (BENCHMARKS.md,
+    "Agents sharing a process"). Returns the agents that stepped."""
+    stepped = [a for a in agents if a.steps_ready() > 0]
+    groups: list[list[tuple[AgentEstimator, _Prepared]]] = []
+    for a in stepped:
+        prepared = a._begin_step()
+        if prepared is None:
+            continue
+        for group in groups:
+            b, other = group[0]
+            if (type(b.estimator) is type(a.estimator) and b.estimator.gains == a.estimator.gains
+                    and b.h == a.h and _same_fields(other.inputs, prepared.inputs)):
+                group.append((a, prepared))
+                break
+        else:
+            groups.append([(a, prepared)])
+    for group in groups:
+        lead = group[0][0]
+        if len(group) == 1:
+            lead._end_step(group[0][1], *lead.estimator.step(lead.x, lead.h, group[0][1].inputs))
+            continue
+        x, diagnostics = lead.estimator.step(type(lead.x).stack([a.x for a, _ in group]), lead.h,
+                                             StepInputs.stack([p.inputs for _, p in group]))
+        for i, (a, prepared) in enumerate(group):
+            a._end_step(prepared, x.rows(slice(i, i + 1)),
+                        {k: v[i:i + 1] for k, v in diagnostics.items()})
+    return stepped
+
+
+def _same_fields(a: StepInputs, b: StepInputs) -> bool:
+    """Whether two steps' inputs give the same optional fields (they stack)."""
+    return ((a.displacement is None) == (b.displacement is None)
+            and (a.p_own is None) == (b.p_own is None) and (a.held is None) == (b.held is None)
+            and a.t == b.t and a.received.keys() == b.received.keys())
 
 
 def estimator_for(scenario: Scenario, name: str, limits: Limits = Limits(),

@@ -238,6 +238,12 @@ class State:
         return type(self)(**{f.name: np.array(getattr(self, f.name)[idx])
                              for f in dataclasses.fields(self)})
 
+    @classmethod
+    def stack(cls: type[S], parts: Sequence[S]) -> S:
+        """The states of several agents (one or more rows each) as one, in that order."""
+        return cls(**{f.name: np.concatenate([getattr(x, f.name) for x in parts])
+                      for f in dataclasses.fields(cls)})
+
     def set_rows(self, idx: Any, other: State) -> None:
         """Overwrite the rows ``idx`` with ``other`` (same type, one row per index)."""
         for f in dataclasses.fields(self):
@@ -357,6 +363,38 @@ class StepInputs:
     # samples slower than its steps, and their noise with them): the covariance's bearing
     # noise lasts that long. None: a fresh sample every step (the batch simulator).
     held: Array | None = None
+
+    @staticmethod
+    def stack(parts: Sequence[StepInputs]) -> StepInputs:
+        """The inputs of several agents' steps as one fleet step, agents and edges in that
+        order: :meth:`agent` undone. What a node builds (own bearings, received values,
+        displacement, ``p_own``, ``held``) only; every part has the same optional fields."""
+        first = parts[0]
+        if any(p.links is not None or p.anchor is not None or p.bearing_rates is not None
+               for p in parts):
+            raise ValueError('StepInputs.stack: links, anchor and bearing rates are not stacked')
+
+        def cat(name: str) -> Array | None:
+            values = [getattr(p, name) for p in parts]
+            if all(v is None for v in values):
+                return None
+            if any(v is None for v in values):
+                raise ValueError(f'StepInputs.stack: {name} is given for some parts only')
+            return np.concatenate(values)
+
+        sizes = [p.delta_R.shape[0] for p in parts]
+        offsets = np.cumsum([0] + sizes[:-1])
+        slots = [p.edges.slot for p in parts]
+        assert all(slot is not None for slot in slots)
+        edges = Edges(agent=np.concatenate([p.edges.agent + o for p, o in zip(parts, offsets)]),
+                      k=np.concatenate([p.edges.k for p in parts]), n_agents=sum(sizes),
+                      slot=np.concatenate(slots))   # type: ignore[arg-type]
+        return StepInputs(delta_R=np.concatenate([p.delta_R for p in parts]), edges=edges,
+                          bearings=np.concatenate([p.bearings for p in parts]),
+                          received={c: np.concatenate([p.received[c] for p in parts])
+                                    for c in first.received},
+                          displacement=cat('displacement'), p_own=cat('p_own'),
+                          t=first.t, held=cat('held'))
 
     def agent(self, i: int) -> StepInputs:
         """The inputs of agent ``i`` alone (``n_agents = 1``): what its node would pass."""

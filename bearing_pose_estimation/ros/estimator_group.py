@@ -12,7 +12,9 @@ interpreter and a DDS participant) is shared.
 
 With ``use_sim_time``, the process reads ``/clock`` once: the first agent's time source drives
 every agent's clock (:func:`share_clock`). The first agent's ``use_sim_time`` then rules them
-all.
+all. The leader-follower methods' steps of the agents run together, one call of the method's
+step for all those ready once the queued messages are handled (:mod:`.step_batch`;
+``--separate-steps``: each agent on its own, for comparisons).
 """
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+import rclpy.logging
 from rclpy.clock import ROSClock
 from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
@@ -28,6 +31,7 @@ from rclpy.utilities import remove_ros_args
 from .. import msg_defs as wire
 from .estimator_node import EstimatorNode
 from .node_main import run_node
+from .step_batch import StepBatch
 from ..core.errors import ScenarioError
 
 
@@ -40,11 +44,14 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         help='an agent whose known_pose is remapped to ground_truth')
     parser.add_argument('--fleet-namespace', default='', metavar='NS',
                         help='the fleet namespace: nodes in /NS/<agent>, the clock on /NS/clock')
+    parser.add_argument('--separate-steps', action='store_true',
+                        help='each agent steps on its own instead of in one call with the '
+                        "others' (for comparisons; the results are the same)")
     parser.add_argument('agents', nargs='+', help='the agents this process runs')
     return parser.parse_args(remove_ros_args(argv)[1:])
 
 
-def _nodes(opts: argparse.Namespace) -> list[EstimatorNode]:
+def _nodes(opts: argparse.Namespace, batch: StepBatch | None) -> list[EstimatorNode]:
     nodes = []
     for agent in opts.agents:
         params = opts.params_dir / f'{agent}.yaml'
@@ -57,7 +64,7 @@ def _nodes(opts: argparse.Namespace) -> list[EstimatorNode]:
         ns = wire.fleet_topic('', opts.fleet_namespace)   # '/team_a', or '' for none
         if ns:
             cli += ['-r', f'{wire.CLOCK}:={wire.fleet_topic(wire.CLOCK, ns)}']
-        nodes.append(EstimatorNode(namespace=f'{ns}/{agent}', cli_args=cli))
+        nodes.append(EstimatorNode(batch, namespace=f'{ns}/{agent}', cli_args=cli))
     share_clock(nodes)
     return nodes
 
@@ -81,7 +88,15 @@ def share_clock(nodes: Sequence[Node]) -> None:
 def main(args: list[str] | None = None) -> None:
     argv = sys.argv if args is None else args
     opts = parse_args(argv)
-    raise SystemExit(run_node(lambda: _nodes(opts), 'estimators', argv))
+    batch = None if opts.separate_steps or len(opts.agents) < 2 else StepBatch()
+    def report(_node: Node) -> None:
+        if batch is not None:
+            rclpy.logging.get_logger('estimators').info(
+                f'steps run together: {batch.summary()}')
+
+    raise SystemExit(run_node(lambda: _nodes(opts, batch), 'estimators', argv,
+                              on_interrupt=report,
+                              after_spin=None if batch is None else batch.settle))
 
 
 if __name__ == '__main__':

@@ -101,6 +101,7 @@ from ..estimators.two_round_agent import TwoRoundAgent
 from ..scenario.model import Scenario
 from ..scenario.parse import load_scenario
 from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
+from .step_batch import StepBatch
 from .wiring import link_subscriptions, listener_counts, optional_first
 
 # What takes each of msg_defs' decoders' place when the message comes as bytes.
@@ -156,8 +157,10 @@ def _refuse_other_gains(method: str, own: list[str], given: Collection[str], whe
 
 
 class EstimatorNode(Node):
-    def __init__(self, **node_kwargs) -> None:
-        """``node_kwargs`` go to rclpy's Node (``namespace``, ``context``,
+    def __init__(self, batch: StepBatch | None = None, **node_kwargs) -> None:
+        """``batch``: the steps of the agents that share this process, run together (the
+        ``estimators`` process, :mod:`.step_batch`). ``node_kwargs`` go to rclpy's Node
+        (``namespace``, ``context``,
         ``parameter_overrides``, ``cli_args``, ...): several agents can share one process."""
         super().__init__('estimator', **node_kwargs)
         p = partial(declare, self)
@@ -346,7 +349,18 @@ class EstimatorNode(Node):
                    **{self.wires[name].topic: pub for name, (pub, _) in self.pub_channels.items()}}
         self._readers_wanted = [(writers[topic], n) for topic, n in listeners.items()
                                 if topic in writers]
-        subscribe = partial(self.create_subscription, raw=self.raw)
+        # A leader-follower method's steps wait for the batch, which learns from the count of
+        # callbacks when the queued messages are handled.
+        self.batch = batch if isinstance(template, AgentEstimator) else None
+        if self.batch is not None:
+            self.batch.join(self)
+
+        def subscribe(msg_type: Any, topic: str, callback: Callable[[Any], None],
+                      qos: Any) -> Any:
+            if self.batch is not None:
+                callback = self.batch.counted(callback)
+            return self.create_subscription(msg_type, topic, callback, qos, raw=self.raw)
+
         subs = [subscribe(wire.Imu, wire.IMU, self.on_imu, qos_in)]
         if self.method.uses(Sensor.BEARINGS):
             subs.append(subscribe(wire.PointCloud2, wire.BEARINGS, self.on_bearings, qos_in))
@@ -740,6 +754,8 @@ class EstimatorNode(Node):
             self._release_delayed()
         if isinstance(self.est, TwoRoundAgent):
             return self._two_rounds()
+        if self.batch is not None:
+            return self.batch.request(self)   # run with the other agents' (StepBatch.settle)
         while self.est.steps_ready() > 0:
             if self._wall_first_step is None:
                 self._wall_first_step = time.monotonic()
@@ -755,13 +771,30 @@ class EstimatorNode(Node):
         the publish grid, the estimate and world bearings. False if no step ran."""
         est = self.est
         assert isinstance(est, AgentEstimator)
+        self.before_step()
+        if not est.advance(1, impatient=impatient):
+            return False
+        self.after_step()
+        return True
+
+    def before_step(self) -> None:
+        """What goes before a leader-follower method's step (:class:`.step_batch.StepBatch`
+        runs the step between the two)."""
+        est = self.est
+        assert isinstance(est, AgentEstimator)
         if self._deferred == est.k:
             # Its bearings never came: send no world bearings for this instant rather than
             # ones measured at another (listeners pair values of one instant).
             self.events['world_bearings_skipped'] += 1
             self._deferred = -1
-        if not est.advance(1, impatient=impatient):
-            return False
+
+    def after_step(self) -> None:
+        """What follows a leader-follower method's step: on the publish grid, the estimate
+        and world bearings."""
+        est = self.est
+        assert isinstance(est, AgentEstimator)
+        if self._wall_first_step is None:
+            self._wall_first_step = time.monotonic()
         self._stuck = None
         # On the absolute grid origin + n h (k restarts after a time jump or gap).
         if round((est.t - est.origin) / self.h) % self.publish_every == 0:
@@ -773,7 +806,6 @@ class EstimatorNode(Node):
             self._publish(world=not wait)
             if wait:
                 self._deferred = est.k
-        return True
 
     def _two_rounds(self, impatient: bool = False) -> None:
         """A two-round method: send the current step's reply once its first round is in,

@@ -195,7 +195,8 @@ N = TypeVar('N', bound=Node)
 
 def run_node(factory: Callable[[], N | list[N]], name: str,
              args: list[str] | None = None, until: Callable[[N], Future] | None = None,
-             on_interrupt: Callable[[N], None] | None = None) -> int:
+             on_interrupt: Callable[[N], None] | None = None,
+             after_spin: Callable[[Executor], None] | None = None) -> int:
     """Create the node (or nodes: one executor spins them all), spin it (until ``until(node)``
     completes, or until SIGINT/SIGTERM), and shut down cleanly. Returns the process exit code.
 
@@ -204,6 +205,8 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
         name: logger name for fatal configuration errors.
         until: a future whose completion ends the spin (e.g. "outputs written").
         on_interrupt: called when a signal stopped the spin (e.g. write partial outputs).
+        after_spin: called with the executor after each of its spins (e.g. to run work the
+            callbacks asked for once the queue is empty, :mod:`.step_batch`).
     """
     # SIGUSR1 dumps every thread's stack to stderr (the log): `bearing-pose run` sends it to a
     # node that did not stop on SIGINT, so a hang explains itself.
@@ -228,6 +231,8 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
         future = until(node) if until is not None else None
         while stop.signal is None and (future is None or not future.done()):
             executor.spin_once(timeout_sec=_POLL_S)
+            if after_spin is not None:
+                after_spin(executor)
         if stop.signal is not None:
             rclpy.logging.get_logger(name).info(
                 f'{signal.Signals(stop.signal).name}: shutting down')

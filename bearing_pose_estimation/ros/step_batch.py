@@ -1,0 +1,116 @@
+"""The steps of the agents that share an ``estimators`` process, run together.
+
+An agent's step costs ~130-490 µs here, nearly all of it numpy's overhead per call on 3x3 and
+6x6 blocks; eight agents' steps in one call cost little more than one
+(``bench/covariance_cost.py``, BENCHMARKS.md "Agents sharing a process"). So an agent whose
+step is ready does not run it at once: it asks this batch, and once the executor has handled
+every message already queued (the simulator sends each instant's samples to all agents in one
+burst), the batch runs the steps of every agent that asked in one call
+(:func:`.estimators.agent.advance_together`). Each agent gets exactly what its own step would
+give (``test_agent.py``), at most :data:`WAIT_S` later.
+
+The rclpy EventsExecutor of the pinned wheels has no guard conditions, and nothing tells
+whether its queue is empty: :meth:`StepBatch.settle` spins it without waiting until a spin
+runs no callback of the process's subscriptions (counted by :meth:`StepBatch.counted`).
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from rclpy.executors import Executor
+
+from ..estimators.agent import AgentEstimator, advance_together
+
+if TYPE_CHECKING:
+    from .estimator_node import EstimatorNode
+
+# Spins before the steps run even if messages keep coming (a process that never sees an
+# empty queue still steps), and the longest wait [s] for an agent due at the same instant
+# (one that never gets its inputs delays the others' steps this much, once).
+MAX_SPINS = 64
+WAIT_S = 0.002
+
+
+class StepBatch:
+    """Steps asked for by the nodes of one process, run together by :meth:`settle`."""
+
+    def __init__(self) -> None:
+        self.nodes: list[EstimatorNode] = []           # every node that runs its steps here
+        self.pending: dict[EstimatorNode, None] = {}   # in the order they asked
+        self.callbacks = 0   # subscription callbacks run so far
+        self.rounds = 0      # calls of advance_together: one step of each ready agent
+        self.steps = 0
+
+    def join(self, node: EstimatorNode) -> None:
+        """``node`` runs its steps here."""
+        self.nodes.append(node)
+
+    def summary(self) -> str:
+        """How many steps ran together, on average."""
+        return (f'{self.steps} steps of {len(self.nodes)} agents in {self.rounds} rounds '
+                f'({self.steps / max(self.rounds, 1):.1f} agents per round)')
+
+    def counted(self, callback: Callable[[Any], None]) -> Callable[[Any], None]:
+        """``callback``, counting its runs (what tells :meth:`settle` the queue is empty)."""
+        def run(msg: Any) -> None:
+            self.callbacks += 1
+            callback(msg)
+        return run
+
+    def request(self, node: EstimatorNode) -> None:
+        """``node`` may have a step ready: :meth:`settle` runs it."""
+        self.pending[node] = None
+
+    def settle(self, executor: Executor) -> None:
+        """After a spin: while steps are asked for, handle what is queued and wait (at most
+        :data:`WAIT_S`) for the agents due at the same instant, then run the steps."""
+        spins, started = 0, time.monotonic()
+        while self.pending:
+            seen = self.callbacks
+            executor.spin_once(timeout_sec=0.0)
+            spins += 1
+            if self.callbacks != seen and spins < MAX_SPINS:
+                continue
+            left = started + WAIT_S - time.monotonic()
+            if left > 0.0 and spins < MAX_SPINS and self._someone_due():
+                executor.spin_once(timeout_sec=left)
+                continue
+            self.flush()
+
+    def _someone_due(self) -> bool:
+        """Whether an agent of this process is at the instant of the earliest ready step
+        without its own step ready, and waits for something from outside the process: its
+        inputs are on their way (a simulator sends an instant's samples agent after agent).
+        One that waits for another agent of the process waits for this round's steps."""
+        ready: list[AgentEstimator] = []
+        waiting: list[AgentEstimator] = []
+        for node in self.nodes:
+            est = node.est
+            if isinstance(est, AgentEstimator):
+                (ready if est.steps_ready() > 0 else waiting).append(est)
+        if not ready or not waiting:
+            return False
+        t = min(est.t for est in ready)
+        local = {node.agent for node in self.nodes}
+        return any(abs(est.t - t) < 0.5 * est.h
+                   and not (est.own_inputs_ready() and est.awaited in local)
+                   for est in waiting)
+
+    def flush(self) -> None:
+        """Every step the asking agents have ready, one step of all of them at a time."""
+        nodes = list(self.pending)
+        self.pending.clear()
+        while True:
+            ready = [n for n in nodes if isinstance(n.est, AgentEstimator)
+                     and n.est.steps_ready() > 0]
+            if not ready:
+                return
+            for node in ready:
+                node.before_step()
+            stepped = advance_together([n.est for n in ready if isinstance(n.est, AgentEstimator)])
+            self.rounds += 1
+            self.steps += len(stepped)
+            for node in ready:
+                node.after_step()
