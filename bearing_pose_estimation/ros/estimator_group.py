@@ -89,6 +89,7 @@ def main(args: list[str] | None = None) -> None:
     argv = sys.argv if args is None else args
     opts = parse_args(argv)
     batch = None if opts.separate_steps or len(opts.agents) < 2 else StepBatch()
+
     def report(_node: Node) -> None:
         if batch is not None:
             rclpy.logging.get_logger('estimators').info(

@@ -7,7 +7,8 @@ step is ready does not run it at once: it asks this batch, and once the executor
 every message already queued (the simulator sends each instant's samples to all agents in one
 burst), the batch runs the steps of every agent that asked in one call
 (:func:`.estimators.agent.advance_together`). Each agent gets exactly what its own step would
-give (``test_agent.py``), at most :data:`WAIT_S` later.
+give (``test_agent.py``), after the messages queued before it and at most :data:`WAIT_S` of
+waiting for the others.
 
 The rclpy EventsExecutor of the pinned wheels has no guard conditions, and nothing tells
 whether its queue is empty: :meth:`StepBatch.settle` spins it without waiting until a spin
