@@ -3,7 +3,7 @@ the scenario's ``method`` (any registered one: ``bearing_pose_estimation.estimat
 
 A thin adapter: it decodes messages (``msg_defs``), feeds
 :class:`estimators.agent.AgentEstimator`, runs its fixed steps ``h = 1/frequency`` as soon as
-the gyro data covers them (checked on every gyro sample and on a timer at ``frequency``) and
+the inputs cover them (checked on every input that can complete a step: no timer) and
 publishes. Subscribes (relative names, remappable): ``imu`` (sensor_msgs/Imu), ``bearings``
 (sensor_msgs/PointCloud2), ``known_pose`` (leaders), ``odom`` (nav_msgs/Odometry, for methods
 that use odometry: the feed-forward of moving agents), and, for each neighbour j, the topics of
@@ -402,7 +402,8 @@ class EstimatorNode(Node):
                         partial(self._link, self.on_neighbour, nb.agent_id, names, nb.name),
                         qos_est))
         self._subs = subs
-        self.timer = self.create_timer(self.h, self.on_timer)
+        # No step timer: every input that can complete a step runs it (run_ready_steps); a
+        # timer at the step rate cost each agent ~100 wake-ups a second for nothing.
         # Health on the wall clock: a stopped or finished simulation still reports (and a
         # fast one gets its reports, as a monitor expects them: every period of real time).
         self.diag_timer = self.create_timer(diagnostics_period, self.publish_diagnostics,
@@ -415,8 +416,10 @@ class EstimatorNode(Node):
         self.ready_timer = self.create_timer(
             0.05, self.on_ready_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
         if self.links or self.fixed_exchange:   # a step waiting for a lost input goes on
+            # A twentieth of neighbour_wait (0.25 s), or of EXCHANGE_PATIENCE (10 s).
             self.patience_timer = self.create_timer(
-                0.05, self.on_patience, clock=Clock(clock_type=ClockType.STEADY_TIME))
+                0.05 if self.links else 0.5, self.on_patience,
+                clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         role = 'leader' if template.leader else f'{len(template.neighbours)} neighbours'
         faults = (f'; INJECTING drop {self.drop_rate:g}, delay {self.delay:g} s on neighbour '
@@ -606,10 +609,9 @@ class EstimatorNode(Node):
             self._published_k = -1
         elif cause is not None:
             return self._reject(cause, f'imu sample at {t:.6f}')
-        # Steps run as soon as the gyro covers them. Waiting for the timer alone can deadlock
-        # a lockstep simulation: a clock tick handled before the IMU sample of the same
-        # instant fires the timer too early, and the clock then waits for this agent.
-        self.on_timer()
+        # Steps run as soon as the gyro covers them (a timer on the clock would fire before
+        # the sample of its instant, and a lockstep clock would then wait for this agent).
+        self.run_ready_steps()
 
     def on_relative_positions(self, msg: wire.PointCloud2) -> None:
         decoded = self._decoded(msg, wire.decode_vectors, self.bearings_frame,
@@ -620,7 +622,7 @@ class EstimatorNode(Node):
         t, ids, vectors = decoded
         for cause, n in Counter(est.add_relative_positions(t, ids, vectors)).items():
             self._reject(cause, f'{n} relative position(s) at {t:.6f}', n)
-        self.on_timer()
+        self.run_ready_steps()
 
     def on_bearing_rates(self, msg: wire.PointCloud2) -> None:
         decoded = self._decoded(msg, wire.decode_vectors, self.bearings_frame, 'bearing_rates')
@@ -629,7 +631,7 @@ class EstimatorNode(Node):
         t, ids, vectors = decoded
         for cause, n in Counter(self.est.add_bearing_rates(t, ids, vectors)).items():
             self._reject(cause, f'{n} bearing rate(s) at {t:.6f}', n)
-        self.on_timer()
+        self.run_ready_steps()
 
     def on_neighbour_odometry(self, agent_id: int, name: str, msg: wire.Odometry) -> None:
         est = self.est
@@ -644,7 +646,7 @@ class EstimatorNode(Node):
             self.events[f'{cause}_{name}'] += 1
         elif cause is not None:
             return self._reject(cause, f'odom of agent {agent_id} at {t:.6f}')
-        self.on_timer()
+        self.run_ready_steps()
 
     def on_bearings(self, msg: wire.PointCloud2) -> None:
         decoded = self._decoded(msg, wire.decode_vectors, self.bearings_frame, 'bearings')
@@ -654,7 +656,7 @@ class EstimatorNode(Node):
         if isinstance(self.est, TwoRoundAgent):
             for cause, n in Counter(self.est.add_bearings(t, ids, vectors)).items():
                 self._reject(cause, f'{n} bearing(s) at {t:.6f}', n)
-            return self.on_timer()
+            return self.run_ready_steps()
         if not isinstance(self.est, AgentEstimator):
             return
         for cause, n in Counter(self.est.add_bearings(t, ids, vectors)).items():
@@ -664,7 +666,7 @@ class EstimatorNode(Node):
         elif self._deferred == self.est.k and self.est.bearings_at(self.est.t):
             self._publish(world=True)
         if self.est.exchange is not None:
-            self.on_timer()   # a step may wait for these bearings
+            self.run_ready_steps()   # a step may wait for these bearings
 
     def on_odometry(self, msg: wire.Odometry) -> None:
         try:
@@ -678,7 +680,7 @@ class EstimatorNode(Node):
             self.events[cause] += 1
         elif cause is not None:
             return self._reject(cause, f'odom sample at {t:.6f}')
-        self.on_timer()  # steps wait for live odometry as for the gyro
+        self.run_ready_steps()  # steps wait for live odometry as for the gyro
 
     def on_known_pose(self, msg: wire.PoseStamped) -> None:
         decoded = self._decoded(msg, wire.decode_pose, self.world_frame, 'known_pose')
@@ -688,7 +690,7 @@ class EstimatorNode(Node):
             if cause is not None:
                 self._reject(cause, 'known_pose')
             elif self.est.exchange is not None:
-                self.on_timer()   # a step may wait for this pose
+                self.run_ready_steps()   # a step may wait for this pose
 
     def _link(self, handler: Callable[..., None], *args: object) -> None:
         """A neighbour message through the (optional) injected loss and delay."""
@@ -737,7 +739,7 @@ class EstimatorNode(Node):
         if cause not in (None, 'not_seen'):  # not_seen: j has no bearing to us yet
             self._reject(cause, f'{what} at {t:.6f}')
         elif self.links or getattr(self.est, 'exchange', None) is not None:
-            self.on_timer()   # the waiting step may have what it needs now
+            self.run_ready_steps()   # the waiting step may have what it needs now
 
     # --------------------------------------------------------------------------- stepping
     def on_ready_check(self) -> None:
@@ -747,7 +749,9 @@ class EstimatorNode(Node):
                 and all(pub.get_subscription_count() >= n for pub, n in self._readers_wanted)):
             self._publish(world=True, force=True)
 
-    def on_timer(self) -> None:
+    def run_ready_steps(self) -> None:
+        """Every step the inputs allow now (called by each input that can complete one),
+        with what each step publishes; in an ``estimators`` process, the batch's call."""
         if self.est is None:
             return
         if self._delayed:
@@ -859,12 +863,12 @@ class EstimatorNode(Node):
             elif isinstance(est, AgentEstimator):
                 if self._step_and_publish(impatient=True):
                     self.events['impatient_steps'] += 1
-                self.on_timer()
+                self.run_ready_steps()
             elif est.advance(1, impatient=True):
                 self.events['impatient_steps'] += 1
                 self._stuck = None
                 self._publish_links()
-                self.on_timer()
+                self.run_ready_steps()
 
     def _publish_links(self) -> None:
         """After a step of a link method: its channels when a neighbour's next step reads
