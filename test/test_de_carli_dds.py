@@ -160,3 +160,23 @@ def test_diagnostics_report_each_pair_s_excitation(run):
         assert (total >= 0.05) == excited, (robot, value)
         assert 0.0 < float(status['z_modulus']) <= 1.0
         assert status['stage'] in ('relative_yaw', 'yaw', 'position', 'converged')
+
+
+def test_robots_sharing_a_process_step_together_to_the_same_records(run, tmp_path):
+    """`--agents-per-process 4`: each `estimators` process runs its robots' steps in one call
+    of the method's step (ros/step_batch.py), and every record equals the one-process-per-robot
+    fleet's (the fixed exchange makes both independent of when messages arrive)."""
+    from bearing_pose_estimation.cli.main import main
+
+    scenario_file, out, _ = run
+    shared = tmp_path / 'shared'
+    assert main(['run', str(scenario_file), '--duration', str(DURATION), '--out', str(shared),
+                 '--agents-per-process', '4', '--domain-id', str(DOMAIN), '--no-plots']) == 0
+    alone, together = (read_metrics_csv(d / 'metrics.csv') for d in (out, shared))
+    np.testing.assert_array_equal(together.t, alone.t)
+    np.testing.assert_allclose(together.pos_err, alone.pos_err, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(together.att_err, alone.att_err, rtol=1e-9, atol=1e-15)
+    for log in ('estimators_0.log', 'estimators_1.log'):
+        text = (shared / 'logs' / log).read_text()
+        per_round = float(text.split(' agents per round)')[0].rsplit('(', 1)[1])
+        assert per_round > 1.5, (log, text[-300:])

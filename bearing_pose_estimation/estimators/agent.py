@@ -37,7 +37,7 @@ from __future__ import annotations
 from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -335,7 +335,21 @@ class TimedAgent:
             end = min(end, self.odometry.end)
         return max(0, int(np.floor((end - self.t) / self.h + 1e-9)))
 
+    def own_inputs_ready(self) -> bool:
+        """Own gyro (and live odometry) cover the next step: only what comes from others
+        (an :class:`Exchange`'s inputs, neighbours' values) may be missing."""
+        return TimedAgent.steps_ready(self) > 0
+
     def _step(self) -> None:
+        raise NotImplementedError
+
+    def _begin_step(self) -> _Prepared | None:
+        """A step up to the method's own: its inputs, or None when this was the whole step
+        (:func:`advance_together` runs the methods' steps of several agents at once)."""
+        raise NotImplementedError
+
+    def _end_step(self, prepared: _Prepared, x: State, diagnostics: dict[str, Array]) -> None:
+        """The step's end, from the new state ``x`` (one row) the method's step returned."""
         raise NotImplementedError
 
     def advance(self, max_steps: int | None = None) -> int:
@@ -504,11 +518,6 @@ class AgentEstimator(TimedAgent):
                 nb.clear()
 
     # ------------------------------------------------------------------------------ stepping
-    def own_inputs_ready(self) -> bool:
-        """Own gyro (and live odometry) cover the next step: only what :class:`Exchange`
-        waits for may be missing."""
-        return super().steps_ready() > 0
-
     def steps_ready(self) -> int:
         """How many steps the gyro data (and live odometry) allows now; with an
         :class:`Exchange`, only those whose awaited inputs are in (or waited out: the own
@@ -793,14 +802,18 @@ class AgentEstimator(TimedAgent):
         return None if matrix is None else np.linalg.eigvalsh(matrix).astype(np.float64)
 
 
-def advance_together(agents: Sequence[AgentEstimator]) -> list[AgentEstimator]:
+T = TypeVar('T', bound=TimedAgent)
+
+
+def advance_together(agents: Sequence[T]) -> list[T]:
     """One step of every agent that has one ready (each as its own ``advance(1)``), the steps
-    of followers whose estimators are of one method with equal gains in one call of that
+    of those whose estimators are of one method with equal gains in one call of that
     method's step: a step treats its agents' rows independently, so each agent gets what its
     own step gives, and the call's cost (numpy's, per call) is paid once (BENCHMARKS.md,
-    "Agents sharing a process"). Returns the agents that stepped."""
+    "Steps run together"). For :class:`AgentEstimator` and the one-round
+    :class:`.link_agent.LinkAgentEstimator`. Returns the agents that stepped."""
     stepped = [a for a in agents if a.steps_ready() > 0]
-    groups: list[list[tuple[AgentEstimator, _Prepared]]] = []
+    groups: list[list[tuple[T, _Prepared]]] = []
     for a in stepped:
         prepared = a._begin_step()
         if prepared is None:

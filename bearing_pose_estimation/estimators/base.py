@@ -293,6 +293,20 @@ class LinkInputs:
         return (self.senses & here(self.measured), self.sensed_by & here(self.their_measured),
                 here(self.present), here(self.fresh))
 
+    @staticmethod
+    def stack(parts: Sequence[LinkInputs]) -> LinkInputs:
+        """Several agents' link inputs as one, edges in that order (:meth:`rows` undone)."""
+        def cat(name: str) -> Any:
+            values = [getattr(p, name) for p in parts]
+            if all(v is None for v in values):
+                return None
+            if any(v is None for v in values):   # a flag known for some only: the others
+                values = [np.ones(len(p.senses), dtype=bool) if v is None else v
+                          for p, v in zip(parts, values)]   # have it all (None: all here)
+            return np.concatenate(values)
+
+        return LinkInputs(**{f.name: cat(f.name) for f in dataclasses.fields(LinkInputs)})
+
     def rows(self, sel: Index) -> LinkInputs:
         def pick(v: NDArray[np.bool_] | None) -> NDArray[np.bool_] | None:
             return None if v is None else v[sel]
@@ -368,11 +382,14 @@ class StepInputs:
     def stack(parts: Sequence[StepInputs]) -> StepInputs:
         """The inputs of several agents' steps as one fleet step, agents and edges in that
         order: :meth:`agent` undone. What a node builds (own bearings, received values,
-        displacement, ``p_own``, ``held``) only; every part has the same optional fields."""
+        displacement, ``p_own``, ``held``, a link method's :class:`LinkInputs`) only; every
+        part has the same optional fields."""
         first = parts[0]
-        if any(p.links is not None or p.anchor is not None or p.bearing_rates is not None
-               for p in parts):
-            raise ValueError('StepInputs.stack: links, anchor and bearing rates are not stacked')
+        if any(p.anchor is not None or p.bearing_rates is not None for p in parts):
+            raise ValueError('StepInputs.stack: an anchor and bearing rates are not stacked')
+        links = [p.links for p in parts]
+        if any(v is None for v in links) and any(v is not None for v in links):
+            raise ValueError('StepInputs.stack: links are given for some parts only')
 
         def cat(name: str) -> Array | None:
             values = [getattr(p, name) for p in parts]
@@ -394,7 +411,9 @@ class StepInputs:
                           received={c: np.concatenate([p.received[c] for p in parts])
                                     for c in first.received},
                           displacement=cat('displacement'), p_own=cat('p_own'),
-                          t=first.t, held=cat('held'))
+                          t=first.t, held=cat('held'),
+                          links=None if first.links is None else LinkInputs.stack(
+                              [p.links for p in parts if p.links is not None]))
 
     def agent(self, i: int) -> StepInputs:
         """The inputs of agent ``i`` alone (``n_agents = 1``): what its node would pass."""

@@ -74,7 +74,7 @@ relation to the world no stage determines.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, ClassVar, Literal
 
 import numpy as np
@@ -189,6 +189,13 @@ class DeCarliState(State):
     @property
     def slots(self) -> int:
         return int(self.P_out.shape[1])
+
+    @classmethod
+    def stack(cls, parts: Sequence[DeCarliState]) -> DeCarliState:
+        """Several robots' states as one, each grown to the most link slots among them
+        (a robot's extra slots stay zero: no edge of its own reaches them)."""
+        slots = max(x.slots for x in parts)
+        return super().stack([x.grown(slots) for x in parts])
 
     def grown(self, slots: int) -> DeCarliState:
         """This state with at least ``slots`` link slots (new ones zero, not initialised)."""

@@ -42,9 +42,9 @@ from numpy.typing import NDArray
 
 from ..core.errors import ScenarioError
 from ..core.odometry import OdometryBuffer
-from .agent import AgentEstimator, Limits, StepInfo, TimedAgent, estimator_for
+from .agent import AgentEstimator, Limits, StepInfo, TimedAgent, _Prepared, estimator_for
 from .agent import _vector_problem as _unit_problem
-from .base import Channel, Edges, Estimator, LinkInputs, StepInputs, owns_pair
+from .base import Channel, Edges, Estimator, LinkInputs, State, StepInputs, owns_pair
 
 if TYPE_CHECKING:
     from ..scenario.model import Scenario
@@ -455,10 +455,6 @@ class LinkAgentEstimator(TimedAgent):
         self.waits[awaited] += 1
         self.awaited = awaited
 
-    def own_inputs_ready(self) -> bool:
-        """Own gyro (and live odometry) cover the next step: only neighbours may be missing."""
-        return super().steps_ready() > 0
-
     def _carried(self, link: Link, wanted: list[str], t: float) -> dict[str, Array] | None:
         """j's channels ``wanted`` at ``t`` from its newest instant ``t_s < t`` that has them
         all, no older than ``neighbour_timeout``, carried over ``[t_s, t]`` by the method
@@ -510,17 +506,24 @@ class LinkAgentEstimator(TimedAgent):
         return ran
 
     def _step(self) -> None:
+        prepared = self._begin_step()
+        self._end_step(prepared, *self.estimator.step(self.x, self.h, prepared.inputs))
+
+    def _begin_step(self) -> _Prepared:
+        """The step's inputs, gathered by :meth:`steps_ready` (:func:`.agent.advance_together`
+        runs the method's step for several robots at once)."""
         inputs = self._pending
         assert inputs is not None
-        est = self.estimator
-        x, diagnostics = est.step(self.x, self.h, inputs)
+        return _Prepared(self.t, tuple(self.stale_neighbours(self.t)), inputs)
+
+    def _end_step(self, prepared: _Prepared, x: State, diagnostics: dict[str, Array]) -> None:
+        inputs = prepared.inputs
         if x.is_finite():
             self.x = x
         else:  # cannot happen with validated inputs; never let it reach the estimate
             self.non_finite_steps += 1
-            self.x = est.propagate(self.x, inputs.delta_R, inputs.displacement)
-        self.last = StepInfo(t=self.t, edges_used=len(self.links),
-                             stale=tuple(self.stale_neighbours(self.t)),
+            self.x = self.estimator.propagate(self.x, inputs.delta_R, inputs.displacement)
+        self.last = StepInfo(t=prepared.t, edges_used=len(self.links), stale=prepared.stale,
                              odometry=inputs.displacement is not None,
                              diagnostics={k: v[0] for k, v in diagnostics.items()})
         self._pending = None

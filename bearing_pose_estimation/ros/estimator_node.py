@@ -349,9 +349,10 @@ class EstimatorNode(Node):
                    **{self.wires[name].topic: pub for name, (pub, _) in self.pub_channels.items()}}
         self._readers_wanted = [(writers[topic], n) for topic, n in listeners.items()
                                 if topic in writers]
-        # A leader-follower method's steps wait for the batch, which learns from the count of
-        # callbacks when the queued messages are handled.
-        self.batch = batch if isinstance(template, AgentEstimator) else None
+        # The steps wait for the batch (not a two-round method's: its rounds interleave with
+        # the messages), which learns from the count of callbacks when the queued messages
+        # are handled.
+        self.batch = None if isinstance(template, TwoRoundAgent) else batch
         if self.batch is not None:
             self.batch.join(self)
 
@@ -782,24 +783,24 @@ class EstimatorNode(Node):
         return True
 
     def before_step(self) -> None:
-        """What goes before a leader-follower method's step (:class:`.step_batch.StepBatch`
-        runs the step between the two)."""
+        """What goes before a step (:class:`.step_batch.StepBatch` runs the step between
+        the two)."""
         est = self.est
-        assert isinstance(est, AgentEstimator)
-        if self._deferred == est.k:
+        if isinstance(est, AgentEstimator) and self._deferred == est.k:
             # Its bearings never came: send no world bearings for this instant rather than
             # ones measured at another (listeners pair values of one instant).
             self.events['world_bearings_skipped'] += 1
             self._deferred = -1
 
     def after_step(self) -> None:
-        """What follows a leader-follower method's step: on the publish grid, the estimate
-        and world bearings."""
+        """What follows a step: a link method's channels when due; a leader-follower
+        method's estimate and world bearings on the publish grid."""
         est = self.est
-        assert isinstance(est, AgentEstimator)
         if self._wall_first_step is None:
             self._wall_first_step = time.monotonic()
         self._stuck = None
+        if not isinstance(est, AgentEstimator):
+            return self._publish_links()
         # On the absolute grid origin + n h (k restarts after a time jump or gap).
         if round((est.t - est.origin) / self.h) % self.publish_every == 0:
             # Moving: what listeners pair with their own past must be measured at the stamp;

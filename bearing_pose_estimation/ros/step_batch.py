@@ -1,8 +1,9 @@
 """The steps of the agents that share an ``estimators`` process, run together.
 
-An agent's step costs ~130-490 µs here, nearly all of it numpy's overhead per call on 3x3 and
-6x6 blocks; eight agents' steps in one call cost little more than one
-(``bench/covariance_cost.py``, BENCHMARKS.md "Agents sharing a process"). So an agent whose
+An agent's step costs ~130-500 µs here, nearly all of it numpy's overhead per call on small
+blocks; eight agents' steps in one call cost little more than one (``bench/covariance_cost.py``,
+``bench/de_carli_cost.py``, BENCHMARKS.md "Steps run together"). Every method but the
+two-round ones (Presenza et al.: their rounds interleave with the messages) steps this way. So an agent whose
 step is ready does not run it at once: it asks this batch, and once the executor has handled
 every message already queued (the simulator sends each instant's samples to all agents in one
 burst), the batch runs the steps of every agent that asked in one call
@@ -22,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 from rclpy.executors import Executor
 
-from ..estimators.agent import AgentEstimator, advance_together
+from ..estimators.agent import AgentEstimator, TimedAgent, advance_together
 
 if TYPE_CHECKING:
     from .estimator_node import EstimatorNode
@@ -85,18 +86,20 @@ class StepBatch:
         without its own step ready, and waits for something from outside the process: its
         inputs are on their way (a simulator sends an instant's samples agent after agent).
         One that waits for another agent of the process waits for this round's steps."""
-        ready: list[AgentEstimator] = []
-        waiting: list[AgentEstimator] = []
+        ready: list[TimedAgent] = []
+        waiting: list[TimedAgent] = []
         for node in self.nodes:
-            est = node.est
-            if isinstance(est, AgentEstimator):
-                (ready if est.steps_ready() > 0 else waiting).append(est)
+            if node.est is not None:
+                (ready if node.est.steps_ready() > 0 else waiting).append(node.est)
         if not ready or not waiting:
             return False
         t = min(est.t for est in ready)
-        local = {node.agent for node in self.nodes}
+        # What a link method's step awaits is a channel, not who sends it: only its own
+        # sensors count.
+        outside = {est for est in waiting if isinstance(est, AgentEstimator)
+                   and est.awaited not in {node.agent for node in self.nodes}}
         return any(abs(est.t - t) < 0.5 * est.h
-                   and not (est.own_inputs_ready() and est.awaited in local)
+                   and (not est.own_inputs_ready() or est in outside)
                    for est in waiting)
 
     def flush(self) -> None:
@@ -104,13 +107,12 @@ class StepBatch:
         nodes = list(self.pending)
         self.pending.clear()
         while True:
-            ready = [n for n in nodes if isinstance(n.est, AgentEstimator)
-                     and n.est.steps_ready() > 0]
+            ready = [n for n in nodes if n.est is not None and n.est.steps_ready() > 0]
             if not ready:
                 return
             for node in ready:
                 node.before_step()
-            stepped = advance_together([n.est for n in ready if isinstance(n.est, AgentEstimator)])
+            stepped = advance_together([n.est for n in ready if n.est is not None])
             self.rounds += 1
             self.steps += len(stepped)
             for node in ready:

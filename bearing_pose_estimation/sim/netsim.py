@@ -592,7 +592,9 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
     ``batched``: the agents' steps of one instant in one call of the method's step
     (:func:`.agent.advance_together`, as an ``estimators`` process runs them): the same
     results bit for bit (``test_agent.py``), 20-30 % faster; False: each agent's own
-    ``advance``."""
+    ``advance``. Link methods step in turns either way: a robot may read the newest covariance
+    (an optional channel) a neighbour sent earlier in the same turn, and the garbage that
+    replaces messages is drawn in the order they are delivered."""
     net = _Network(scenario, links, outages, garbage, limits, batched)
     dt = net.world.dt
     per_record = int(round(record_every / dt))
