@@ -1,15 +1,15 @@
 """The steps of the agents that share an ``estimators`` process, run together.
 
 An agent's step costs ~130-500 µs here, nearly all of it numpy's overhead per call on small
-blocks; eight agents' steps in one call cost little more than one (``bench/covariance_cost.py``,
-``bench/de_carli_cost.py``, BENCHMARKS.md "Steps run together"). Every method but the
-two-round ones (Presenza et al.: their rounds interleave with the messages) steps this way. So an agent whose
-step is ready does not run it at once: it asks this batch, and once the executor has handled
-every message already queued (the simulator sends each instant's samples to all agents in one
-burst), the batch runs the steps of every agent that asked in one call
-(:func:`.estimators.agent.advance_together`). Each agent gets exactly what its own step would
-give (``test_agent.py``), after the messages queued before it and at most :data:`WAIT_S` of
-waiting for the others.
+blocks; eight agents' steps in one call cost little more than one
+(``bench/covariance_cost.py``, ``bench/de_carli_cost.py``, BENCHMARKS.md "Steps run
+together"). So an agent whose step is ready does not run it at once: it asks this batch, and
+once the executor has handled every message already queued (the simulator sends each
+instant's samples to all agents in one burst), the batch runs the steps of every agent that
+asked in one call (:func:`.estimators.agent.advance_together`). Each agent gets exactly what
+its own step would give (``test_agent.py``), after the messages queued before it and at most
+:data:`WAIT_S` of waiting for the others. Every method but the two-round ones (Presenza et
+al.: their rounds interleave with the messages) steps this way.
 
 The rclpy EventsExecutor of the pinned wheels has no guard conditions, and nothing tells
 whether its queue is empty: :meth:`StepBatch.settle` spins it without waiting until a spin
