@@ -341,7 +341,9 @@ class TimedAgent:
         return TimedAgent.steps_ready(self) > 0
 
     def _step(self) -> None:
-        raise NotImplementedError
+        prepared = self._begin_step()
+        if prepared is not None:
+            self._end_step(prepared, *self.estimator.step(self.x, self.h, prepared.inputs))
 
     def _begin_step(self) -> _Prepared | None:
         """A step up to the method's own: its inputs, or None when this was the whole step
@@ -350,7 +352,16 @@ class TimedAgent:
 
     def _end_step(self, prepared: _Prepared, x: State, diagnostics: dict[str, Array]) -> None:
         """The step's end, from the new state ``x`` (one row) the method's step returned."""
-        raise NotImplementedError
+        inputs = prepared.inputs
+        if x.is_finite():
+            self.x = x
+        else:  # cannot happen with validated inputs; never let it reach the estimate
+            self.non_finite_steps += 1
+            self.x = self.estimator.propagate(self.x, inputs.delta_R, inputs.displacement)
+        self.last = StepInfo(t=prepared.t, edges_used=len(inputs.edges), stale=prepared.stale,
+                             odometry=inputs.displacement is not None,
+                             diagnostics={k: v[0] for k, v in diagnostics.items()})
+        self.k += 1
 
     def advance(self, max_steps: int | None = None) -> int:
         """Run every step the gyro data allows (at most ``max_steps``); return how many ran."""
@@ -700,11 +711,6 @@ class AgentEstimator(TimedAgent):
         """The newest own measurement a step or message at ``t`` may use."""
         return t if self.exchange is not None else np.inf
 
-    def _step(self) -> None:
-        prepared = self._begin_step()
-        if prepared is not None:
-            self._end_step(prepared, *self.estimator.step(self.x, self.h, prepared.inputs))
-
     def _begin_step(self) -> _Prepared | None:
         """A step up to the method's own (:func:`advance_together` runs that for several
         agents at once): its inputs, or None for a leader, whose whole step this is."""
@@ -729,19 +735,6 @@ class AgentEstimator(TimedAgent):
             return None
         stale = self.stale_neighbours(t)
         return _Prepared(t, tuple(stale), self.step_inputs(t, delta_R, stale, displacement))
-
-    def _end_step(self, prepared: _Prepared, x: State, diagnostics: dict[str, Array]) -> None:
-        """The step's end, from the new state ``x`` (one row) the method's step returned."""
-        inputs = prepared.inputs
-        if x.is_finite():
-            self.x = x
-        else:  # cannot happen with validated inputs; never let it reach the estimate
-            self.non_finite_steps += 1
-            self.x = self.estimator.propagate(self.x, inputs.delta_R, inputs.displacement)
-        self.last = StepInfo(t=prepared.t, edges_used=len(inputs.edges), stale=prepared.stale,
-                             odometry=inputs.displacement is not None,
-                             diagnostics={k: v[0] for k, v in diagnostics.items()})
-        self.k += 1
 
     def _apply_known_pose(self, t: float) -> None:
         until = self._until(t + self.h)

@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 
 from ..core.errors import ScenarioError
 from ..core.odometry import OdometryBuffer
-from .agent import AgentEstimator, Limits, StepInfo, TimedAgent, _Prepared, estimator_for
+from .agent import AgentEstimator, Limits, TimedAgent, _Prepared, estimator_for
 from .agent import _vector_problem as _unit_problem
 from .base import Channel, Edges, Estimator, LinkInputs, State, StepInputs, owns_pair
 
@@ -505,10 +505,6 @@ class LinkAgentEstimator(TimedAgent):
         self.impatient = False
         return ran
 
-    def _step(self) -> None:
-        prepared = self._begin_step()
-        self._end_step(prepared, *self.estimator.step(self.x, self.h, prepared.inputs))
-
     def _begin_step(self) -> _Prepared:
         """The step's inputs, gathered by :meth:`steps_ready` (:func:`.agent.advance_together`
         runs the method's step for several robots at once)."""
@@ -517,17 +513,8 @@ class LinkAgentEstimator(TimedAgent):
         return _Prepared(self.t, tuple(self.stale_neighbours(self.t)), inputs)
 
     def _end_step(self, prepared: _Prepared, x: State, diagnostics: dict[str, Array]) -> None:
-        inputs = prepared.inputs
-        if x.is_finite():
-            self.x = x
-        else:  # cannot happen with validated inputs; never let it reach the estimate
-            self.non_finite_steps += 1
-            self.x = self.estimator.propagate(self.x, inputs.delta_R, inputs.displacement)
-        self.last = StepInfo(t=prepared.t, edges_used=len(self.links), stale=prepared.stale,
-                             odometry=inputs.displacement is not None,
-                             diagnostics={k: v[0] for k, v in diagnostics.items()})
+        super()._end_step(prepared, x, diagnostics)   # its edges: one per link (_gather)
         self._pending = None
-        self.k += 1
 
     # ------------------------------------------------------------------------------ outputs
     def outbox(self) -> dict[str, object]:
