@@ -220,6 +220,27 @@ def test_the_known_pose_subscription_matches_best_effort_and_reliable(context):
         node.destroy_node()
 
 
+@pytest.mark.parametrize('sim_time, reliable, expected', [
+    (False, None, wire.SENSOR_QOS), (True, None, wire.SIM_SENSOR_QOS),
+    (True, False, wire.SENSOR_QOS)])
+def test_sensor_subscriptions_are_reliable_in_a_simulation(context, sim_time, reliable,
+                                                           expected):
+    """Under use_sim_time the sensor readers are reliable (a step waits for each sample, so
+    one lost on the way would stall the lockstep clock); `reliable_sensors: false` makes
+    them best effort again (a bag of best-effort drivers replayed with use_sim_time)."""
+    params = [Parameter('agent_id', value=1), Parameter('leader', value=True),
+              Parameter('use_sim_time', value=sim_time)]
+    if reliable is not None:
+        params.append(Parameter('reliable_sensors', value=reliable))
+    node = EstimatorNode(namespace='/agent_1', context=context, parameter_overrides=params)
+    try:
+        for topic in ('/agent_1/imu', '/agent_1/bearings', '/agent_1/known_pose'):
+            sub = next(s for s in node.subscriptions if s.topic_name == topic)
+            assert sub.qos_profile.reliability == expected.reliability, topic
+    finally:
+        node.destroy_node()
+
+
 @pytest.mark.parametrize('raw', [True, False])
 def test_messages_as_bytes_or_as_objects_give_the_same_estimate(context, raw):
     """raw_messages (default true): every subscription takes the serialised bytes, decoded
@@ -257,6 +278,35 @@ def test_the_simulator_clock_can_be_turned_off(context, repo_root, publish_clock
         assert ('/clock' in topics) == publish_clock
         assert node.count_publishers('/clock') == int(publish_clock)
         assert '/agent_3/imu' in topics
+    finally:
+        node.destroy_node()
+
+
+def test_the_simulator_names_the_estimators_its_clock_waits_for(context, repo_root, capfd,
+                                                              monkeypatch):
+    """A lockstep clock held by the slowest estimators for STALL_WARN_S of wall time gets a
+    warning naming them (a hung run says on whom); a moving one does not."""
+    from bearing_pose_estimation.ros import simulator_node
+
+    now = [100.0]
+    monkeypatch.setattr(simulator_node.time, 'monotonic', lambda: now[0])
+    node = SimulatorNode(context=context, parameter_overrides=[
+        Parameter('scenario_file', value=str(repo_root / 'config' / 'paper_8_agents.yaml'))])
+    try:
+        node.progress[:] = 0.5
+        node.progress[[2, 5]] = 0.1
+        node._warn_if_stalled()
+        now[0] += simulator_node.STALL_WARN_S - 0.1
+        node._warn_if_stalled()
+        assert 'waited' not in capfd.readouterr().err
+        now[0] += 0.2
+        node._warn_if_stalled()
+        err = capfd.readouterr().err
+        assert 'for agent_3, agent_6 (newest estimate at t = 0.100 s)' in err, err
+        node.progress[[2, 5]] = 0.12   # they moved: the wait starts over
+        now[0] += 1.0
+        node._warn_if_stalled()
+        assert 'waited' not in capfd.readouterr().err
     finally:
         node.destroy_node()
 
@@ -390,3 +440,38 @@ def test_gains_and_limits_are_set_live_and_validated(context, repo_root, tmp_pat
         assert node.est.gains.k_p == 1.0 and node.est.gains.k_z == 20.0
     finally:
         node.destroy_node()
+
+
+def test_a_stalled_agent_takes_messages_the_executor_was_not_told_of(context):
+    """An agent whose state and gyro have not moved for a check period while its clock is
+    ahead (``on_watch``) takes what its subscriptions hold: here samples no executor was
+    spun for, as when the executor misses a notification. They are handled (the step runs)
+    and counted; the first check only notes the state, so a healthy agent takes nothing."""
+    import time
+
+    node = EstimatorNode(namespace='/agent_1', context=context, parameter_overrides=[
+        Parameter('agent_id', value=1), Parameter('leader', value=True)])
+    sender = rclpy_node(context, 'imu_sender')
+    try:
+        pub = sender.create_publisher(wire.Imu, '/agent_1/imu', wire.SIM_PUB_QOS)
+        deadline = time.monotonic() + 10.0
+        while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        for t in (0.005, 0.01):
+            pub.publish(wire.encode_imu(t, 'agent_1', np.array([0.0, 0.0, 0.2])))
+        node.on_watch()   # notes (k, gyro end): nothing taken yet
+        assert node.est.gyro.end == 0.0 and not node.events['unnotified_messages']
+        while node.events['unnotified_messages'] < 2 and time.monotonic() < deadline:
+            node.on_watch()
+            time.sleep(0.01)
+        assert node.events['unnotified_messages'] == 2
+        assert node.est.gyro.end == pytest.approx(0.01) and node.est.k == 1
+    finally:
+        sender.destroy_node()
+        node.destroy_node()
+
+
+def rclpy_node(context, name):
+    from rclpy.node import Node
+
+    return Node(name, context=context)

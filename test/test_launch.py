@@ -423,7 +423,12 @@ def test_early_crash_is_reported_and_everything_stopped(standins, tmp_path, monk
 def test_timeout_stops_the_run(standins, small, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv('STANDIN_MONITOR_DELAY', '60')
     assert main(['run', str(small), '--out', str(tmp_path / 'out'), '--timeout', '1']) == 1
-    assert 'monitor did not finish within the 1 s timeout' in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert 'monitor did not finish within the 1 s timeout' in err
+    # Whoever hung says so in its log: every process's last lines are shown.
+    logs = tmp_path / 'out' / 'logs'
+    for name in ('simulator', 'monitor'):
+        assert f'line(s) of {logs / name}.log:' in err, err
     assert_all_gone(records(standins))
 
 

@@ -40,6 +40,7 @@ TEARDOWN_WATCHDOG_SIGNAL = signal.SIGALRM
 TEARDOWN_HUNG = -TEARDOWN_WATCHDOG_SIGNAL
 CLEAN_EXITS = (0, TEARDOWN_HUNG)
 LOG_TAIL_LINES = 20
+TIMEOUT_TAIL_LINES = 8    # of every process's log, after a run that timed out
 POLL_S = 0.05
 
 
@@ -791,6 +792,13 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
             result.rss_mb = group.rss_mb()
             result.killed = group.shutdown()
             result.exit_codes = {s.name: group.returncode(s.name) for s in specs}
+            if result.failure is not None and result.failure.timed_out:
+                # A hang is in whichever process waits: every log's end says who (the
+                # simulator names the agent its clock waits for), also where the logs vanish.
+                for spec in specs:
+                    tail = log_tail(spec.log, TIMEOUT_TAIL_LINES)
+                    print(f'last {len(tail)} line(s) of {spec.log}:'
+                          + ''.join(f'\n  | {line}' for line in tail), file=sys.stderr)
     finally:
         result.wall_s = time.perf_counter() - wall
         left_in_shm = clean_shm(shm_before)

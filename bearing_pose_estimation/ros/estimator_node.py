@@ -42,7 +42,10 @@ pose, simulated odometry) measured by ``t + h`` and for each neighbour's values 
 instant at or before ``t`` (:class:`estimators.agent.Exchange`): what netsim feeds the same
 logic, so a run equals netsim's to rounding however loaded the machine is. An input that does
 not come is waited out once the own sensors are ``link_wait`` ahead (``incomplete_steps`` in
-the diagnostics). Off on real robots (nothing waits) and under injected faults.
+the diagnostics). Off on real robots (nothing waits) and under injected faults. The sensor
+subscriptions are best effort, matching any driver, or with ``reliable_sensors`` (default:
+``use_sim_time``) reliable (``msg_defs.SIM_SENSOR_QOS``: no sample a step waits for is lost
+on the way).
 
 Bad input is rejected, counted by cause, warned about (throttled) and reported in the
 diagnostics; it never stops the node and never reaches the estimate.
@@ -63,7 +66,8 @@ be set while the node runs (``ros2 param set``): a change is validated (range, t
 minimum, and the method's check on the scenario) and applies from the next step, or is
 refused with the reason; every other parameter is read-only. The expected frames
 ``imu_frame``, ``bearings_frame``, ``odom_child_frame`` (empty: accept any);
-``diagnostics_period`` [s, wall clock]; ``fixed_exchange`` (above); and the fault
+``diagnostics_period`` [s, wall clock]; ``fixed_exchange`` and ``reliable_sensors`` (above);
+and the fault
 injection for tests and studies: ``inject_drop_rate`` (probability of dropping each neighbour
 message), ``inject_delay`` [s] (extra delay of each neighbour message), ``inject_seed``.
 Integers are accepted for numbers; a wrong type or range stops the node with a one-line error,
@@ -121,6 +125,8 @@ def _decode_odometry(msg: wire.Odometry | bytes,
 # on without an awaited input. Only a hang breaker: under lockstep nothing it awaits is lost
 # for good, and a loaded machine can stall a process for 0.25 s (README, De Carli over DDS).
 EXCHANGE_PATIENCE = 10.0
+# Wall time [s] between checks for a stalled agent (EstimatorNode.on_watch).
+WATCH_PERIOD_S = 1.0
 # The end-of-run log's count of those steps (destroy_node), as benchmarks read it: 0 or a dict.
 INCOMPLETE_LOG = re.compile(r'steps without an awaited input: (\{[^}]*\}|0)')
 # The input limits a running node takes (with the gains and neighbour_wait).
@@ -321,7 +327,12 @@ class EstimatorNode(Node):
         # (k, gyro end, wall time) when a step began to wait with its sensors standing still.
         self._stuck: tuple[int, float, float] | None = None
 
-        qos_in, qos_est = wire.SENSOR_QOS, wire.ESTIMATE_QOS
+        # A simulation's sensor samples are each waited for: reliable (msg_defs).
+        reliable = p('reliable_sensors', sim_time, 'sensor subscriptions reliable (default: '
+                     'use_sim_time: no sample of a simulation is lost); false for best-effort '
+                     "publishers, e.g. a bag of a robot's drivers")
+        qos_in = wire.SIM_SENSOR_QOS if reliable else wire.SENSOR_QOS
+        qos_est = wire.ESTIMATE_QOS
         self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE,
                                                  wire.ESTIMATE_PUB_QOS)
         # The channels that need a message of their own (the others ride on the pose).
@@ -421,6 +432,11 @@ class EstimatorNode(Node):
             self.patience_timer = self.create_timer(
                 0.05 if self.links else 0.5, self.on_patience,
                 clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # A stalled agent (its clock ahead of its gyro, nothing changing for a second) checks
+        # its subscriptions for messages the executor was not told about (:meth:`on_watch`).
+        self._watched: tuple[int, float] | None = None
+        self.watch_timer = self.create_timer(WATCH_PERIOD_S, self.on_watch,
+                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         role = 'leader' if template.leader else f'{len(template.neighbours)} neighbours'
         faults = (f'; INJECTING drop {self.drop_rate:g}, delay {self.delay:g} s on neighbour '
@@ -870,6 +886,36 @@ class EstimatorNode(Node):
                 self._stuck = None
                 self._publish_links()
                 self.run_ready_steps()
+
+    def on_watch(self) -> None:
+        """Every :data:`WATCH_PERIOD_S` of wall time: an agent that has not moved (state, gyro)
+        since the last check while its clock is more than two steps past its state takes what
+        its subscriptions hold and handles it. A message that waits there is one whose arrival
+        the executor was not told of; under lockstep the clock would wait for this agent
+        forever. Found ones are counted (``unnotified_messages``) and warned about; with none
+        found and the gyro silent too, that is reported (the sender or the transport lost the
+        samples)."""
+        est, now = self.est, self._now()
+        if est is None or now is None:
+            return
+        moved, self._watched = self._watched != (est.k, est.gyro.end), (est.k, est.gyro.end)
+        if moved or now <= est.t + 2.0 * self.h:
+            return
+        found = 0
+        for sub in list(self.subscriptions):
+            with sub.handle:
+                while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
+                    found += 1
+                    sub.callback(taken[0])
+        if found:
+            self.events['unnotified_messages'] += found
+            self.get_logger().warning(
+                f'took {found} message(s) the executor had not delivered (stalled at t = '
+                f'{est.t:.3f} s, clock at {now:.3f} s)', throttle_duration_sec=5.0)
+        elif now > est.gyro.end + 2.0 * self.h:
+            self.get_logger().warning(
+                f'no gyro sample after t = {est.gyro.end:.3f} s while the clock is at '
+                f'{now:.3f} s: is the imu publisher alive?', throttle_duration_sec=10.0)
 
     def _publish_links(self) -> None:
         """After a step of a link method: its channels when a neighbour's next step reads

@@ -49,6 +49,9 @@ from ..sim.world import World
 # Sim time advanced per wall-timer callback at most: keeps the node responsive to Ctrl-C and to
 # the estimators' progress messages.
 _MAX_SIM_PER_TICK = 0.02
+# Wall time [s] the lockstep clock may wait for the slowest estimator before the simulator
+# names it in a warning (a healthy run waits milliseconds; a loaded one a second at most).
+STALL_WARN_S = 5.0
 
 
 class SimulatorNode(Node):
@@ -140,6 +143,8 @@ class SimulatorNode(Node):
         self.failed = Future()  # completes only if start-up fails; otherwise spin until Ctrl-C
         self.wall_start = time.monotonic()
         self.sim_wall_start = 0.0
+        # (slowest estimate time, wall time it was first seen): a stalled lockstep clock.
+        self._stall = (-np.inf, 0.0)
         # /clock once per estimator step: finer ticks only cost every node callbacks.
         self.steps_per_clock = max(1, int(round(s.step / self.world.dt)))
         # A wall-clock timer: the simulator owns sim time, so it must not wait on it. A quarter
@@ -232,6 +237,8 @@ class SimulatorNode(Node):
         while w.t + w.dt <= limit + 1e-9:
             w.step()
             self._publish(clock=w.tick % self.steps_per_clock == 0)
+        if self.lockstep and w.t < self.duration - 1e-9:
+            self._warn_if_stalled()
         # How far the slowest estimator's published state trails the clock (sim seconds).
         behind = w.t - float(self.progress.min())
         if np.isfinite(behind):   # not before every estimator has published (no lockstep)
@@ -253,6 +260,19 @@ class SimulatorNode(Node):
                 text += (f'; more than {late_ms:.0f} ms behind (a missed deadline) in '
                          f'{missed:.2f} % of ticks')
             self.get_logger().info(text)
+
+    def _warn_if_stalled(self) -> None:
+        """Name the estimators the lockstep clock has waited for :data:`STALL_WARN_S` of
+        wall time or longer: a run that hangs says on whom."""
+        slowest, now = float(self.progress.min()), time.monotonic()
+        if slowest != self._stall[0]:
+            self._stall = (slowest, now)
+        elif now - self._stall[1] >= STALL_WARN_S:
+            late = [n for n, t in zip(self.names, self.progress) if t <= slowest]
+            self.get_logger().warning(
+                f'the clock has waited {now - self._stall[1]:.0f} s at t = {self.world.t:.3f} s '
+                f'for {", ".join(late)} (newest estimate at t = {slowest:.3f} s): those '
+                'estimators are not stepping; their logs say why', throttle_duration_sec=10.0)
 
     def _publish(self, clock: bool) -> None:
         w, t = self.world, self.world.t
