@@ -282,6 +282,32 @@ def test_the_simulator_clock_can_be_turned_off(context, repo_root, publish_clock
         node.destroy_node()
 
 
+@pytest.mark.parametrize('records', [False, True])
+def test_the_simulator_waits_for_the_recorders_readers(context, repo_root, records):
+    """With `monitor_records` (run --record) the start waits until the simulator's writers
+    have matched the recorder's reader as well as the estimator's: a reader the writer has
+    not matched gets nothing, and one matched reader must not pass for the other (CI: an
+    estimator that never got its first samples stopped the lockstep clock for good)."""
+    import time
+
+    node = SimulatorNode(context=context, parameter_overrides=[
+        Parameter('scenario_file', value=str(repo_root / 'config' / 'paper_8_agents.yaml')),
+        Parameter('monitor_records', value=records)])
+    reader = rclpy_node(context, 'one_reader_each')
+    try:
+        for pub in node.pub_imu:
+            reader.create_subscription(wire.Imu, pub.topic_name, lambda _m: None,
+                                       wire.SIM_SENSOR_QOS)
+        deadline = time.monotonic() + 10.0
+        while (min(p.get_subscription_count() for p in node.pub_imu) < 1
+               and time.monotonic() < deadline):
+            time.sleep(0.01)
+        assert ('/agent_1/imu' in node._unmatched()) == records
+    finally:
+        reader.destroy_node()
+        node.destroy_node()
+
+
 def test_the_simulator_names_the_estimators_its_clock_waits_for(context, repo_root, capfd,
                                                               monkeypatch):
     """A lockstep clock held by the slowest estimators for STALL_WARN_S of wall time gets a

@@ -226,7 +226,8 @@ def write_params(scenario: Scenario, cfg: RunConfig) -> dict[str, Path]:
     }
     files['simulator'] = {f'{ns}/simulator': {'ros__parameters': {
         'scenario_file': scenario_file, 'duration': float(cfg.duration),
-        'real_time_factor': float(cfg.real_time_factor), 'use_sim_time': False}}}
+        'real_time_factor': float(cfg.real_time_factor), 'use_sim_time': False,
+        **({'monitor_records': True} if cfg.record else {})}}}
     files['monitor'] = {f'{ns}/monitor': {'ros__parameters': {
         'scenario_file': scenario_file, 'duration': float(cfg.duration),
         'out_dir': str(cfg.out_dir), 'plots': bool(cfg.plots), 'use_sim_time': True,

@@ -20,7 +20,8 @@ waits for the inputs of fixed instants, ``fixed_exchange``, not because of the p
 ``real_time_factor`` > 0 also caps the clock at that multiple of wall time.
 
 Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``lockstep``, ``max_lag``
-[s], ``real_time_factor``, ``wait_for_monitor``, ``wait_for_estimators``, ``start_timeout`` [s],
+[s], ``real_time_factor``, ``wait_for_monitor``, ``monitor_records`` (the monitor records a bag:
+the start waits for its readers too), ``wait_for_estimators``, ``start_timeout`` [s],
 ``publish_clock`` (default true; false when another node owns ``/clock``, e.g. a bag replay:
 the stamps are simulated time either way).
 """
@@ -29,6 +30,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from functools import partial
+from typing import Any
 
 import numpy as np
 from rclpy.clock import Clock, ClockType
@@ -43,7 +45,7 @@ from ..core.errors import ScenarioError
 from ..estimators.base import Sensor
 from .monitor_node import watched
 from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
-from .wiring import listener_counts
+from .wiring import listener_counts, recorded_topics
 from ..sim.world import World
 
 # Sim time advanced per wall-timer callback at most: keeps the node responsive to Ctrl-C and to
@@ -74,6 +76,9 @@ class SimulatorNode(Node):
         # a restarted simulator). Use it with lockstep off, or a silent agent stops the clock.
         self.wait_for_estimators = p('wait_for_estimators', True, 'start only once every '
                                      'estimator announced its t0 state')
+        # The monitor's bag recorder reads the simulator's topics too (run --record).
+        records = p('monitor_records', False, 'the monitor records a bag: the start waits for '
+                    "its readers of the simulator's topics too")
         self.start_timeout = p('start_timeout', 120.0, 'give up starting after this [s]',
                                0.0, 1e6)
         # False: another node owns /clock (a bag replay, Gazebo); the stamps stay sim time.
@@ -93,6 +98,8 @@ class SimulatorNode(Node):
             raise ScenarioError(f'{s.source}: {problem}')
         self.world = World(s)
         self.monitor_watches = set(watched(s))   # the agents whose truth the monitor reads
+        self.recorded = ({topic for topic, _ in recorded_topics(s, self.fleet)}
+                         if records and self.wait_for_monitor else set[str]())
         self.names = [a.name for a in s.agents]
         # The topics the estimators exchange, from what the scenario's method sends (a
         # channel of a sensor's readings rides on that sensor's topic: counted there).
@@ -173,23 +180,28 @@ class SimulatorNode(Node):
     def _unmatched(self) -> list[str]:
         """Topics whose expected peers are not matched yet."""
         s, missing = self.scenario, []
+
+        def short(pub: Any, readers: int) -> None:
+            # Matched by this writer, not only seen in the graph: a volatile writer sends
+            # nothing to a reader it has not matched yet, and under lockstep a sample an
+            # estimator misses at the start stops the clock for good. The recorder's reader
+            # counts too (it would miss the first samples).
+            if pub.get_subscription_count() < readers + (pub.topic_name in self.recorded):
+                missing.append(pub.topic_name)
+
         for k, name in enumerate(self.names):
             monitored = 1 if self.wait_for_monitor and name not in s.leaders else 0
-            need_truth = ((1 if self.wait_for_monitor and name in self.monitor_watches else 0)
-                          + (1 if name in s.leaders else 0))
-            if self.pub_imu[k].get_subscription_count() < 1:
-                missing.append(wire.topic(name, wire.IMU, self.fleet))
-            if self.uses_bearings and self.pub_bearings[k].get_subscription_count() < 1:
-                missing.append(wire.topic(name, wire.BEARINGS, self.fleet))
-            for sensor in self.sensors_read:
+            short(self.pub_imu[k], 1)
+            short(self.pub_bearings[k], 1 if self.uses_bearings else 0)
+            for sensor, pubs in self.pub_sensors.items():
                 # The agent's own estimator, and link neighbours that read it (odometry, a
                 # sensor whose readings are a channel).
                 topic = wire.SENSOR_TOPICS[sensor]
-                if self.pub_sensors[sensor][k].get_subscription_count() < 1 + self.link_subs[
-                        (name, topic)]:
-                    missing.append(wire.topic(name, topic, self.fleet))
-            if self.pub_truth[k].get_subscription_count() < need_truth:
-                missing.append(wire.topic(name, wire.GROUND_TRUTH, self.fleet))
+                short(pubs[k], 1 + self.link_subs[(name, topic)]
+                      if sensor in self.sensors_read else 0)
+            short(self.pub_truth[k],
+                  (1 if self.wait_for_monitor and name in self.monitor_watches else 0)
+                  + (1 if name in s.leaders else 0))
             # Every listener subscribes to each channel topic of the agent (link methods: the
             # neighbours that read it); the simulator and the monitor to its estimate as well.
             wanted = {topic: self.link_subs[(name, topic)] for topic in self.channel_topics}
