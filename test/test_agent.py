@@ -298,6 +298,18 @@ def test_steps_run_together_give_each_agent_its_own_steps_exactly(config, method
     assert all(a.last.odometry == moving for a in followers)
 
 
+@pytest.mark.parametrize('config, duration', [('presenza_case1.yaml', 0.5),
+                                              ('presenza_noisy.yaml', 1.5)])
+def test_robots_of_a_two_round_method_stepped_together_get_their_own_steps_exactly(config,
+                                                                                   duration):
+    """Presenza et al. (an anchor, bearing rates, two rounds per step; noisy: the covariance
+    and odometry): robots stepped together get exactly their own steps."""
+    from bearing_pose_estimation.scenario.parse import read_scenario_data
+    data = read_scenario_data(PAPER.parent / config)
+    net, checked = _link_robots_stepped_both_ways(data, duration, 20)
+    assert len(checked) == 20 and max(checked) >= 3, checked
+
+
 def _assert_same_step(a, b, where: str) -> None:
     """Agents ``a`` (its own step) and ``b`` (stepped together with others) hold the same
     state and step diagnostics, bit for bit; De Carli et al.'s robots keep per-link state in
@@ -315,24 +327,22 @@ def _assert_same_step(a, b, where: str) -> None:
         np.testing.assert_array_equal(value, b.last.diagnostics[key], err_msg=where)
 
 
-def test_robots_of_a_link_method_stepped_together_get_their_own_steps_exactly():
-    """De Carli et al. on netsim with lost and late messages: whenever several robots have a
-    step ready, advance_together on copies of them gives each copy what its own step gives."""
+def _link_robots_stepped_both_ways(data: dict, duration: float, checks: int):
+    """netsim of scenario ``data`` with lost and late messages: whenever several robots have
+    a step ready, copies of them are stepped on their own and by advance_together, and each
+    pair compared (``checks`` times). Returns the network and how many robots each check had."""
     import copy
 
     from bearing_pose_estimation.estimators.agent import advance_together
     from bearing_pose_estimation.scenario import parse_scenario
-    from bearing_pose_estimation.scenario.parse import read_scenario_data
     from bearing_pose_estimation.sim.netsim import Garbage, LinkFaults, _Network, Limits
-    data = read_scenario_data(PAPER.parent / 'de_carli_8_quadrotors.yaml')
-    data['formation_control']['mode'] = 'exogenous'   # the world owns the truth
     net = _Network(parse_scenario(data), LinkFaults(drop_rate=0.2, delay=0.03, seed=3), (),
                    Garbage(), Limits())
     step_links, checked = net.step_links, []
 
     def step_and_check(now: float) -> None:
         ready = [a for a in net.agents.values() if a.steps_ready() > 0]
-        if len(ready) > 1 and len(checked) < 40:
+        if len(ready) > 1 and len(checked) < checks:
             alone, together = copy.deepcopy(ready), copy.deepcopy(ready)
             for a in alone:
                 a.advance(1)
@@ -345,8 +355,17 @@ def test_robots_of_a_link_method_stepped_together_get_their_own_steps_exactly():
     net.step_links = step_and_check
     net.start()
     dt = net.world.dt
-    for tick in range(1, int(round(0.6 / dt)) + 1):
+    for tick in range(1, int(round(duration / dt)) + 1):
         net.tick(tick * dt)
+    return net, checked
+
+
+def test_robots_of_a_link_method_stepped_together_get_their_own_steps_exactly():
+    """De Carli et al.: robots stepped together get exactly their own steps (above)."""
+    from bearing_pose_estimation.scenario.parse import read_scenario_data
+    data = read_scenario_data(PAPER.parent / 'de_carli_8_quadrotors.yaml')
+    data['formation_control']['mode'] = 'exogenous'   # the world owns the truth
+    net, checked = _link_robots_stepped_both_ways(data, 0.6, 40)
     assert len(checked) == 40 and max(checked) == 8
     assert all(np.any(a.x.ready_out) for a in net.agents.values())   # per-link state in use
     # Robots with fewer links than others (here all have 3): their state grows to the most.

@@ -486,11 +486,11 @@ def test_a_stalled_agent_takes_messages_the_executor_was_not_told_of(context):
         for t in (0.005, 0.01):
             pub.publish(wire.encode_imu(t, 'agent_1', np.array([0.0, 0.0, 0.2])))
         node.on_watch()   # notes (k, gyro end): nothing taken yet
-        assert node.est.gyro.end == 0.0 and not node.events['unnotified_messages']
-        while node.events['unnotified_messages'] < 2 and time.monotonic() < deadline:
+        assert node.est.gyro.end == 0.0 and not node.events['taken_while_stalled']
+        while node.events['taken_while_stalled'] < 2 and time.monotonic() < deadline:
             node.on_watch()
             time.sleep(0.01)
-        assert node.events['unnotified_messages'] == 2
+        assert node.events['taken_while_stalled'] == 2
         assert node.est.gyro.end == pytest.approx(0.01) and node.est.k == 1
     finally:
         sender.destroy_node()

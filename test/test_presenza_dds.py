@@ -197,3 +197,34 @@ def test_the_monitor_reports_angle_rigidity_on_the_estimates(run):
     out_nb = [[s.index[nb.name] for nb in a.neighbours] for a in s.agents]
     truth = angles.iar_margin(true_q, angles.angle_triples(out_nb))
     assert abs(margins[-1] - truth) < 0.5 * truth, (margins, truth)
+
+
+def test_robots_sharing_a_process_step_together_to_the_same_records(run, tmp_path):
+    """Three robots in one `estimators` process, two in another: their steps (each robot's
+    second round in) run in one call of the method's step (ros/step_batch.py), the replies go
+    out as before, and every record equals the one-process-per-robot fleet's."""
+    scenario_file, out, _, _ = run
+    scenario = load_scenario(scenario_file)
+    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp_path / 'shared',
+                           duration=DURATION, domain_id=DOMAIN, plots=False,
+                           agents_per_process=3)
+    cfg.logs_dir.mkdir(parents=True)
+    params = with_parameters(launch.write_params(scenario, cfg), list(scenario.index), **PATIENT)
+    specs = launch.plan_processes(scenario, params, cfg.logs_dir, launch.find_executable, 3)
+    shm = launch.shm_files()
+    with launch.ProcessGroup(env=launch.dds_env(DOMAIN, tmp_path / 'ros')) as g:
+        for spec in specs:
+            g.start(spec)
+        failure = g.wait_for('monitor', 180.0, [s.name for s in specs if s.name != 'monitor'])
+        assert failure is None, failure.format()
+        g.shutdown()
+        assert g.unclean() == {}
+    assert_no_shm_left(g, shm)
+    alone, together = (read_metrics_csv(d / 'metrics.csv') for d in (out, cfg.out_dir))
+    np.testing.assert_array_equal(together.t, alone.t)
+    np.testing.assert_allclose(together.pos_err, alone.pos_err, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(together.att_err, alone.att_err, rtol=1e-9, atol=1e-15)
+    text = (cfg.logs_dir / 'estimators_0.log').read_text()
+    assert 'left out: 0; carried: 0' in text and 'impatient' not in text, text[-600:]
+    per_round = float(text.split(' agents per round)')[0].rsplit('(', 1)[1])
+    assert per_round > 1.5, text[-300:]

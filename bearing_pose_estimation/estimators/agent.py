@@ -803,8 +803,9 @@ def advance_together(agents: Sequence[T]) -> list[T]:
     of those whose estimators are of one method with equal gains in one call of that
     method's step: a step treats its agents' rows independently, so each agent gets what its
     own step gives, and the call's cost (numpy's, per call) is paid once (BENCHMARKS.md,
-    "Steps run together"). For :class:`AgentEstimator` and the one-round
-    :class:`.link_agent.LinkAgentEstimator`. Returns the agents that stepped."""
+    "Steps run together"). For :class:`AgentEstimator`, :class:`.link_agent.LinkAgentEstimator`
+    and :class:`.two_round_agent.TwoRoundAgent` (whose step is its second round). Returns the
+    agents that stepped."""
     stepped = [a for a in agents if a.steps_ready() > 0]
     groups: list[list[tuple[T, _Prepared]]] = []
     for a in stepped:
@@ -836,6 +837,9 @@ def _same_fields(a: StepInputs, b: StepInputs) -> bool:
     """Whether two steps' inputs give the same optional fields (they stack)."""
     return ((a.displacement is None) == (b.displacement is None)
             and (a.p_own is None) == (b.p_own is None) and (a.held is None) == (b.held is None)
+            and (a.bearing_rates is None) == (b.bearing_rates is None)
+            and (None if a.anchor is None else a.anchor.pinned)
+            == (None if b.anchor is None else b.anchor.pinned)
             and a.t == b.t and a.received.keys() == b.received.keys())
 
 

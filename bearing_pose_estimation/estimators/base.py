@@ -334,6 +334,18 @@ class AnchorInputs:
     ranged_by: NDArray[np.bool_]
     pinned: bool = False
 
+    @staticmethod
+    def stack(parts: Sequence[AnchorInputs]) -> AnchorInputs:
+        """Several agents' anchor inputs as one, agents and edges in that order (:meth:`rows`
+        undone); they must agree on ``pinned``."""
+        if len({p.pinned for p in parts}) > 1:
+            raise ValueError('AnchorInputs.stack: pinned differs between the parts')
+        def cat(name: str) -> Any:
+            return np.concatenate([getattr(p, name) for p in parts])
+
+        return AnchorInputs(cat('is_anchor'), cat('delta_R'), cat('displacement'), cat('ranges'),
+                            cat('ranged_by'), pinned=parts[0].pinned)
+
     def rows(self, i: int, sel: Index) -> AnchorInputs:
         return AnchorInputs(self.is_anchor[i:i + 1], self.delta_R[i:i + 1],
                             self.displacement[i:i + 1], self.ranges[sel], self.ranged_by[sel],
@@ -385,11 +397,10 @@ class StepInputs:
         displacement, ``p_own``, ``held``, a link method's :class:`LinkInputs`) only; every
         part has the same optional fields."""
         first = parts[0]
-        if any(p.anchor is not None or p.bearing_rates is not None for p in parts):
-            raise ValueError('StepInputs.stack: an anchor and bearing rates are not stacked')
-        links = [p.links for p in parts]
-        if any(v is None for v in links) and any(v is not None for v in links):
-            raise ValueError('StepInputs.stack: links are given for some parts only')
+        for name in ('links', 'anchor'):
+            given = [getattr(p, name) is not None for p in parts]
+            if any(given) and not all(given):
+                raise ValueError(f'StepInputs.stack: {name} is given for some parts only')
 
         def cat(name: str) -> Array | None:
             values = [getattr(p, name) for p in parts]
@@ -411,9 +422,11 @@ class StepInputs:
                           received={c: np.concatenate([p.received[c] for p in parts])
                                     for c in first.received},
                           displacement=cat('displacement'), p_own=cat('p_own'),
-                          t=first.t, held=cat('held'),
+                          t=first.t, held=cat('held'), bearing_rates=cat('bearing_rates'),
                           links=None if first.links is None else LinkInputs.stack(
-                              [p.links for p in parts if p.links is not None]))
+                              [p.links for p in parts if p.links is not None]),
+                          anchor=None if first.anchor is None else AnchorInputs.stack(
+                              [p.anchor for p in parts if p.anchor is not None]))
 
     def agent(self, i: int) -> StepInputs:
         """The inputs of agent ``i`` alone (``n_agents = 1``): what its node would pass."""

@@ -43,8 +43,8 @@ from numpy.typing import NDArray
 from ..core import so3
 from ..core.bearing_rates import BearingRateFilter
 from ..core.odometry import OdometryBuffer
-from .agent import Limits, _vector_problem
-from .base import AnchorInputs, Edges, Estimator, LinkInputs, StepInputs
+from .agent import Limits, _Prepared, _vector_problem
+from .base import AnchorInputs, Edges, Estimator, LinkInputs, State, StepInputs
 from .link_agent import _HISTORY, Link, LinkAgentEstimator, _interpolated
 
 if TYPE_CHECKING:
@@ -375,7 +375,9 @@ class TwoRoundAgent(LinkAgentEstimator):
         self.impatient = False
         return ran
 
-    def _step(self) -> None:
+    def _begin_step(self) -> _Prepared:
+        """The step's inputs: round 1 as replied to, with the second round's values
+        (:func:`.agent.advance_together` runs the method's step for several robots at once)."""
         first = self._round1
         assert first is not None and self._round1_k == self.k
         t = self.t
@@ -398,11 +400,13 @@ class TwoRoundAgent(LinkAgentEstimator):
                 else:
                     values[e] = v
             received[name] = values
-        inputs = replace(first, received=received)
-        self._pending = inputs
+        self._pending = replace(first, received=received)
         self._pending_k = self.k
-        super()._step()
-        L = first.links
+        return super()._begin_step()
+
+    def _end_step(self, prepared: _Prepared, x: State, diagnostics: dict[str, Array]) -> None:
+        super()._end_step(prepared, x, diagnostics)
+        L = prepared.inputs.links
         assert L is not None and L.measured is not None and L.fresh is not None
         self.last = replace(self.last, edges_used=int(np.count_nonzero(
             L.senses & L.measured & L.fresh)))

@@ -13,8 +13,8 @@ interpreter and a DDS participant) is shared.
 With ``use_sim_time``, the process reads ``/clock`` once: the first agent's time source drives
 every agent's clock (:func:`share_clock`). The first agent's ``use_sim_time`` then rules them
 all. The agents' steps run together, one call of the method's step for all those ready once
-the queued messages are handled (:mod:`.step_batch`; not the two-round methods';
-``--separate-steps``: each agent on its own, for comparisons).
+the queued messages are handled (:mod:`.step_batch`; ``--separate-steps``: each agent on its
+own, for comparisons).
 """
 from __future__ import annotations
 

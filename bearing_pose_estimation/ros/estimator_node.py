@@ -360,10 +360,9 @@ class EstimatorNode(Node):
                    **{self.wires[name].topic: pub for name, (pub, _) in self.pub_channels.items()}}
         self._readers_wanted = [(writers[topic], n) for topic, n in listeners.items()
                                 if topic in writers]
-        # The steps wait for the batch (not a two-round method's: its rounds interleave with
-        # the messages), which learns from the count of callbacks when the queued messages
-        # are handled.
-        self.batch = None if isinstance(template, TwoRoundAgent) else batch
+        # The steps wait for the batch (a two-round method's replies do not), which learns
+        # from the count of callbacks when the queued messages are handled.
+        self.batch = batch
         if self.batch is not None:
             self.batch.join(self)
 
@@ -815,6 +814,9 @@ class EstimatorNode(Node):
         if self._wall_first_step is None:
             self._wall_first_step = time.monotonic()
         self._stuck = None
+        if isinstance(est, TwoRoundAgent):   # and the next step's reply, if its round 1 is in
+            self._publish_links()
+            return self._send_reply()
         if not isinstance(est, AgentEstimator):
             return self._publish_links()
         # On the absolute grid origin + n h (k restarts after a time jump or gap).
@@ -830,19 +832,17 @@ class EstimatorNode(Node):
 
     def _two_rounds(self, impatient: bool = False) -> None:
         """A two-round method: send the current step's reply once its first round is in,
-        run it once the second is, repeat while inputs allow. ``impatient``: go on with what
-        is here (:meth:`on_patience`)."""
+        run it once the second is (in an ``estimators`` process, with the other agents':
+        the batch), repeat while inputs allow. ``impatient``: go on with what is here
+        (:meth:`on_patience`)."""
         est = self.est
         assert isinstance(est, TwoRoundAgent)
         while True:
-            reply = est.pending_reply(impatient=impatient)
-            if reply is not None:
-                frame = self.estimate_frame
-                for name in self.pub_channels:    # in optional_first order
-                    value = reply.get(name)
-                    if value:
-                        pub, encode = self.pub_channels[name]
-                        pub.publish(encode(est.t, value, frame))
+            self._send_reply(impatient)
+            if self.batch is not None and not impatient:
+                if est.steps_ready():
+                    self.batch.request(self)
+                return
             if not est.advance(1, impatient=impatient):
                 return
             if impatient:
@@ -852,6 +852,19 @@ class EstimatorNode(Node):
                 self._wall_first_step = time.monotonic()
             self._stuck = None
             self._publish_links()
+
+    def _send_reply(self, impatient: bool = False) -> None:
+        """A two-round method's second round for the current step, once its first is in."""
+        est = self.est
+        assert isinstance(est, TwoRoundAgent)
+        reply = est.pending_reply(impatient=impatient)
+        if reply is not None:
+            frame = self.estimate_frame
+            for name in self.pub_channels:    # in optional_first order
+                value = reply.get(name)
+                if value:
+                    pub, encode = self.pub_channels[name]
+                    pub.publish(encode(est.t, value, frame))
 
     def on_patience(self) -> None:
         """A step that waits for a neighbour's input while nothing moves (its own sensors
@@ -890,11 +903,11 @@ class EstimatorNode(Node):
     def on_watch(self) -> None:
         """Every :data:`WATCH_PERIOD_S` of wall time: an agent that has not moved (state, gyro)
         since the last check while its clock is more than two steps past its state takes what
-        its subscriptions hold and handles it. A message that waits there is one whose arrival
-        the executor was not told of; under lockstep the clock would wait for this agent
-        forever. Found ones are counted (``unnotified_messages``) and warned about; with none
-        found and the gyro silent too, that is reported (the sender or the transport lost the
-        samples)."""
+        its subscriptions hold and handles it. A message that waited there a second is one the
+        executor was not told of (or was about to run); under lockstep the clock would wait
+        for this agent forever. Found ones are counted (``taken_while_stalled``) and warned
+        about; with none found and the gyro silent too, that is reported (the sender or the
+        transport lost the samples)."""
         est, now = self.est, self._now()
         if est is None or now is None:
             return
@@ -908,10 +921,11 @@ class EstimatorNode(Node):
                     found += 1
                     sub.callback(taken[0])
         if found:
-            self.events['unnotified_messages'] += found
+            self.events['taken_while_stalled'] += found
             self.get_logger().warning(
-                f'took {found} message(s) the executor had not delivered (stalled at t = '
-                f'{est.t:.3f} s, clock at {now:.3f} s)', throttle_duration_sec=5.0)
+                f'stalled at t = {est.t:.3f} s with the clock at {now:.3f} s: took {found} '
+                'message(s) waiting in the subscriptions (the executor had not run them)',
+                throttle_duration_sec=5.0)
         elif now > est.gyro.end + 2.0 * self.h:
             self.get_logger().warning(
                 f'no gyro sample after t = {est.gyro.end:.3f} s while the clock is at '

@@ -8,8 +8,9 @@ once the executor has handled every message already queued (the simulator sends 
 instant's samples to all agents in one burst), the batch runs the steps of every agent that
 asked in one call (:func:`.estimators.agent.advance_together`). Each agent gets exactly what
 its own step would give (``test_agent.py``), after the messages queued before it and at most
-:data:`WAIT_S` of waiting for the others. Every method but the two-round ones (Presenza et
-al.: their rounds interleave with the messages) steps this way.
+:data:`WAIT_S` of waiting for the others. Every method steps this way; a two-round method's
+(Presenza et al.) replies go out as soon as their first round is in, only the step (its
+second round in) waits for the batch.
 
 The rclpy EventsExecutor of the pinned wheels has no guard conditions, and nothing tells
 whether its queue is empty: :meth:`StepBatch.settle` spins it without waiting until a spin
