@@ -224,7 +224,7 @@ def agent_plan(s: Scenario, name: str, world: World) -> ProcessPlan:
     links = isinstance(template, LinkAgentEstimator)
     own = lambda topic: wire.topic(name, topic)  # noqa: E731
     wires = {c.name: wire.channel(c.name) for c in optional_first(method.sends)}
-    qos_in = wire.SIM_SENSOR_QOS   # the node's, under use_sim_time
+    qos_in = wire.SENSOR_QOS
     qos_est = wire.ESTIMATE_RECORD_QOS if method.rounds == 2 else wire.ESTIMATE_QOS
     frame = wire.estimate_frame(method.frame.value, s.name, s.anchor, s.world_frame)
     # Publishers, in the node's order: estimate, the channels with a topic of their own,

@@ -115,12 +115,6 @@ def odom_frame(agent: str) -> str:
 SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
                         reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
-# The same in a simulation (use_sim_time), reliable: a sample lost on the way would stall the
-# lockstep clock (the step waits for it) and part the run from netsim's. The simulator's
-# writers are reliable (SIM_PUB_QOS); a best-effort driver would not match it.
-SIM_SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
-                            reliability=ReliabilityPolicy.RELIABLE,
-                            durability=DurabilityPolicy.VOLATILE)
 # Estimates that other agents depend on: reliable.
 ESTIMATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
                           reliability=ReliabilityPolicy.RELIABLE,

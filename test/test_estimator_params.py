@@ -220,27 +220,6 @@ def test_the_known_pose_subscription_matches_best_effort_and_reliable(context):
         node.destroy_node()
 
 
-@pytest.mark.parametrize('sim_time, reliable, expected', [
-    (False, None, wire.SENSOR_QOS), (True, None, wire.SIM_SENSOR_QOS),
-    (True, False, wire.SENSOR_QOS)])
-def test_sensor_subscriptions_are_reliable_in_a_simulation(context, sim_time, reliable,
-                                                           expected):
-    """Under use_sim_time the sensor readers are reliable (a step waits for each sample, so
-    one lost on the way would stall the lockstep clock); `reliable_sensors: false` makes
-    them best effort again (a bag of best-effort drivers replayed with use_sim_time)."""
-    params = [Parameter('agent_id', value=1), Parameter('leader', value=True),
-              Parameter('use_sim_time', value=sim_time)]
-    if reliable is not None:
-        params.append(Parameter('reliable_sensors', value=reliable))
-    node = EstimatorNode(namespace='/agent_1', context=context, parameter_overrides=params)
-    try:
-        for topic in ('/agent_1/imu', '/agent_1/bearings', '/agent_1/known_pose'):
-            sub = next(s for s in node.subscriptions if s.topic_name == topic)
-            assert sub.qos_profile.reliability == expected.reliability, topic
-    finally:
-        node.destroy_node()
-
-
 @pytest.mark.parametrize('raw', [True, False])
 def test_messages_as_bytes_or_as_objects_give_the_same_estimate(context, raw):
     """raw_messages (default true): every subscription takes the serialised bytes, decoded
@@ -297,7 +276,7 @@ def test_the_simulator_waits_for_the_recorders_readers(context, repo_root, recor
     try:
         for pub in node.pub_imu:
             reader.create_subscription(wire.Imu, pub.topic_name, lambda _m: None,
-                                       wire.SIM_SENSOR_QOS)
+                                       wire.SENSOR_QOS)
         deadline = time.monotonic() + 10.0
         while (min(p.get_subscription_count() for p in node.pub_imu) < 1
                and time.monotonic() < deadline):

@@ -42,10 +42,7 @@ pose, simulated odometry) measured by ``t + h`` and for each neighbour's values 
 instant at or before ``t`` (:class:`estimators.agent.Exchange`): what netsim feeds the same
 logic, so a run equals netsim's to rounding however loaded the machine is. An input that does
 not come is waited out once the own sensors are ``link_wait`` ahead (``incomplete_steps`` in
-the diagnostics). Off on real robots (nothing waits) and under injected faults. The sensor
-subscriptions are best effort, matching any driver, or with ``reliable_sensors`` (default:
-``use_sim_time``) reliable (``msg_defs.SIM_SENSOR_QOS``: no sample a step waits for is lost
-on the way).
+the diagnostics). Off on real robots (nothing waits) and under injected faults.
 
 Bad input is rejected, counted by cause, warned about (throttled) and reported in the
 diagnostics; it never stops the node and never reaches the estimate.
@@ -66,8 +63,7 @@ be set while the node runs (``ros2 param set``): a change is validated (range, t
 minimum, and the method's check on the scenario) and applies from the next step, or is
 refused with the reason; every other parameter is read-only. The expected frames
 ``imu_frame``, ``bearings_frame``, ``odom_child_frame`` (empty: accept any);
-``diagnostics_period`` [s, wall clock]; ``fixed_exchange`` and ``reliable_sensors`` (above);
-and the fault
+``diagnostics_period`` [s, wall clock]; ``fixed_exchange`` (above); and the fault
 injection for tests and studies: ``inject_drop_rate`` (probability of dropping each neighbour
 message), ``inject_delay`` [s] (extra delay of each neighbour message), ``inject_seed``.
 Integers are accepted for numbers; a wrong type or range stops the node with a one-line error,
@@ -327,11 +323,7 @@ class EstimatorNode(Node):
         # (k, gyro end, wall time) when a step began to wait with its sensors standing still.
         self._stuck: tuple[int, float, float] | None = None
 
-        # A simulation's sensor samples are each waited for: reliable (msg_defs).
-        reliable = p('reliable_sensors', sim_time, 'sensor subscriptions reliable (default: '
-                     'use_sim_time: no sample of a simulation is lost); false for best-effort '
-                     "publishers, e.g. a bag of a robot's drivers")
-        qos_in = wire.SIM_SENSOR_QOS if reliable else wire.SENSOR_QOS
+        qos_in = wire.SENSOR_QOS
         qos_est = wire.ESTIMATE_QOS
         self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE,
                                                  wire.ESTIMATE_PUB_QOS)
