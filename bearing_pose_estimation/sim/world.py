@@ -83,7 +83,9 @@ class World(OnTruth):
         """Interval-average gyro samples of all agents, ``(N, 3)`` [rad/s], for the IMU period
         ending now."""
         period = self.imu_every * self.dt
-        omega = so3.log(np.swapaxes(self._R_last_imu, -1, -2) @ self.R) / period
+        # One IMU period's increment: a small angle, whose closed form costs a tenth of the
+        # quaternion route (the simulator runs this 200 times a second).
+        omega = so3.log_small(np.swapaxes(self._R_last_imu, -1, -2) @ self.R) / period
         self._R_last_imu = self.R.copy()
         return self.noise.gyro_rate(omega)
 
