@@ -114,12 +114,18 @@ class ProfileSet:
         """Every agent's ω is constant in time."""
         return not self._has_terms
 
-    def __call__(self, t: float) -> NDArray[np.float64]:
-        """ω of every agent at time ``t``, shape ``(N, 3)``."""
-        out = self.constant.copy()
+    def __call__(self, t: float | NDArray[np.float64]) -> NDArray[np.float64]:
+        """ω of every agent at time ``t``, shape ``(N, 3)``; at times ``t`` ``(K,)``, shape
+        ``(K, N, 3)`` (the same numbers as K calls: one elementwise expression)."""
+        if np.ndim(t) == 0:
+            out = self.constant.copy()
+            tt: float | NDArray[np.float64] = t
+        else:
+            tt = np.asarray(t, dtype=float)[:, None, None]
+            out = np.broadcast_to(self.constant, tt.shape[:1] + self.constant.shape).copy()
         if self._has_terms:
             for amplitude, frequency, phase in self._terms:
-                out += amplitude * np.sin(frequency * t + phase)
+                out += amplitude * np.sin(frequency * tt + phase)
         return out
 
     def integral(self, t: float, h: float) -> NDArray[np.float64]:
@@ -141,8 +147,10 @@ _GL3_NODES = (0.5 - np.sqrt(0.15), 0.5, 0.5 + np.sqrt(0.15))
 _GL3_WEIGHTS = (5.0 / 18.0, 8.0 / 18.0, 5.0 / 18.0)
 
 
-def magnus_increment(omega: ProfileSet, t: float, h: float) -> NDArray[np.float64]:
-    """Body-frame increment ``ΔR`` over ``[t, t+h]`` for every agent, shape ``(N, 3, 3)``.
+def magnus_increment(omega: ProfileSet, t: float | NDArray[np.float64],
+                     h: float) -> NDArray[np.float64]:
+    """Body-frame increment ``ΔR`` over ``[t, t+h]`` for every agent, shape ``(N, 3, 3)``
+    (over ``[t_k, t_k + h]`` for times ``t`` ``(K,)``: ``(K, N, 3, 3)``).
 
     4th-order Magnus expansion for right-multiplied dynamics ``dR/dt = R [ω]x``:
     ``ΔR = exp(h/2 (ω₁ + ω₂) + √3 h²/12 (ω₁ × ω₂))`` with ω₁, ω₂ at the Gauss points
@@ -153,17 +161,17 @@ def magnus_increment(omega: ProfileSet, t: float, h: float) -> NDArray[np.float6
     return so3.exp(0.5 * h * (w1 + w2) + (_SQRT3 / 12.0) * h * h * so3.cross(w1, w2))
 
 
-def body_displacement(omega: ProfileSet, v_body: ProfileSet, t: float,
+def body_displacement(omega: ProfileSet, v_body: ProfileSet, t: float | NDArray[np.float64],
                       h: float) -> NDArray[np.float64]:
     """``∫_0^h ΔR(τ) v_b(t + τ) dτ`` for every agent, ``(N, 3)``: the displacement over
     ``[t, t+h]`` of an agent moving with body-frame velocity ``v_b``, in its body frame at t
     (``ΔR(τ) = R(t)ᵀ R(t+τ)``). 3-point Gauss-Legendre with the Magnus increment to each
-    node: O(h⁵) locally, the order of the rotation."""
-    out = np.zeros_like(omega.constant)
+    node: O(h⁵) locally, the order of the rotation. Times ``t`` ``(K,)``: ``(K, N, 3)``."""
+    out = np.zeros(np.shape(t) + omega.constant.shape)
     for node, weight in zip(_GL3_NODES, _GL3_WEIGHTS):
         tau = node * h
         dR = magnus_increment(omega, t, tau)
-        out += (weight * h) * np.einsum('nab,nb->na', dR, v_body(t + tau))
+        out += (weight * h) * np.einsum('...ab,...b->...a', dR, v_body(t + tau))
     return out
 
 

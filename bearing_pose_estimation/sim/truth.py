@@ -43,6 +43,9 @@ Index = NDArray[np.intp]
 # Products of rotations drift off SO(3) by about one rounding error per step; re-orthonormalising
 # every 16 steps keeps ‖RᵀR - I‖ below 1e-14 at a sixteenth of the cost.
 REORTHONORMALIZE_EVERY = 16
+# Steps whose rotation increments (and body-velocity displacements) are computed in one call
+# (Truth.increment, Truth.displacement).
+INCREMENT_CHUNK = 50
 
 
 class Truth:
@@ -87,6 +90,8 @@ class Truth:
         self.R = np.stack([a.attitude for a in self.scenario.agents])
         self.p = np.stack([a.position for a in self.scenario.agents])
         self._next: tuple[int, Array] | None = None  # the increment from step k, once computed
+        self._chunk: tuple[int, Array] = (0, np.empty((0, 3, 3)))   # from step k0 on
+        self._body_chunk: tuple[int, Array] = (0, np.empty((0, 3)))  # body_displacement's
         self._next_delta: tuple[int, Array] | None = None  # the displacement from step k
         self.v_control = np.zeros_like(self.p)   # the controller's held body velocities
         self.controller_yaws = None
@@ -107,10 +112,21 @@ class Truth:
         """``ΔR_i = R_i(t)ᵀ R_i(t + dt)`` of every agent, ``(N, 3, 3)`` (body frame)."""
         if self._constant is not None:
             return self._constant
+        if self.yaws is None:
+            # The next INCREMENT_CHUNK steps' increments in one call (ω is a function of time
+            # alone): the same numbers as one call per step, a fifth of the cost.
+            k0, chunk = self._chunk
+            if not k0 <= self.k < k0 + len(chunk):
+                self._chunk = k0, chunk = self.k, magnus_increment(
+                    self.omega, self._chunk_times(), self.dt)
+            return chunk[self.k - k0]
         if self._next is None or self._next[0] != self.k:  # measured, then stepped: once
-            self._next = (self.k, self.yaws.increment(self.t, self.dt) if self.yaws is not None
-                          else magnus_increment(self.omega, self.t, self.dt))
+            self._next = (self.k, self.yaws.increment(self.t, self.dt))
         return self._next[1]
+
+    def _chunk_times(self) -> Array:
+        """The start times of the next :data:`INCREMENT_CHUNK` steps, as :attr:`t` gives them."""
+        return np.arange(self.k, self.k + INCREMENT_CHUNK, dtype=float) * self.dt
 
     def displacement(self) -> Array:
         """``δ_i = R_i(t)ᵀ (p_i(t + dt) - p_i(t))`` of every agent, ``(N, 3)`` [m]: the
@@ -120,8 +136,12 @@ class Truth:
             return np.zeros_like(self.p)
         if self._next_delta is None or self._next_delta[0] != self.k:
             delta = np.einsum('nba,nb->na', self.R, self.v_world.integral(self.t, self.dt))
-            if not self.v_body.is_zero:
-                delta += body_displacement(self.omega, self.v_body, self.t, self.dt)
+            if not self.v_body.is_zero:   # a function of time alone: a chunk at once
+                k0, chunk = self._body_chunk
+                if not k0 <= self.k < k0 + len(chunk):
+                    self._body_chunk = k0, chunk = self.k, body_displacement(
+                        self.omega, self.v_body, self._chunk_times(), self.dt)
+                delta += chunk[self.k - k0]
             if not self.v_anchor.is_zero:
                 delta += held_body_displacement(self.omega, self.t, self.dt, self.commands())
             if self.control is not None:
