@@ -340,6 +340,7 @@ class AnchorInputs:
         undone); they must agree on ``pinned``."""
         if len({p.pinned for p in parts}) > 1:
             raise ValueError('AnchorInputs.stack: pinned differs between the parts')
+
         def cat(name: str) -> Any:
             return np.concatenate([getattr(p, name) for p in parts])
 

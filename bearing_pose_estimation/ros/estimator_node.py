@@ -323,8 +323,7 @@ class EstimatorNode(Node):
         # (k, gyro end, wall time) when a step began to wait with its sensors standing still.
         self._stuck: tuple[int, float, float] | None = None
 
-        qos_in = wire.SENSOR_QOS
-        qos_est = wire.ESTIMATE_QOS
+        qos_in, qos_est = wire.SENSOR_QOS, wire.ESTIMATE_QOS
         self.pub_estimate = self.create_publisher(wire.PoseStamped, wire.ESTIMATE,
                                                  wire.ESTIMATE_PUB_QOS)
         # The channels that need a message of their own (the others ride on the pose).
@@ -423,8 +422,8 @@ class EstimatorNode(Node):
             self.patience_timer = self.create_timer(
                 0.05 if self.links else 0.5, self.on_patience,
                 clock=Clock(clock_type=ClockType.STEADY_TIME))
-        # A stalled agent (its clock ahead of its gyro, nothing changing for a second) checks
-        # its subscriptions for messages the executor was not told about (:meth:`on_watch`).
+        # A stalled agent (its clock ahead of its state, nothing changing for a second) checks
+        # its subscriptions for messages the executor has not run (:meth:`on_watch`).
         self._watched: tuple[int, float] | None = None
         self.watch_timer = self.create_timer(WATCH_PERIOD_S, self.on_watch,
                                              clock=Clock(clock_type=ClockType.STEADY_TIME))

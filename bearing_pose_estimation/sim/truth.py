@@ -114,7 +114,8 @@ class Truth:
             return self._constant
         if self.yaws is None:
             # The next INCREMENT_CHUNK steps' increments in one call (ω is a function of time
-            # alone): the same numbers as one call per step, a fifth of the cost.
+            # alone): the same numbers as one call per step, for a third of the world's cost
+            # per tick (bench/world_cost.py).
             k0, chunk = self._chunk
             if not k0 <= self.k < k0 + len(chunk):
                 self._chunk = k0, chunk = self.k, magnus_increment(
