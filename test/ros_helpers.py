@@ -56,14 +56,17 @@ class Observer:
         return condition()
 
 
-def assert_no_shm_left(group: launch.ProcessGroup, before: set[str]) -> None:
-    """Nothing the group's processes created is left in /dev/shm (call it once the test's own
+def assert_no_shm_left(groups: launch.ProcessGroup | list[launch.ProcessGroup],
+                       before: set[str], hung: bool = False) -> None:
+    """Nothing the groups' processes created is left in /dev/shm (call it once the test's own
     participants are gone). A node that the teardown watchdog ended (the Fast DDS deadlock,
     eProsima/Fast-DDS#6502, about one process in 200) leaves its participant's files: its
     group removed those no process used, but a test's observer still used some (the ports it
-    sent to), so they are orphans only now; remove them as ``bearing-pose run`` would, where
-    every participant is a child that is gone by then."""
-    if group.hung_teardowns():
+    sent to, the segment it read), so they are orphans only now; remove them as ``bearing-pose
+    run`` would, where every participant is a child that is gone by then. ``hung``: such a
+    node was ended in a group the test does not hold (a launcher it ran said so)."""
+    groups = groups if isinstance(groups, list) else [groups]
+    if hung or any(group.hung_teardowns() for group in groups):
         launch.clean_shm(before)
     assert launch.leaked_shm(before) == [], 'Fast DDS files left in /dev/shm'
 
@@ -124,6 +127,7 @@ class ProcessWatch:
         self.marker = marker
         self.period = period
         self.seen: dict[int, str] = {}   # pid -> command line
+        self.groups: list[launch.ProcessGroup] = []   # the test's own, if it starts them
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._poll, daemon=True)
 
