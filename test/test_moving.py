@@ -341,5 +341,6 @@ def test_the_truth_computed_in_chunks_is_the_truth_step_by_step(repo_root, confi
             delta += body_displacement(truth.omega, truth.v_body, t, dt)
         np.testing.assert_array_equal(truth.displacement(), delta, f'step {k}')
         truth.advance()
-    used = [len(c[1]) for c in (truth._chunk, truth._body_chunk)]
+    used = [0 if c.values is None else len(c.values)
+            for c in (truth._increments, truth._body_deltas)]
     assert 50 in used and set(used) <= {0, 50}, used   # chunks in use, whole

@@ -27,6 +27,8 @@ odometry increments (body-frame rotation and displacement over a step).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -46,6 +48,25 @@ REORTHONORMALIZE_EVERY = 16
 # Steps whose rotation increments (and body-velocity displacements) are computed in one call
 # (Truth.increment, Truth.displacement).
 INCREMENT_CHUNK = 50
+
+
+class _Chunk:
+    """The values of :data:`INCREMENT_CHUNK` consecutive steps, from step ``k0`` on, of a
+    function of time alone, computed in one call when a step outside them is asked for."""
+
+    def __init__(self, compute: Callable[[Array], Array], dt: float) -> None:
+        self.compute = compute   # start times (M,) -> values (M, ...)
+        self.dt = dt
+        self.k0 = 0
+        self.values: Array | None = None
+
+    def at(self, k: int) -> Array:
+        if self.values is None or not self.k0 <= k < self.k0 + len(self.values):
+            # The start times as Truth.t gives them, so the numbers are bit for bit those of
+            # one call per step.
+            self.k0 = k
+            self.values = self.compute(np.arange(k, k + INCREMENT_CHUNK, dtype=float) * self.dt)
+        return self.values[k - self.k0]
 
 
 class Truth:
@@ -90,8 +111,9 @@ class Truth:
         self.R = np.stack([a.attitude for a in self.scenario.agents])
         self.p = np.stack([a.position for a in self.scenario.agents])
         self._next: tuple[int, Array] | None = None  # the increment from step k, once computed
-        self._chunk: tuple[int, Array] = (0, np.empty((0, 3, 3)))   # from step k0 on
-        self._body_chunk: tuple[int, Array] = (0, np.empty((0, 3)))  # body_displacement's
+        self._increments = _Chunk(lambda t: magnus_increment(self.omega, t, self.dt), self.dt)
+        self._body_deltas = _Chunk(
+            lambda t: body_displacement(self.omega, self.v_body, t, self.dt), self.dt)
         self._next_delta: tuple[int, Array] | None = None  # the displacement from step k
         self.v_control = np.zeros_like(self.p)   # the controller's held body velocities
         self.controller_yaws = None
@@ -116,18 +138,10 @@ class Truth:
             # The next INCREMENT_CHUNK steps' increments in one call (ω is a function of time
             # alone): the same numbers as one call per step, for a third of the world's cost
             # per tick (bench/world_cost.py).
-            k0, chunk = self._chunk
-            if not k0 <= self.k < k0 + len(chunk):
-                self._chunk = k0, chunk = self.k, magnus_increment(
-                    self.omega, self._chunk_times(), self.dt)
-            return chunk[self.k - k0]
+            return self._increments.at(self.k)
         if self._next is None or self._next[0] != self.k:  # measured, then stepped: once
             self._next = (self.k, self.yaws.increment(self.t, self.dt))
         return self._next[1]
-
-    def _chunk_times(self) -> Array:
-        """The start times of the next :data:`INCREMENT_CHUNK` steps, as :attr:`t` gives them."""
-        return np.arange(self.k, self.k + INCREMENT_CHUNK, dtype=float) * self.dt
 
     def displacement(self) -> Array:
         """``δ_i = R_i(t)ᵀ (p_i(t + dt) - p_i(t))`` of every agent, ``(N, 3)`` [m]: the
@@ -138,11 +152,7 @@ class Truth:
         if self._next_delta is None or self._next_delta[0] != self.k:
             delta = np.einsum('nba,nb->na', self.R, self.v_world.integral(self.t, self.dt))
             if not self.v_body.is_zero:   # a function of time alone: a chunk at once
-                k0, chunk = self._body_chunk
-                if not k0 <= self.k < k0 + len(chunk):
-                    self._body_chunk = k0, chunk = self.k, body_displacement(
-                        self.omega, self.v_body, self._chunk_times(), self.dt)
-                delta += chunk[self.k - k0]
+                delta += self._body_deltas.at(self.k)
             if not self.v_anchor.is_zero:
                 delta += held_body_displacement(self.omega, self.t, self.dt, self.commands())
             if self.control is not None:
