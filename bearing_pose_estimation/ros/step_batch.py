@@ -97,8 +97,9 @@ class StepBatch:
         t = min(est.t for est in ready)
         # What a link method's step awaits is a channel, not who sends it: only its own
         # sensors count.
-        outside = {est for est in waiting if isinstance(est, AgentEstimator)
-                   and est.awaited not in {node.agent for node in self.nodes}}
+        local = {node.agent for node in self.nodes}
+        outside = {est for est in waiting
+                   if isinstance(est, AgentEstimator) and est.awaited not in local}
         return any(abs(est.t - t) < 0.5 * est.h
                    and (not est.own_inputs_ready() or est in outside)
                    for est in waiting)
