@@ -402,8 +402,7 @@ class Failure:
     def format(self) -> str:
         text = f'{self.label} {self.reason}'
         if self.log is not None:
-            text += f'; last {len(self.log_tail)} line(s) of {self.log}:'
-            text += ''.join(f'\n  | {line}' for line in self.log_tail)
+            text += '; ' + quote_tail(self.log, self.log_tail)
         return text
 
 
@@ -434,6 +433,11 @@ def log_tail(path: Path, n: int = LOG_TAIL_LINES) -> tuple[str, ...]:
     except OSError:
         return ()
     return tuple(lines[-n:])
+
+
+def quote_tail(path: Path, lines: tuple[str, ...]) -> str:
+    """``last N line(s) of LOG:`` and the lines, quoted one per line."""
+    return f'last {len(lines)} line(s) of {path}:' + ''.join(f'\n  | {line}' for line in lines)
 
 
 def live_process_groups() -> dict[int, list[int]]:
@@ -797,9 +801,8 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
                 # A hang is in whichever process waits: every log's end says who (the
                 # simulator names the agent its clock waits for), also where the logs vanish.
                 for spec in specs:
-                    tail = log_tail(spec.log, TIMEOUT_TAIL_LINES)
-                    print(f'last {len(tail)} line(s) of {spec.log}:'
-                          + ''.join(f'\n  | {line}' for line in tail), file=sys.stderr)
+                    print(quote_tail(spec.log, log_tail(spec.log, TIMEOUT_TAIL_LINES)),
+                          file=sys.stderr)
     finally:
         result.wall_s = time.perf_counter() - wall
         left_in_shm = clean_shm(shm_before)
