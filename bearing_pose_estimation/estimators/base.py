@@ -167,14 +167,20 @@ def format_gains(gains: Any) -> str:
 
 
 # ----------------------------------------------------------------------------- edges, state
+# Above this many edges, sums over each agent's edges use a sparse incidence matrix: its
+# product beats np.add.at for thousands of edges, once built (Edges.sum_by_agent).
+SPARSE_SUM_EDGES = 256
+
+
 @dataclass(frozen=True, eq=False)
 class Edges:
     """Directed sensing edges ``i → j`` (agent i measures j), fixed for a step.
 
     ``agent[e]`` indexes the state row of the agent that owns edge ``e`` (always 0 in a node);
     ``k[e]`` is ``k_ij``. Sums over each agent's edges use a sparse ``(n_agents, E)`` incidence
-    matrix built once. Compared by identity, so a method may cache what it derives from a
-    fleet's edges.
+    matrix, built once at the first sum, for a fleet's many edges (the batch simulator's, built
+    once a run). Compared by identity, so a method may cache what it derives from a fleet's
+    edges.
     """
 
     agent: Index
@@ -200,21 +206,30 @@ class Edges:
             object.__setattr__(self, 'slot', rank.astype(np.intp))
         else:
             object.__setattr__(self, 'slot', np.asarray(self.slot, dtype=np.intp))
-        inc = None
-        if self.n_agents > 1:  # one agent (the node): a plain sum is cheaper
-            inc = sparse.csr_matrix(
-                (np.ones(n_edges), (agent, np.arange(n_edges))), shape=(self.n_agents, n_edges))
-        object.__setattr__(self, '_incidence', inc)
+        object.__setattr__(self, '_incidence', None)
         object.__setattr__(self, 'unit_k', bool(np.all(k == 1.0)))
 
     def __len__(self) -> int:
         return int(self.agent.shape[0])
 
     def sum_by_agent(self, values: Array) -> Array:
-        """``out[i] = Σ_{e: agent[e] = i} values[e]``, shape ``(n_agents, 3)``."""
-        if self._incidence is None:
+        """``out[i] = Σ_{e: agent[e] = i} values[e]``, shape ``(n_agents, ...)``, summed in
+        edge order whichever way (the same numbers, bit for bit)."""
+        if self.n_agents == 1:   # the node: a plain sum is cheaper
             return values.sum(axis=0, keepdims=True)
-        return np.asarray(self._incidence @ values)
+        if len(self) <= SPARSE_SUM_EDGES:
+            # Several agents stepped together (StepBatch): these edges serve one step, and
+            # building the sparse matrix would cost 30 times the sum.
+            out = np.zeros((self.n_agents,) + values.shape[1:])
+            np.add.at(out, self.agent, values)
+            return out
+        incidence = self._incidence
+        if incidence is None:
+            n_edges = len(self)
+            incidence = sparse.csr_matrix((np.ones(n_edges), (self.agent, np.arange(n_edges))),
+                                          shape=(self.n_agents, n_edges))
+            object.__setattr__(self, '_incidence', incidence)
+        return np.asarray(incidence @ values)
 
     def weighted(self, terms: Array) -> Array:
         """``k_ij · terms[e]`` (``terms`` itself when every ``k_ij = 1``)."""
