@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from ..core.errors import ScenarioError
 from ..core.odometry import OdometryBuffer
 from .agent import AgentEstimator, Limits, TimedAgent, _Prepared, estimator_for
-from .agent import _vector_problem as _unit_problem
+from .agent import _finite_max_norm, _vector_problem as _unit_problem
 from .base import Channel, Edges, Estimator, LinkInputs, State, StepInputs, owns_pair
 
 if TYPE_CHECKING:
@@ -328,9 +328,12 @@ class LinkAgentEstimator(TimedAgent):
         return None
 
     def _vector_problem(self, v: Array) -> str | None:
-        if v.shape != (3,) or not np.all(np.isfinite(v)):
+        if v.shape != (3,):
             return 'non_finite'
-        if float(np.max(np.abs(v))) > MAX_RANGE_M:
+        finite, largest, _ = _finite_max_norm(v)
+        if not finite:
+            return 'non_finite'
+        if largest > MAX_RANGE_M:
             return 'absurd_value'
         return None
 
