@@ -153,7 +153,9 @@ class GyroBuffer(IntervalBuffer):
 
 def _rotation(segments: list[tuple[NDArray[np.float64], float]]) -> NDArray[np.float64]:
     """The product of ``exp(ω Δ)`` over the segments."""
-    R = np.eye(3)
-    for omega, duration in segments:
+    if not segments:
+        return np.eye(3)
+    R = so3.exp(segments[0][0] * segments[0][1])   # not I @ exp(...): the same numbers
+    for omega, duration in segments[1:]:
         R = R @ so3.exp(omega * duration)
     return R

@@ -345,7 +345,7 @@ class TimedAgent:
         end = self.gyro.end
         if self.odometry_live():
             end = min(end, self.odometry.end)
-        return max(0, int(np.floor((end - self.t) / self.h + 1e-9)))
+        return max(0, math.floor((end - self.t) / self.h + 1e-9))
 
     def own_inputs_ready(self) -> bool:
         """Own gyro (and live odometry) cover the next step: only what comes from others
