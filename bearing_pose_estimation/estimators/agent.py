@@ -313,7 +313,7 @@ class TimedAgent:
         v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
         if not self.uses_odometry:
             return 'unused'
-        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(omega)) and np.isfinite(stamp)):
+        if not (np.isfinite(v).all() and np.isfinite(omega).all() and np.isfinite(stamp)):
             return 'non_finite'
         if float(np.linalg.norm(omega)) > lim.max_rate:
             return 'absurd_rate'
@@ -499,7 +499,7 @@ class AgentEstimator(TimedAgent):
             if v.shape != channel.shape:
                 return 'malformed'
             mine[name] = v
-        if not (np.isfinite(stamp) and all(np.all(np.isfinite(v)) for name, v in mine.items()
+        if not (np.isfinite(stamp) and all(np.isfinite(v).all() for name, v in mine.items()
                                            if not self.channels[name].unit)):
             return 'non_finite'
         for name, v in mine.items():
@@ -524,7 +524,7 @@ class AgentEstimator(TimedAgent):
     def set_known_pose(self, stamp: float, R: Array, p: Array) -> str | None:
         """Leader mode: the true pose at ``stamp`` (e.g. from motion capture or GNSS/INS)."""
         R, p = np.asarray(R, dtype=float), np.asarray(p, dtype=float)
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p)) and np.isfinite(stamp)):
+        if not (np.isfinite(R).all() and np.isfinite(p).all() and np.isfinite(stamp)):
             return 'non_finite'
         self._known_poses.append((float(stamp), R, p))
         if not self._pose_stamps or stamp > self._pose_stamps[-1]:

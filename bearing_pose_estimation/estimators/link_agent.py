@@ -261,7 +261,7 @@ class LinkAgentEstimator(TimedAgent):
         """Another robot's odometry sample into ``odometry``, or why not: non-finite, absurd,
         out of order; its clock restarted or a gap: the integration restarts."""
         v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
-        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(omega)) and np.isfinite(stamp)):
+        if not (np.isfinite(v).all() and np.isfinite(omega).all() and np.isfinite(stamp)):
             return 'non_finite'
         if (float(np.linalg.norm(omega)) > self.limits.max_rate
                 or float(np.linalg.norm(v)) > self.limits.max_speed):
@@ -300,7 +300,7 @@ class LinkAgentEstimator(TimedAgent):
             mine[name] = v
         if not mine:
             return 'not_seen'
-        if not (np.isfinite(stamp) and all(np.all(np.isfinite(v)) for v in mine.values())):
+        if not (np.isfinite(stamp) and all(np.isfinite(v).all() for v in mine.values())):
             return 'non_finite'
         if any(float(np.max(np.abs(v))) > MAX_RANGE_M for v in mine.values()):
             return 'absurd_value'

@@ -425,7 +425,7 @@ class TwoRoundAgent(LinkAgentEstimator):
 
 def _rate_problem(v: Array) -> str | None:
     """Why ``v`` is not a usable bearing rate, or None."""
-    if v.shape != (3,) or not np.all(np.isfinite(v)):
+    if v.shape != (3,) or not np.isfinite(v).all():
         return 'non_finite'
     return 'absurd_value' if np.max(np.abs(v)) > MAX_BEARING_RATE else None
 
