@@ -34,3 +34,10 @@ def test_sums_by_agent_are_the_edges_added_in_order(n_edges, width):
     one = Edges(agent=np.zeros(7, dtype=np.intp), k=np.ones(7), n_agents=1)
     np.testing.assert_array_equal(one.sum_by_agent(values[:7]),
                                   in_edge_order(np.zeros(7, dtype=np.intp), values[:7], 1))
+
+
+def test_complex_values_are_summed_too():
+    """A method may sum complex per-edge terms (yaw phasors): no cast to real on the way."""
+    edges = Edges(agent=np.array([0, 0, 2]), k=np.ones(3), n_agents=3)
+    np.testing.assert_array_equal(edges.sum_by_agent(np.array([1j, 2.0, 3.0 - 1j])),
+                                  [2.0 + 1j, 0.0, 3.0 - 1j])

@@ -221,7 +221,8 @@ class Edges:
         if len(self) <= SPARSE_SUM_EDGES:
             # Several agents stepped together (StepBatch): these edges serve one step, and
             # building the sparse matrix would cost 20 times the sum.
-            out = np.zeros((self.n_agents,) + values.shape[1:])
+            out = np.zeros((self.n_agents,) + values.shape[1:],
+                           dtype=np.result_type(values.dtype, float))   # complex too
             np.add.at(out, self.agent, values)
             return out
         incidence = self._incidence
