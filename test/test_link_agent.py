@@ -144,3 +144,24 @@ def test_an_owner_says_when_it_has_no_relative_yaw_yet():
     assert r1.add_neighbour(1, 0.02, {'relyaw': {99: np.array([1.0, 0.0])}}) == 'not_seen'
     assert r1.add_neighbour(1, 0.02, {'relyaw': {2: np.array([0.0, 3.0])}}) == 'not_unit'
     assert r0.add_neighbour(2, 0.0, {'relyaw': {1: np.zeros(2)}}) == 'zero_vector'
+
+
+def test_a_link_finds_a_value_by_its_stamp_among_many():
+    """``Link.value_at``: j's value stamped t among a full history (a step that waited looks
+    back), none between two stamps or before the oldest (decided: a newer one is here), none
+    yet after the newest (not decided: it may still come)."""
+    s = scenario()
+    r1 = link_estimator_for(s, 'robot_1')
+    link = next(lk for lk in r1.links if lk.name == 'robot_0')
+    stamps = 0.01 * np.arange(300)   # more than the history holds: the oldest drop out
+    for t in stamps:
+        if t > 0:   # the gyro covers j's stamps: else they are "future"
+            assert r1.add_gyro(float(t), np.zeros(3)) is None
+        assert r1.add_neighbour(1, float(t), {'z_hat': np.array([np.cos(t), np.sin(t)])}) is None
+    kept = stamps[-len(link.history['z_hat']):]
+    for t in (kept[0], kept[17], kept[-2], kept[-1]):
+        value, decided = link.value_at('z_hat', float(t) + 4e-10)   # rounding: still t
+        assert decided and np.array_equal(value, [np.cos(t), np.sin(t)]), t
+    for t in (kept[5] + 0.005, kept[0] - 0.01, stamps[0]):
+        assert link.value_at('z_hat', float(t)) == (None, True), t
+    assert link.value_at('z_hat', float(kept[-1]) + 0.01) == (None, False)

@@ -88,6 +88,8 @@ class Link:
         for stamp, value in reversed(hist):
             if abs(stamp - t) < 1e-9:
                 return value, True
+            if stamp < t:
+                break   # stamps increase (add_neighbour): the rest are older still
         return None, hist[-1][0] > t + 1e-9
 
 
