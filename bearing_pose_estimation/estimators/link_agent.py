@@ -121,6 +121,16 @@ def _interpolated(samples: deque[tuple[float, Array]], t: float,
     return (1.0 - w) * a + w * b, True
 
 
+def _bounded_problem(v: Array, bound: float) -> str | None:
+    """Why ``v`` is not a finite 3-vector with every entry within ``±bound``, or None."""
+    if v.shape != (3,):
+        return 'non_finite'
+    finite, largest, _ = _finite_max_norm(v)
+    if not finite:
+        return 'non_finite'
+    return 'absurd_value' if largest > bound else None
+
+
 def _rotation_of(odometry: OdometryBuffer) -> Callable[[float, float], Array]:
     """``rotate(s, t) = R(t)ᵀ R(s)`` from a neighbour's odometry (either order)."""
     def rotate(s: float, t: float) -> Array:
@@ -330,14 +340,7 @@ class LinkAgentEstimator(TimedAgent):
         return None
 
     def _vector_problem(self, v: Array) -> str | None:
-        if v.shape != (3,):
-            return 'non_finite'
-        finite, largest, _ = _finite_max_norm(v)
-        if not finite:
-            return 'non_finite'
-        if largest > MAX_RANGE_M:
-            return 'absurd_value'
-        return None
+        return _bounded_problem(v, MAX_RANGE_M)
 
     # ------------------------------------------------------------------------------ stepping
     def stale_neighbours(self, t: float) -> list[str]:

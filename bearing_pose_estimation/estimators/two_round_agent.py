@@ -45,7 +45,7 @@ from ..core.bearing_rates import BearingRateFilter
 from ..core.odometry import OdometryBuffer
 from .agent import Limits, _Prepared, _vector_problem
 from .base import AnchorInputs, Edges, Estimator, LinkInputs, State, StepInputs
-from .link_agent import _HISTORY, Link, LinkAgentEstimator, _interpolated
+from .link_agent import _HISTORY, Link, LinkAgentEstimator, _bounded_problem, _interpolated
 
 if TYPE_CHECKING:
     from ..scenario.model import Scenario
@@ -425,9 +425,7 @@ class TwoRoundAgent(LinkAgentEstimator):
 
 def _rate_problem(v: Array) -> str | None:
     """Why ``v`` is not a usable bearing rate, or None."""
-    if v.shape != (3,) or not np.isfinite(v).all():
-        return 'non_finite'
-    return 'absurd_value' if np.max(np.abs(v)) > MAX_BEARING_RATE else None
+    return _bounded_problem(v, MAX_BEARING_RATE)
 
 
 def _waiting(link: Link, name: str, t: float) -> bool:
