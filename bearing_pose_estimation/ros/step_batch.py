@@ -106,10 +106,12 @@ class StepBatch:
 
     def flush(self) -> None:
         """Every step the asking agents have ready, one step of all of them at a time."""
-        nodes = list(self.pending)
+        ready = list(self.pending)
         self.pending.clear()
         while True:
-            ready = [n for n in nodes if n.est is not None and n.est.steps_ready() > 0]
+            # An agent with no step ready stays so until a message comes (none is handled
+            # here): only those that stepped are asked again.
+            ready = [n for n in ready if n.est is not None and n.est.steps_ready() > 0]
             if not ready:
                 return
             for node in ready:
