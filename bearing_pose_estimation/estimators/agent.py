@@ -438,7 +438,7 @@ class AgentEstimator(TimedAgent):
         self._bearing_stamps: deque[float] = deque(maxlen=2)   # of the bearing messages
         self._pose_stamps: deque[float] = deque(maxlen=2)
         self.impatient = False
-        self._required = [name for name, c in self.channels.items() if not c.optional]
+        self._required = {name for name, c in self.channels.items() if not c.optional}
         self._ready_k = 0   # steps before this one had their awaited inputs (steps_ready)
         self.awaited: str | None = None   # what the latest waiting step waited for
         # Steps that went on without an awaited input (lost, or waited out): per what.
@@ -591,10 +591,17 @@ class AgentEstimator(TimedAgent):
         due = t + 1e-9 - ex.publish_period   # a newest stamp at or before this: one is due
         for nb in self.neighbours:
             heard = nb.heard
-            if max(heard.values(), default=self.t0) < alive:
-                continue   # silent (since t0 if never heard): not waited for
-            if (any(heard.get(name, -np.inf) <= due for name in self._required)
-                    or any(stamp <= due for stamp in heard.values())):
+            if not heard:
+                if self.t0 < alive:
+                    continue   # silent since t0: not waited for
+                if self._required:
+                    return nb.name
+                continue
+            stamps = heard.values()
+            if max(stamps) < alive:
+                continue   # silent: not waited for
+            # A required channel never heard, or one whose newest stamp is due for a newer.
+            if min(stamps) <= due or not self._required <= heard.keys():
                 return nb.name
         return None
 
