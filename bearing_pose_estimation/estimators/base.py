@@ -199,8 +199,11 @@ class Edges:
         object.__setattr__(self, 'agent', agent)
         object.__setattr__(self, 'k', k)
         n_edges = agent.shape[0]
-        if self.slot is None:   # rank among the agent's edges (they come grouped by agent)
-            first = np.searchsorted(agent, agent) if np.all(np.diff(agent) >= 0) else None
+        if self.slot is None and self.n_agents == 1:   # a node's one agent: in edge order
+            object.__setattr__(self, 'slot', np.arange(n_edges, dtype=np.intp))
+        elif self.slot is None:   # rank among the agent's edges (they come grouped by agent)
+            first = (np.searchsorted(agent, agent) if (agent[1:] >= agent[:-1]).all()
+                     else None)
             rank = (np.arange(n_edges) - first if first is not None
                     else np.array([np.count_nonzero(agent[:e] == agent[e])
                                    for e in range(n_edges)]))
@@ -208,7 +211,7 @@ class Edges:
         else:
             object.__setattr__(self, 'slot', np.asarray(self.slot, dtype=np.intp))
         object.__setattr__(self, '_incidence', None)
-        object.__setattr__(self, 'unit_k', bool(np.all(k == 1.0)))
+        object.__setattr__(self, 'unit_k', bool((k == 1.0).all()))
 
     def __len__(self) -> int:
         return int(self.agent.shape[0])
