@@ -114,6 +114,7 @@ def test_bad_inputs_are_rejected_with_their_cause(case1):
                                                          'unknown_id']
     assert r4.add_neighbour_odometry(1, t + 0.01, [np.nan, 0, 0], [0, 0, 0]) == 'non_finite'
     assert r4.add_neighbour_odometry(1, t + 0.01, [0, 0, 0], [0, 0, 100.0]) == 'absurd_rate'
+    assert r4.add_neighbour_odometry(1, t + 0.01, [1e3, 0, 0], [0, 0, 0]) == 'absurd_speed'
     assert r4.add_neighbour_odometry(2, t + 0.01, [0, 0, 0], [0, 0, 0]) == 'unknown_id'
     assert r4.add_neighbour(1, t, {'angle_gradient': {4: np.array([np.nan, 0, 0])}}) \
         == 'non_finite'

@@ -210,6 +210,20 @@ def _vector_problem(v: Array, tolerance: float) -> str | None:
     return None
 
 
+def _twist_problem(stamp: float, v: Array, omega: Array, limits: Limits) -> str | None:
+    """Why an odometry twist (``v`` [m/s], ``omega`` [rad/s] at ``stamp``) is unusable, or
+    None: any entry not finite, a rate above ``max_rate``, a speed above ``max_speed``."""
+    finite_v, _, speed = _finite_max_norm(v)
+    finite_w, _, rate = _finite_max_norm(omega)
+    if not (finite_v and finite_w and math.isfinite(stamp)):
+        return 'non_finite'
+    if rate > limits.max_rate:
+        return 'absurd_rate'
+    if speed > limits.max_speed:
+        return 'absurd_speed'
+    return None
+
+
 class TimedAgent:
     """What every agent's logic shares, whatever its method's measurements: the state, the
     fixed step grid, the gyro and odometry buffers and their time rules (:class:`AgentEstimator`
@@ -313,12 +327,9 @@ class TimedAgent:
         v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
         if not self.uses_odometry:
             return 'unused'
-        if not (np.isfinite(v).all() and np.isfinite(omega).all() and np.isfinite(stamp)):
-            return 'non_finite'
-        if float(np.linalg.norm(omega)) > lim.max_rate:
-            return 'absurd_rate'
-        if float(np.linalg.norm(v)) > lim.max_speed:
-            return 'absurd_speed'
+        problem = _twist_problem(stamp, v, omega, lim)
+        if problem is not None:
+            return problem
         if now is not None and stamp > now + lim.max_future:
             return 'future_stamp'
         end = self.odometry.end

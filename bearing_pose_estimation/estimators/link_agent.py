@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from ..core.errors import ScenarioError
 from ..core.odometry import OdometryBuffer
 from .agent import AgentEstimator, Limits, TimedAgent, _Prepared, estimator_for
-from .agent import _finite_max_norm, _vector_problem as _unit_problem
+from .agent import _finite_max_norm, _twist_problem, _vector_problem as _unit_problem
 from .base import Channel, Edges, Estimator, LinkInputs, State, StepInputs, owns_pair
 
 if TYPE_CHECKING:
@@ -273,11 +273,9 @@ class LinkAgentEstimator(TimedAgent):
         """Another robot's odometry sample into ``odometry``, or why not: non-finite, absurd,
         out of order; its clock restarted or a gap: the integration restarts."""
         v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
-        if not (np.isfinite(v).all() and np.isfinite(omega).all() and np.isfinite(stamp)):
-            return 'non_finite'
-        if (float(np.linalg.norm(omega)) > self.limits.max_rate
-                or float(np.linalg.norm(v)) > self.limits.max_speed):
-            return 'absurd_rate'
+        problem = _twist_problem(stamp, v, omega, self.limits)
+        if problem is not None:
+            return problem
         end = odometry.end
         if stamp <= end:
             if stamp < end - self.limits.jump_back:   # j restarted its clock
