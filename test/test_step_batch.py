@@ -3,6 +3,7 @@ already queued, waiting briefly for an agent due at the same instant, never fore
 executor and the agents are stand-ins: what matters here is the order of events."""
 from __future__ import annotations
 
+import time
 from collections import deque
 
 import pytest
@@ -138,3 +139,41 @@ def test_a_queue_that_never_empties_still_gets_its_steps(rounds):
     batch.settle(ex)                  # type: ignore[arg-type]
     assert rounds and rounds[0][0] == 'a'
     assert len(ex.spins) <= step_batch.MAX_SPINS + len(rounds)
+
+
+def _burn(seconds: float) -> None:
+    """Spend ``seconds`` of this thread's CPU."""
+    end = time.thread_time() + seconds
+    while time.thread_time() < end:
+        pass
+
+
+def test_the_cpu_split_puts_each_part_where_it_was_spent(monkeypatch):
+    """``cpu_split`` (the process's last log line with BEARING_POSE_CPU_SPLIT=1): a callback's
+    CPU counts as messages, the steps' call as steps, what the nodes do around it (publishing)
+    as that, and none of them twice."""
+    def advance_together(agents):
+        _burn(0.03)
+        for a in agents:
+            a.ready -= 1
+        return agents
+    monkeypatch.setattr(step_batch, 'advance_together', advance_together)
+    batch = StepBatch(time_callbacks=True)
+    node = Node(batch, 'a')
+    monkeypatch.setattr(node, 'after_step', lambda: _burn(0.02))
+
+    def arrive(_msg: object) -> None:
+        _burn(0.01)
+        node.est.ready += 1
+        batch.request(node)   # type: ignore[arg-type]
+    ex = Executor()
+    ex.queue.append(lambda: batch.counted(arrive)(None))
+    ex.spin_once()
+    batch.settle(ex)                  # type: ignore[arg-type]
+    assert 0.01e9 <= batch.cpu_callbacks < 0.015e9
+    assert 0.03e9 <= batch.cpu_steps < 0.035e9
+    assert 0.02e9 <= batch.cpu_flush < 0.025e9
+    split = batch.cpu_split()
+    assert split.startswith('messages 0.01 s (1 callbacks,')
+    assert 'steps 0.03 s (1 agent-steps' in split
+    assert StepBatch().cpu_split().startswith('messages not timed, steps 0.00 s')

@@ -14,11 +14,14 @@ With ``use_sim_time``, the process reads ``/clock`` once: the first agent's time
 every agent's clock (:func:`share_clock`). The first agent's ``use_sim_time`` then rules them
 all. The agents' steps run together, one call of the method's step for all those ready once
 the queued messages are handled (:mod:`.step_batch`; ``--separate-steps``: each agent on its
-own, for comparisons).
+own, for comparisons). With ``BEARING_POSE_CPU_SPLIT=1`` in its environment the process also
+times its callbacks (~0.1 % of a core per agent) and its last log lines say where its CPU went
+(:meth:`.step_batch.StepBatch.cpu_split`; ``bench/cpu_split.py``).
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -33,6 +36,8 @@ from .estimator_node import EstimatorNode
 from .node_main import run_node
 from .step_batch import StepBatch
 from ..core.errors import ScenarioError
+
+CPU_SPLIT_ENV = 'BEARING_POSE_CPU_SPLIT'
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -88,12 +93,14 @@ def share_clock(nodes: Sequence[Node]) -> None:
 def main(args: list[str] | None = None) -> None:
     argv = sys.argv if args is None else args
     opts = parse_args(argv)
-    batch = None if opts.separate_steps or len(opts.agents) < 2 else StepBatch()
+    batch = (None if opts.separate_steps or len(opts.agents) < 2
+             else StepBatch(time_callbacks=os.environ.get(CPU_SPLIT_ENV) == '1'))
 
     def report(_node: Node) -> None:
         if batch is not None:
-            rclpy.logging.get_logger('estimators').info(
-                f'steps run together: {batch.summary()}')
+            logger = rclpy.logging.get_logger('estimators')
+            logger.info(f'steps run together: {batch.summary()}')
+            logger.info(f'CPU: {batch.cpu_split()}')
 
     raise SystemExit(run_node(lambda: _nodes(opts, batch), 'estimators', argv,
                               on_interrupt=report,

@@ -1,0 +1,120 @@
+"""Where an ``estimators`` process's CPU goes, per agent and simulated second, against what
+the same steps cost with no DDS and no other process running.
+
+Runs ``bearing-pose run SCENARIO --agents-per-process K --real-time-factor 1`` with
+``BEARING_POSE_CPU_SPLIT=1``: each ``estimators`` process times its callbacks and its steps
+and logs the split when it stops (:meth:`ros.step_batch.StepBatch.cpu_split`). Then runs the
+same scenario in netsim (``sim.netsim``: the same agents, steps together, no DDS, one process)
+and times the same step calls there. Prints, per part, the CPU in % of one core per agent at
+real time and, for the steps and the messages, per call.
+
+    OMP_NUM_THREADS=1 .venv/bin/python bench/cpu_split.py [--scenario config/paper_8_agents.yaml]
+        [--per-process 8] [--duration 40]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import tempfile
+import time
+from pathlib import Path
+
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+from bearing_pose_estimation.cli import launch  # noqa: E402
+from bearing_pose_estimation.ros.estimator_group import CPU_SPLIT_ENV  # noqa: E402
+from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
+from bearing_pose_estimation.sim import netsim  # noqa: E402
+
+_SECONDS = r'(\S+) s'
+_PART = _SECONDS + r' \((\d+) [a-z-]+, \S+ µs each\)'
+_SPLIT = re.compile(r'CPU: messages ' + _PART + r', steps ' + _PART
+                    + r', around them \(readiness, publishing\) ' + _PART
+                    + r', executor and the rest ' + _SECONDS
+                    + r'; other threads \(DDS\) ' + _SECONDS)
+
+
+def dds_split(scenario_file: Path, per_process: int, duration: float,
+              tmp: Path) -> dict[str, tuple[float, int]]:
+    """Summed over the ``estimators`` processes: each part's CPU [s] and its count."""
+    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp / 'run', duration=duration,
+                           domain_id=1 + os.getpid() % 101, real_time_factor=1.0, plots=False,
+                           agents_per_process=per_process, timeout=20 * duration + 300)
+    os.environ[CPU_SPLIT_ENV] = '1'
+    result = launch.launch_run(load_scenario(scenario_file), cfg)
+    if not result.ok:
+        raise SystemExit(f'the run failed: see {cfg.logs_dir}')
+    parts = {k: (0.0, 0) for k in ('messages', 'steps', 'around', 'executor', 'dds')}
+    found = 0
+    for log in cfg.logs_dir.glob('*.log'):
+        for m in _SPLIT.finditer(log.read_text()):
+            found += 1
+            values = m.groups()
+            for key, (s, n) in zip(('messages', 'steps', 'around'),
+                                   zip(values[0:6:2], values[1:6:2])):
+                parts[key] = (parts[key][0] + float(s), parts[key][1] + int(n))
+            for key, s in zip(('executor', 'dds'), values[6:]):
+                parts[key] = (parts[key][0] + float(s), 0)
+    if not found:
+        raise SystemExit(f'no "CPU:" line in {cfg.logs_dir}: one agent per process has no split')
+    return parts
+
+
+def netsim_steps(scenario_file: Path, duration: float) -> tuple[float, int, float]:
+    """netsim's step calls (:func:`estimators.agent.advance_together`): CPU [s], agent-steps,
+    and the whole run's CPU [s] (with its world and exchanges)."""
+    spent, steps = [0], [0]
+    original = netsim.advance_together
+
+    def timed(agents: list) -> list:
+        start = time.thread_time_ns()
+        stepped = original(agents)
+        spent[0] += time.thread_time_ns() - start
+        steps[0] += len(stepped)
+        return stepped
+    netsim.advance_together = timed
+    try:
+        start = time.process_time()
+        netsim.simulate_network(load_scenario(scenario_file), duration)
+        total = time.process_time() - start
+    finally:
+        netsim.advance_together = original
+    return spent[0] * 1e-9, steps[0], total
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--scenario', type=Path, default=Path('config/paper_8_agents.yaml'))
+    parser.add_argument('--per-process', type=int, default=8)
+    parser.add_argument('--duration', type=float, default=40.0)
+    args = parser.parse_args()
+    n = len(load_scenario(args.scenario).agents)
+    with tempfile.TemporaryDirectory() as tmp:
+        parts = dds_split(args.scenario, args.per_process, args.duration, Path(tmp))
+    iso_s, iso_steps, iso_total = netsim_steps(args.scenario, args.duration)
+
+    def pct(seconds: float) -> str:
+        return f'{100 * seconds / (n * args.duration):.2f} %'
+
+    total = sum(s for s, _ in parts.values())
+    print(f'{args.scenario}, {n} agents, {args.per_process} per process, '
+          f'{args.duration:g} s at real time')
+    print('| part | CPU per agent | calls | µs per call |')
+    print('|---|---|---|---|')
+    for key, label in (('messages', 'callbacks (decode, check, store)'),
+                       ('steps', 'steps (advance_together)'),
+                       ('around', 'around the steps (readiness, publishing)'),
+                       ('executor', 'executor and the rest of the main thread'),
+                       ('dds', 'other threads (DDS)')):
+        s, count = parts[key]
+        per = f'{1e6 * s / count:.0f}' if count else ''
+        print(f'| {label} | {pct(s)} | {count or ""} | {per} |')
+    print(f'| all | {pct(total)} | | |')
+    print(f'| steps in netsim (no DDS, one process) | {pct(iso_s)} | {iso_steps} '
+          f'| {1e6 * iso_s / max(iso_steps, 1):.0f} |')
+    print(f'| netsim whole (world, exchanges, steps) | {pct(iso_total)} | | |')
+
+
+if __name__ == '__main__':
+    main()
