@@ -18,15 +18,19 @@ import os
 import re
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TypeVar
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from bearing_pose_estimation.cli import launch  # noqa: E402
+from bearing_pose_estimation.estimators.agent import TimedAgent  # noqa: E402
 from bearing_pose_estimation.ros.estimator_group import CPU_SPLIT_ENV  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 from bearing_pose_estimation.sim import netsim  # noqa: E402
 
+T = TypeVar('T', bound=TimedAgent)
 _SECONDS = r'(\S+) s'
 _PART = _SECONDS + r' \((\d+) [a-z-]+, \S+ µs each\)'
 _SPLIT = re.compile(r'CPU: messages ' + _PART + r', steps ' + _PART
@@ -67,7 +71,7 @@ def netsim_steps(scenario_file: Path, duration: float) -> tuple[float, int, floa
     spent, steps = [0], [0]
     original = netsim.advance_together
 
-    def timed(agents: list) -> list:
+    def timed(agents: Sequence[T]) -> list[T]:
         start = time.thread_time_ns()
         stepped = original(agents)
         spent[0] += time.thread_time_ns() - start
