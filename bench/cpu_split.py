@@ -5,11 +5,13 @@ Runs ``bearing-pose run SCENARIO --agents-per-process K --real-time-factor 1`` w
 ``BEARING_POSE_CPU_SPLIT=1``: each ``estimators`` process times its callbacks and its steps
 and logs the split when it stops (:meth:`ros.step_batch.StepBatch.cpu_split`). Then runs the
 same scenario in netsim (``sim.netsim``: the same agents, steps together, no DDS, one process)
-and times the same step calls there. Prints, per part, the CPU in % of one core per agent at
-real time and, for the steps and the messages, per call.
+and times the same step calls there, and one follower's IMU callback on its own (its node
+built in this process, fed encoded samples, no executor). Prints, per part, the CPU in % of one
+core per agent at real time and, for the steps and the messages, per call. ``--netsim-only``:
+the netsim rows alone (any fleet size; the DDS run needs at least two agents per process).
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/cpu_split.py [--scenario config/paper_8_agents.yaml]
-        [--per-process 8] [--duration 40]
+        [--per-process 8] [--duration 40] [--netsim-only]
 """
 from __future__ import annotations
 
@@ -87,19 +89,64 @@ def netsim_steps(scenario_file: Path, duration: float) -> tuple[float, int, floa
     return spent[0] * 1e-9, steps[0], total
 
 
+def imu_callback_us(params_dir: Path, agent: str, samples: int = 4000) -> float:
+    """One IMU sample's callback on its own [µs of CPU]: ``agent``'s node built as
+    ``estimators`` builds it (its parameter file of the run), fed encoded samples at 200 Hz
+    without an executor; the batch's requests are dropped (no step runs)."""
+    import numpy as np
+    import rclpy
+    from bearing_pose_estimation.msg_defs import cdr
+    from bearing_pose_estimation.ros.estimator_node import EstimatorNode
+    from bearing_pose_estimation.ros.step_batch import StepBatch
+
+    rclpy.init()
+    try:
+        batch = StepBatch()
+        node = EstimatorNode(batch, namespace=f'/{agent}', cli_args=[
+            '--ros-args', '--params-file', str(params_dir / f'{agent}.yaml')])
+        omega = np.array([0.3, -0.2, 0.5])
+        msgs = [cdr.encode_imu_raw(k * 0.005, agent, omega) for k in range(samples + 1)]
+        node.on_imu(msgs[0])   # builds the estimator
+        start = time.thread_time_ns()
+        for msg in msgs[1:]:
+            node.on_imu(msg)
+            batch.pending.clear()
+        spent = time.thread_time_ns() - start
+        node.destroy_node()
+    finally:
+        rclpy.shutdown()
+    return spent * 1e-3 / samples
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--scenario', type=Path, default=Path('config/paper_8_agents.yaml'))
     parser.add_argument('--per-process', type=int, default=8)
     parser.add_argument('--duration', type=float, default=40.0)
+    parser.add_argument('--netsim-only', action='store_true',
+                        help='only the steps in netsim (no DDS run)')
     args = parser.parse_args()
-    n = len(load_scenario(args.scenario).agents)
-    with tempfile.TemporaryDirectory() as tmp:
-        parts = dds_split(args.scenario, args.per_process, args.duration, Path(tmp))
+    scenario = load_scenario(args.scenario)
+    n = len(scenario.agents)
     iso_s, iso_steps, iso_total = netsim_steps(args.scenario, args.duration)
 
     def pct(seconds: float) -> str:
         return f'{100 * seconds / (n * args.duration):.2f} %'
+
+    def print_netsim() -> None:
+        print(f'| steps in netsim (no DDS, one process) | {pct(iso_s)} | {iso_steps} '
+              f'| {1e6 * iso_s / max(iso_steps, 1):.0f} |')
+        print(f'| netsim whole (world, exchanges, steps) | {pct(iso_total)} | | |')
+
+    if args.netsim_only:
+        print(f'{args.scenario}, {n} agents, {args.duration:g} s in netsim')
+        print('| part | CPU per agent | calls | µs per call |')
+        print('|---|---|---|---|')
+        return print_netsim()
+    with tempfile.TemporaryDirectory() as tmp:
+        parts = dds_split(args.scenario, args.per_process, args.duration, Path(tmp))
+        follower = next(a.name for a in scenario.agents if a.name not in scenario.leaders)
+        imu_us = imu_callback_us(Path(tmp) / 'run' / 'params', follower)
 
     total = sum(s for s, _ in parts.values())
     print(f'{args.scenario}, {n} agents, {args.per_process} per process, '
@@ -115,9 +162,8 @@ def main() -> None:
         per = f'{1e6 * s / count:.0f}' if count else ''
         print(f'| {label} | {pct(s)} | {count or ""} | {per} |')
     print(f'| all | {pct(total)} | | |')
-    print(f'| steps in netsim (no DDS, one process) | {pct(iso_s)} | {iso_steps} '
-          f'| {1e6 * iso_s / max(iso_steps, 1):.0f} |')
-    print(f'| netsim whole (world, exchanges, steps) | {pct(iso_total)} | | |')
+    print_netsim()
+    print(f'| one IMU callback of {follower} on its own (no executor) | | | {imu_us:.0f} |')
 
 
 if __name__ == '__main__':
