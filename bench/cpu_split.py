@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import tempfile
 import time
 from collections.abc import Sequence
@@ -29,24 +28,18 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 from bearing_pose_estimation.cli import launch  # noqa: E402
 from bearing_pose_estimation.estimators.agent import TimedAgent  # noqa: E402
 from bearing_pose_estimation.ros.estimator_group import CPU_SPLIT_ENV  # noqa: E402
+from bearing_pose_estimation.ros.step_batch import read_cpu_split  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 from bearing_pose_estimation.sim import netsim  # noqa: E402
+from fleet_scale import run_config  # noqa: E402  (this folder: the same paced run)
 
 T = TypeVar('T', bound=TimedAgent)
-_SECONDS = r'(\S+) s'
-_PART = _SECONDS + r' \((\d+) [a-z-]+, \S+ µs each\)'
-_SPLIT = re.compile(r'CPU: messages ' + _PART + r', steps ' + _PART
-                    + r', around them \(readiness, publishing\) ' + _PART
-                    + r', executor and the rest ' + _SECONDS
-                    + r'; other threads \(DDS\) ' + _SECONDS)
 
 
 def dds_split(scenario_file: Path, per_process: int, duration: float,
               tmp: Path) -> dict[str, tuple[float, int]]:
     """Summed over the ``estimators`` processes: each part's CPU [s] and its count."""
-    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp / 'run', duration=duration,
-                           domain_id=1 + os.getpid() % 101, real_time_factor=1.0, plots=False,
-                           agents_per_process=per_process, timeout=20 * duration + 300)
+    cfg = run_config(scenario_file, tmp / 'run', duration, 1 + os.getpid() % 101, per_process)
     os.environ[CPU_SPLIT_ENV] = '1'
     result = launch.launch_run(load_scenario(scenario_file), cfg)
     if not result.ok:
@@ -54,14 +47,11 @@ def dds_split(scenario_file: Path, per_process: int, duration: float,
     parts = {k: (0.0, 0) for k in ('messages', 'steps', 'around', 'executor', 'dds')}
     found = 0
     for log in cfg.logs_dir.glob('*.log'):
-        for m in _SPLIT.finditer(log.read_text()):
+        split = read_cpu_split(log.read_text())
+        if split is not None:
             found += 1
-            values = m.groups()
-            for key, (s, n) in zip(('messages', 'steps', 'around'),
-                                   zip(values[0:6:2], values[1:6:2])):
-                parts[key] = (parts[key][0] + float(s), parts[key][1] + int(n))
-            for key, s in zip(('executor', 'dds'), values[6:]):
-                parts[key] = (parts[key][0] + float(s), 0)
+            for key, (seconds, count) in split.items():
+                parts[key] = (parts[key][0] + seconds, parts[key][1] + count)
     if not found:
         raise SystemExit(f'no "CPU:" line in {cfg.logs_dir}: one agent per process has no split')
     return parts

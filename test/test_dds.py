@@ -23,6 +23,7 @@ from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.msg_defs import rviz
 from bearing_pose_estimation.cli.main import main
 from bearing_pose_estimation.ros.estimator_group import CPU_SPLIT_ENV
+from bearing_pose_estimation.ros.step_batch import read_cpu_split
 from bearing_pose_estimation.scenario import initial_estimates, load_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
 from bearing_pose_estimation.sim.netsim import run_network
@@ -335,20 +336,6 @@ def _agents_per_round(log: Path) -> float:
     return float(found[-1])
 
 
-def _cpu_split(log: Path) -> dict[str, tuple[float, int]]:
-    """An ``estimators`` process's last ``CPU:`` line (BEARING_POSE_CPU_SPLIT=1,
-    :meth:`ros.step_batch.StepBatch.cpu_split`): seconds and count of its callbacks, steps
-    and what surrounds the steps."""
-    part = r'(\S+) s \((\d+) [a-z-]+, \S+ µs each\)'
-    found = re.findall(rf'CPU: messages {part}, steps {part}, around them '
-                       rf'\(readiness, publishing\) {part}, executor and the rest \S+ s; '
-                       r'other threads \(DDS\) \S+ s', log.read_text())
-    assert found, f'{log}: no "CPU:" line'
-    values = found[-1]
-    return {name: (float(values[2 * k]), int(values[2 * k + 1]))
-            for k, name in enumerate(('messages', 'steps', 'around'))}
-
-
 def test_tran_method_over_dds_through_compare_distributed(tmp_path, no_leftovers, monkeypatch):
     """`compare --distributed` with method tran_anderson_ahn (four agents per process, to keep
     it short): it derives the scenario file, the nodes run Tran, Anderson & Ahn's observer
@@ -371,7 +358,8 @@ def test_tran_method_over_dds_through_compare_distributed(tmp_path, no_leftovers
     _assert_equals_netsim(method_dir / 'metrics.csv', method_dir / 'scenario.yaml')
     assert _agents_per_round(method_dir / 'logs' / 'estimators_1.log') > 1.5
     log = method_dir / 'logs' / 'estimators_1.log'
-    split = _cpu_split(log)
+    split = read_cpu_split(log.read_text())
+    assert split is not None, f'{log}: no "CPU:" line'
     steps = int(re.findall(r'steps run together: (\d+) steps', log.read_text())[-1])
     assert split['steps'][1] == split['around'][1] == steps > 3000   # 4 agents, 100 Hz, 10 s
     assert split['messages'][1] > steps and all(s > 0.0 for s, _ in split.values())

@@ -18,6 +18,7 @@ runs no callback of the process's subscriptions (counted by :meth:`StepBatch.cou
 """
 from __future__ import annotations
 
+import re
 import resource
 import time
 from collections.abc import Callable
@@ -35,6 +36,12 @@ if TYPE_CHECKING:
 # (one that never gets its inputs delays the others' steps this much, once).
 MAX_SPINS = 64
 WAIT_S = 0.002
+
+# A StepBatch.cpu_split line with its callbacks timed, as the process logs it.
+_PART = r'(\S+) s \((\d+) [a-z-]+, \S+ µs each\)'
+_CPU_LINE = re.compile(rf'CPU: messages {_PART}, steps {_PART}, around them '
+                       rf'\(readiness, publishing\) {_PART}, executor and the rest (\S+) s; '
+                       r'other threads \(DDS\) (\S+) s')
 
 
 class StepBatch:
@@ -87,7 +94,7 @@ class StepBatch:
 
     def counted(self, callback: Callable[[Any], None]) -> Callable[[Any], None]:
         """``callback``, counting its runs (what tells :meth:`settle` the queue is empty)
-        and their CPU time."""
+        and, with ``time_callbacks``, their CPU time."""
         if not self.time_callbacks:
             def count(msg: Any) -> None:
                 self.callbacks += 1
@@ -173,3 +180,17 @@ class StepBatch:
             self.steps += len(stepped)
             for node in ready:
                 node.after_step()
+
+
+def read_cpu_split(text: str) -> dict[str, tuple[float, int]] | None:
+    """The last :meth:`StepBatch.cpu_split` line with timed callbacks in a log's ``text``:
+    CPU seconds and count of ``messages`` (callbacks), ``steps`` and ``around`` (agent-steps),
+    seconds of ``executor`` and ``dds`` (count 0); None if there is none."""
+    found = _CPU_LINE.findall(text)
+    if not found:
+        return None
+    v = found[-1]
+    parts = {name: (float(v[2 * k]), int(v[2 * k + 1]))
+             for k, name in enumerate(('messages', 'steps', 'around'))}
+    parts.update(executor=(float(v[6]), 0), dds=(float(v[7]), 0))
+    return parts
