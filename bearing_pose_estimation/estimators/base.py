@@ -5,31 +5,32 @@ A method is a subclass of :class:`Estimator`, registered under the scenario's ``
 
 - ``Gains``: a frozen dataclass whose fields are the YAML keys of ``gains:`` and the estimator
   node's parameter names, each with a default, a help text and a range (:func:`gain`);
-- ``roles``: the special agents it needs (:class:`Roles`: two leaders today; later one anchor,
-  or none);
-- ``sensors``: what it consumes (:class:`Sensor`), and ``optional_sensors`` what it uses when
-  available (odometry for the feed-forward of the leader-follower methods);
+- ``roles``: the special agents it needs (:class:`Roles`: two leaders, one anchor, or none);
+- ``sensors``: what each agent measures (:class:`Sensor`), and ``optional_sensors`` what it
+  uses when available (odometry for the feed-forward of the leader-follower methods);
+- ``links``: its edges: ``'sensing'``, one per neighbour ``j ∈ N_i`` (agent i senses j and
+  listens to it), or ``'communication'``, one per communication neighbour (i senses j, j senses
+  i, or the anchor ranges one of them), with flags saying which (:func:`edge_table`);
 - ``sends``: what each agent sends the agents that listen to it (:class:`Channel`: per agent
-  or per sensing edge, with its frame);
+  or per edge, on which edges it travels, how a receiver pairs it with its step, its wire
+  kind), over ``rounds`` rounds of messages per step;
+- how its own point sensors pair with a step (``own_pairing``), whose odometry it reads
+  besides its own (``peer_odometry``) and whether its step takes edges with inputs missing
+  (``partial_edges``, with masks) or only complete ones;
 - ``frame``: how its estimates are expressed (:class:`EstimateFrame`), so that errors are
-  measured after the right alignment (:mod:`bearing_pose_estimation.studies.results`);
+  measured after the right alignment (:mod:`bearing_pose_estimation.metrics`);
 
-and implements its per-agent state (a :class:`State` dataclass of ``(N, ...)`` arrays, the
-class's second type parameter) and its initial value, its graph-assumption check
-(:meth:`Estimator.check`, findings that name the agent, the field and the fix) and one
-vectorised :meth:`Estimator.step`. The batch simulator calls that step for the whole fleet, the
-agent's node logic (:class:`bearing_pose_estimation.estimators.agent.AgentEstimator`) for one
-agent: each method's math exists once.
+and implements its per-agent state (a :class:`State` dataclass of ``(N, ...)`` arrays), its
+graph-assumption check (:meth:`Estimator.check`, findings that name the agent, the field and
+the fix) and one vectorised :meth:`Estimator.step`. The batch simulator calls that step for the
+whole fleet, the agent runtime (:mod:`bearing_pose_estimation.runtime`) for one agent or for the
+agents of one process together: each method's math exists once.
 
-Sensing edges: edge ``e`` is ``i → j``, agent i (row ``edges.agent[e]`` of the state) senses
-and listens to its neighbour j. A step consumes, per edge, i's own measurement and what j sent
-i (:class:`StepInputs`); what j sends is formed by j itself (:meth:`Estimator.outbox`), from
-its own state and measurements at one instant.
-
-Methods whose agents talk both ways over every sensing edge (``links = 'communication'``, De
-Carli et al.: the sensed robot needs what senses it) get one edge ``i → j`` per communication
-neighbour j of i instead (j senses i, i senses j, or both), with :class:`LinkInputs` saying
-which, and the other end's odometry over the step.
+A step's inputs (:class:`StepInputs`) are a generic mapping: per agent (``delta_R``, the gyro
+increment; ``displacement``, the odometry's; the anchor's motion), per edge (the own
+measurements by sensor name, what the edge's other end sent by channel name, the other end's
+odometry), and per edge a mask of what is here. The runtime fills it from the declarations
+above without knowing any method's quantity.
 """
 from __future__ import annotations
 
@@ -53,11 +54,13 @@ if TYPE_CHECKING:
 
 Array = NDArray[np.float64]
 Index = NDArray[np.intp]
+Mask = NDArray[np.bool_]
 
 
 # ----------------------------------------------------------------------------- declarations
 class Sensor(Enum):
-    """What an agent measures about itself and the agents it sees."""
+    """What an agent measures about itself and the agents it sees. The value is the key of
+    its per-edge measurements in :class:`StepInputs` and its topic's name."""
 
     GYRO = 'gyro'                              # body angular rate (interval averages)
     BEARINGS = 'bearings'                      # unit bearings to the agents it sees (body)
@@ -66,6 +69,10 @@ class Sensor(Enum):
     RELATIVE_POSITIONS = 'relative_positions'  # body-frame relative positions (RGB-D)
     BEARING_RATES = 'bearing_rates'            # time derivatives of body bearings
     RANGES = 'ranges'                          # distances to the agents it sees
+
+
+# The sensors that measure other agents: one vector per agent seen, at the sensor's stamp.
+POINT_SENSORS = (Sensor.BEARINGS, Sensor.RELATIVE_POSITIONS, Sensor.BEARING_RATES)
 
 
 class EstimateFrame(Enum):
@@ -85,18 +92,43 @@ class Roles:
     anchor: bool = False
 
 
+# Wire kinds (msg_defs maps each to one codec): a value on the sender's pose (its position,
+# or its covariance), a per-agent 3-vector of its own message, or one point per listener.
+POSE_POSITION = 'pose.position'
+POSE_COVARIANCE = 'pose.covariance'
+VECTOR = 'vector'
+POINTS = 'points'
+
+
 @dataclass(frozen=True)
 class Channel:
-    """One quantity that agent j sends the agents that listen to it (those with j among their
-    neighbours). ``per='agent'``: one value for all of them (e.g. ``p̂_j``); ``per='edge'``: one
-    value per listener i (e.g. ``R̂_j b^j_ji``). ``frame`` is the frame the value is expressed
-    in; ``unit`` values are unit vectors (validated on reception); ``sensor``: the value is
-    j's own measurement of i by that sensor, which travels on j's sensor topic (a node pairs it
-    at its instant like its own measurements); ``owner_only``: a per-edge value only the owner
-    of the pair's shared state sends (a receiver that owns the pair expects none); ``round``
-    2: formed from what the sender received in round 1 of the same step
-    (:meth:`Estimator.reply`, two-round methods); ``optional``: see below. The wire encoding of
-    each channel name lives in ``msg_defs``."""
+    """One quantity that agent j sends the agents that listen to it.
+
+    - ``per='agent'``: one value for all of them (e.g. ``p̂_j``); ``per='edge'``: one value per
+      listener i (e.g. ``R̂_j b^j_ji``), formed by :meth:`Estimator.outbox` (round 1) or
+      :meth:`Estimator.reply` (round 2).
+    - ``on``: the receiver's edge flag (:func:`edge_table`) on which it travels: ``'senses'``
+      from the agents it senses, ``'sensed_by'`` from those that sense it; None: every edge.
+      ``owner_only``: a per-edge value only the owner of the pair's shared state sends (a
+      receiver that owns the pair expects none).
+    - ``sensor``: the value is j's own measurement of i by that sensor; it travels on j's
+      sensor topic and is paired like a measurement (interpolated at the step's instant).
+    - ``pairing``: how a receiver pairs it with its step at t. ``'instant'``: the sender's
+      newest instant at or before t at which it sent every required channel (its publish
+      grid; a simulation waits for it, a robot takes what is here). ``'exact'``: the value of
+      t itself; once the sender has sent a later one it is lost, and the sender's newest
+      earlier one is carried to t (:meth:`Estimator.carry`) or the edge goes without it.
+    - ``optional``: a value the step can do without (a covariance): never waited for; the
+      value of the step's instant if here, else the newest carried or as it is, else
+      :meth:`Estimator.missing`.
+    - ``round`` 2: formed from what the sender received in round 1 of the same step.
+    - ``frame``: the frame it is expressed in (``'world'``, ``'body'`` of the sender, or the
+      method's estimate frame ``'estimate'``); ``unit`` values are unit vectors (checked on
+      reception); ``bound``: the largest magnitude of a component a receiver accepts.
+    - ``topic``, ``kind``, ``fields``: how it travels (``msg_defs``): the topic in the
+      sender's namespace, the wire kind (:data:`POSE_POSITION`, :data:`POSE_COVARIANCE`,
+      :data:`VECTOR`, :data:`POINTS`) and a point's fields.
+    """
 
     name: str
     per: Literal['agent', 'edge']
@@ -107,9 +139,18 @@ class Channel:
     sensor: Sensor | None = None
     owner_only: bool = False
     round: int = 1
-    # A value the step can do without (the covariance): a neighbour missing it is not stale,
-    # and the step takes Estimator.missing(name) instead.
     optional: bool = False
+    on: str | None = None
+    pairing: Literal['instant', 'exact'] = 'instant'
+    bound: float = math.inf
+    topic: str = ''
+    kind: str = POINTS
+    fields: tuple[str, ...] = ('x', 'y', 'z')
+
+    def __post_init__(self) -> None:
+        if not self.topic:
+            object.__setattr__(self, 'topic', self.sensor.value if self.sensor is not None
+                               else self.name)
 
 
 # ----------------------------------------------------------------------------- gains
@@ -178,10 +219,11 @@ class Edges:
     """Directed sensing edges ``i → j`` (agent i measures j), fixed for a step.
 
     ``agent[e]`` indexes the state row of the agent that owns edge ``e`` (always 0 in a node);
-    ``k[e]`` is ``k_ij``. Sums over each agent's edges use a sparse ``(n_agents, E)`` incidence
-    matrix, built once at the first sum, for a fleet's many edges (the batch simulator's, built
-    once a run). Compared by identity, so a method may cache what it derives from a fleet's
-    edges.
+    ``k[e]`` is ``k_ij``; ``flags`` say what each edge is (:func:`edge_table`: ``senses``,
+    ``sensed_by``, ``owns``, ...). Sums over each agent's edges use a sparse ``(n_agents, E)``
+    incidence matrix, built once at the first sum, for a fleet's many edges (the batch
+    simulator's, built once a run). Compared by identity, so a method may cache what it
+    derives from a fleet's edges.
     """
 
     agent: Index
@@ -190,6 +232,7 @@ class Edges:
     # The edge's place in its agent's fixed list of neighbours, for methods that keep per-edge
     # state (a node may leave a silent neighbour out of a step); default: its rank.
     slot: Index | None = None
+    flags: Mapping[str, Mask] = field(default_factory=dict)
     _incidence: sparse.csr_matrix | None = field(init=False, repr=False)
     unit_k: bool = field(init=False, repr=False)  # every k_ij = 1: skip the product
 
@@ -236,6 +279,31 @@ class Edges:
             object.__setattr__(self, '_incidence', incidence)
         return np.asarray(incidence @ values)
 
+    def flag(self, name: str) -> Mask:
+        """Flag ``name`` of every edge ``(E,)`` (all set when the edges do not have it)."""
+        value = self.flags.get(name)
+        return np.ones(len(self), dtype=bool) if value is None else value
+
+    def rows(self, sel: Index, agent: Index, n_agents: int) -> Edges:
+        """The edges ``sel``, owned by the rows ``agent`` of a state of ``n_agents``."""
+        assert self.slot is not None
+        return Edges(agent=agent, k=self.k[sel], n_agents=n_agents, slot=self.slot[sel],
+                     flags={name: v[sel] for name, v in self.flags.items()})
+
+    @staticmethod
+    def stack(parts: Sequence[Edges]) -> Edges:
+        """Several agents' edges as one, agents and edges in that order; every part has the
+        same flags."""
+        offsets = np.cumsum([0] + [p.n_agents for p in parts[:-1]])
+        slots = [p.slot for p in parts]
+        assert all(slot is not None for slot in slots)
+        return Edges(agent=np.concatenate([p.agent + o for p, o in zip(parts, offsets)]),
+                     k=np.concatenate([p.k for p in parts]),
+                     n_agents=sum(p.n_agents for p in parts),
+                     slot=np.concatenate(slots),   # type: ignore[arg-type]
+                     flags={name: np.concatenate([p.flags[name] for p in parts])
+                            for name in parts[0].flags})
+
     def weighted(self, terms: Array) -> Array:
         """``k_ij · terms[e]`` (``terms`` itself when every ``k_ij = 1``)."""
         return terms if self.unit_k else terms * self.k[:, None]
@@ -276,196 +344,121 @@ class State:
 
 
 @dataclass(frozen=True)
-class LinkInputs:
-    """What a ``links = 'communication'`` method's step knows of each edge ``i → j`` beyond
-    the channels, all ``(E, ...)``: whether i ``senses`` j and j senses i (``sensed_by``: j's
-    own measurement of i comes as a channel), whether i ``owns`` the pair's shared state; i's
-    measurement ``ⁱp_ij`` at the step's start (``relative_positions``, body frame [m]); the other
-    end's gyro increment and odometry displacement over the step (``other_delta_R``,
-    ``other_displacement``, in j's body frame at the start).
+class Motion:
+    """How things moved over ``[t_s, t]``, for carrying a value formed at ``t_s`` to t
+    (:meth:`Estimator.carry`): the receiver's gyro increment ``R(t_s)ᵀ R(t)``, the sender's
+    odometry (rotation, and displacement in its body frame at ``t_s``) and the anchor's (the
+    same); None where the receiver does not know it."""
 
-    A node may lack some of it for a step (None: nothing is missing, the batch simulator):
-    ``measured``, its own measurement; ``their_measured``, j's; ``present``, j's odometry (the
-    edge then sits the step out and restarts its relative estimates from the next
-    measurements); ``fresh``, j's channels of this instant."""
-
-    senses: NDArray[np.bool_]
-    sensed_by: NDArray[np.bool_]
-    owns: NDArray[np.bool_]
-    relative_positions: Array
-    other_delta_R: Array
-    other_displacement: Array
-    measured: NDArray[np.bool_] | None = None
-    their_measured: NDArray[np.bool_] | None = None
-    present: NDArray[np.bool_] | None = None
-    fresh: NDArray[np.bool_] | None = None
-
-    def usable(self) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_],
-                              NDArray[np.bool_]]:
-        """``(y_ok, m_ok, present, fresh)`` ``(E,)``: i senses j and its measurement is here,
-        j senses i and j's is here, j's odometry, j's channels of this instant (what is None
-        counts as here)."""
-        every = np.ones(len(self.senses), dtype=bool)
-
-        def here(v: NDArray[np.bool_] | None) -> NDArray[np.bool_]:
-            return every if v is None else v
-
-        return (self.senses & here(self.measured), self.sensed_by & here(self.their_measured),
-                here(self.present), here(self.fresh))
-
-    @staticmethod
-    def stack(parts: Sequence[LinkInputs]) -> LinkInputs:
-        """Several agents' link inputs as one, edges in that order (:meth:`rows` undone)."""
-        def cat(name: str) -> Any:
-            values = [getattr(p, name) for p in parts]
-            if all(v is None for v in values):
-                return None
-            if any(v is None for v in values):   # a flag known for some only: the others
-                values = [np.ones(len(p.senses), dtype=bool) if v is None else v
-                          for p, v in zip(parts, values)]   # have it all (None: all here)
-            return np.concatenate(values)
-
-        return LinkInputs(**{f.name: cat(f.name) for f in dataclasses.fields(LinkInputs)})
-
-    def rows(self, sel: Index) -> LinkInputs:
-        def pick(v: NDArray[np.bool_] | None) -> NDArray[np.bool_] | None:
-            return None if v is None else v[sel]
-
-        return LinkInputs(self.senses[sel], self.sensed_by[sel], self.owns[sel],
-                          self.relative_positions[sel], self.other_delta_R[sel],
-                          self.other_displacement[sel], measured=pick(self.measured),
-                          their_measured=pick(self.their_measured), present=pick(self.present),
-                          fresh=pick(self.fresh))
+    own_delta_R: Array | None = None
+    peer_delta_R: Array | None = None
+    peer_displacement: Array | None = None
+    anchor_delta_R: Array | None = None
+    anchor_displacement: Array | None = None
 
 
-@dataclass(frozen=True)
-class AnchorInputs:
-    """What the step of a method with an anchor (``roles.anchor``) knows of it: per agent,
-    ``is_anchor`` ``(N,)`` and the anchor's gyro increment and odometry displacement over the
-    step as every robot receives them (``delta_R`` ``(N, 3, 3)``, ``displacement`` ``(N, 3)``,
-    in the anchor's body frame at the step's start); per edge ``i → j``, ``ranges`` ``(E,)``:
-    i is the anchor and measures j's relative position (j is a ranged robot), ``ranged_by``
-    ``(E,)``: j is the anchor and ranges i; ``pinned``: the anchor holds ``(I, 0)``."""
-
-    is_anchor: NDArray[np.bool_]
-    delta_R: Array
-    displacement: Array
-    ranges: NDArray[np.bool_]
-    ranged_by: NDArray[np.bool_]
-    pinned: bool = False
-
-    @staticmethod
-    def stack(parts: Sequence[AnchorInputs]) -> AnchorInputs:
-        """Several agents' anchor inputs as one, agents and edges in that order (:meth:`rows`
-        undone); they must agree on ``pinned``."""
-        if len({p.pinned for p in parts}) > 1:
-            raise ValueError('AnchorInputs.stack: pinned differs between the parts')
-
-        def cat(name: str) -> Any:
-            return np.concatenate([getattr(p, name) for p in parts])
-
-        return AnchorInputs(cat('is_anchor'), cat('delta_R'), cat('displacement'), cat('ranges'),
-                            cat('ranged_by'), pinned=parts[0].pinned)
-
-    def rows(self, i: int, sel: Index) -> AnchorInputs:
-        return AnchorInputs(self.is_anchor[i:i + 1], self.delta_R[i:i + 1],
-                            self.displacement[i:i + 1], self.ranges[sel], self.ranged_by[sel],
-                            self.pinned)
+# Keys of StepInputs.agent that every step gets, and the other end's odometry per edge.
+DELTA_R = 'delta_R'                  # (N, 3, 3) gyro increments R(t)ᵀ R(t + h) (body)
+DISPLACEMENT = 'displacement'        # (N, 3) odometry R(t)ᵀ (p(t+h) - p(t)) [m], if any
+ANCHOR_DELTA_R = 'anchor_delta_R'    # (N, 3, 3) the anchor's gyro increment (its body frame)
+ANCHOR_DISPLACEMENT = 'anchor_displacement'   # (N, 3) its odometry [m]
+IS_ANCHOR = 'is_anchor'              # (N,) the anchor
+PINNED = 'pinned'                    # (N,) the anchor, holding (I, 0)
+PEER_DELTA_R = 'peer_delta_R'        # (E, 3, 3) the other end's gyro increment over the step
+PEER_DISPLACEMENT = 'peer_displacement'   # (E, 3) its odometry, in its frame at t [m]
+PEER_ODOMETRY = 'peer_odometry'      # the mask of the two above
+P_OWN = 'p_own'                      # (E, 3) the owner's p̂_i at the stamp of what it paired
+HELD = 'held'                        # (E, 2) steps the own sample and the value received serve
 
 
 @dataclass(frozen=True)
 class StepInputs:
-    """What one step consumes for N agents and their E sensing edges, all at the step's start
-    time t (own bearings already rotated to t, neighbours' values as they sent them).
+    """What one step consumes for N agents and their E edges, all at the step's start time t.
 
-    ``received[c]`` holds, for every channel ``c`` the method's ``sends`` declares, what the
-    neighbour j of edge ``e`` sent agent i: ``(E, ...)`` (per-agent channels repeated on every
-    edge from j).
+    - ``agent[key]`` ``(N, ...)``: :data:`DELTA_R` always; :data:`DISPLACEMENT` for agents
+      whose odometry runs; a method with an anchor gets :data:`ANCHOR_DELTA_R`,
+      :data:`ANCHOR_DISPLACEMENT`, :data:`IS_ANCHOR` and :data:`PINNED`.
+    - ``edge[key]`` ``(E, ...)``: each own point sensor's measurement of the edge's other end
+      j, by its name (``'bearings'``: ``b^i_ij``, rotated to the body frame at t); each
+      channel j sent, by its name (per-agent channels repeated on every edge from j); with
+      ``peer_odometry``, j's motion over the step (:data:`PEER_DELTA_R`,
+      :data:`PEER_DISPLACEMENT`); and what the runtime pairs them with (:data:`P_OWN`: in a
+      moving fleet, ``p̂_i`` moved back to the stamp of j's values by the own odometry, so that
+      the pairing is exact at the true poses while the corrections are not delayed;
+      :data:`HELD`: a node holds samples slower than its steps, and their noise with them).
+    - ``mask[key]`` ``(E,)``: which edges have ``edge[key]`` (a key without a mask: all);
+      where a mask is off the value is zeros (or the method's stand-in).
 
-    Moving fleets add:
+    The batch simulator builds them for the whole fleet, a node for its one agent
+    (:meth:`agent` cuts one out, :meth:`stack` puts several together)."""
 
-    - ``displacement``: ``(N, 3)`` odometry displacement over the step, ``R(t)ᵀ (p(t+h) -
-      p(t))`` (body frame at t) [m], integrated from the samples, never velocity × h; None
-      without odometry.
-    - ``p_own``: ``(E, 3)`` the position estimate of each edge's owner to pair with what it
-      received. Over DDS j's values were formed at its stamp ``t_s < t``, and in a moving fleet
-      they change meanwhile: agent i pairs them with its own bearing measured at ``t_s``
-      (``bearings``, still rotated to the body frame at t) and with ``p̂_i`` moved back to
-      ``t_s`` by its own odometry, ``p̂_i(t) - R̂_i(t) R_i(t)ᵀ R_i(t_s) δ_i(t_s → t)``, so that
-      the pairing is exact at the true poses whatever the motion, while the corrections
-      themselves are not delayed. None: no transport delay (the batch simulator), ``p̂_i``.
-    """
-
-    delta_R: Array                 # (N, 3, 3) gyro increments R(t)ᵀ R(t + h) (body)
     edges: Edges
-    bearings: Array                # (E, 3) own unit bearings b^i_ij (body frame of i)
-    received: Mapping[str, Array]
-    displacement: Array | None = None   # (N, 3) odometry δ over the step [m]
-    p_own: Array | None = None          # (E, 3) the owner's p̂_i at the received stamp [m]
-    links: LinkInputs | None = None     # links = 'communication' methods only
+    agent: Mapping[str, Array]
+    edge: Mapping[str, Array]
+    mask: Mapping[str, Mask] = field(default_factory=dict)
     t: float = 0.0                      # the step's start time [s] (multirate methods)
-    bearing_rates: Array | None = None  # (E, 3) own d/dt b^i_ij (body frame) [1/s]
-    anchor: AnchorInputs | None = None  # methods with an anchor only
-    # (E, 2) steps each own bearing and each neighbour's value serve (>= 1; a node holds
-    # samples slower than its steps, and their noise with them): the covariance's bearing
-    # noise lasts that long. None: a fresh sample every step (the batch simulator).
-    held: Array | None = None
+
+    @property
+    def delta_R(self) -> Array:
+        return self.agent[DELTA_R]
+
+    @property
+    def displacement(self) -> Array | None:
+        """``(N, 3)`` odometry displacement over the step [m], or None (no odometry)."""
+        return self.agent.get(DISPLACEMENT)
+
+    def here(self, key: str) -> Mask:
+        """``(E,)`` which edges have ``edge[key]``."""
+        value = self.mask.get(key)
+        return np.ones(len(self.edges), dtype=bool) if value is None else value
 
     @staticmethod
     def stack(parts: Sequence[StepInputs]) -> StepInputs:
         """The inputs of several agents' steps as one fleet step, agents and edges in that
-        order: :meth:`agent` undone. What a node builds (own bearings, received values,
-        displacement, ``p_own``, ``held``, a link method's :class:`LinkInputs`) only; every
-        part has the same optional fields."""
+        order: :meth:`agent` undone. Every part has the same keys, and the same t."""
         first = parts[0]
-        for name in ('links', 'anchor'):
-            given = [getattr(p, name) is not None for p in parts]
-            if any(given) and not all(given):
-                raise ValueError(f'StepInputs.stack: {name} is given for some parts only')
+        for p in parts[1:]:
+            if (p.agent.keys() != first.agent.keys() or p.edge.keys() != first.edge.keys()
+                    or p.mask.keys() != first.mask.keys() or p.t != first.t):
+                raise ValueError('StepInputs.stack: the parts have different keys or times')
+        return StepInputs(
+            edges=Edges.stack([p.edges for p in parts]), t=first.t,
+            agent={k: np.concatenate([p.agent[k] for p in parts]) for k in first.agent},
+            edge={k: np.concatenate([p.edge[k] for p in parts]) for k in first.edge},
+            mask={k: np.concatenate([p.mask[k] for p in parts]) for k in first.mask})
 
-        def cat(name: str) -> Array | None:
-            values = [getattr(p, name) for p in parts]
-            if all(v is None for v in values):
-                return None
-            if any(v is None for v in values):
-                raise ValueError(f'StepInputs.stack: {name} is given for some parts only')
-            return np.concatenate(values)
+    def stacks_with(self, other: StepInputs) -> bool:
+        """Whether :meth:`stack` takes both."""
+        return (self.t == other.t and self.agent.keys() == other.agent.keys()
+                and self.edge.keys() == other.edge.keys()
+                and self.mask.keys() == other.mask.keys()
+                and self.edges.flags.keys() == other.edges.flags.keys())
 
-        sizes = [p.delta_R.shape[0] for p in parts]
-        offsets = np.cumsum([0] + sizes[:-1])
-        slots = [p.edges.slot for p in parts]
-        assert all(slot is not None for slot in slots)
-        edges = Edges(agent=np.concatenate([p.edges.agent + o for p, o in zip(parts, offsets)]),
-                      k=np.concatenate([p.edges.k for p in parts]), n_agents=sum(sizes),
-                      slot=np.concatenate(slots))   # type: ignore[arg-type]
-        return StepInputs(delta_R=np.concatenate([p.delta_R for p in parts]), edges=edges,
-                          bearings=np.concatenate([p.bearings for p in parts]),
-                          received={c: np.concatenate([p.received[c] for p in parts])
-                                    for c in first.received},
-                          displacement=cat('displacement'), p_own=cat('p_own'),
-                          t=first.t, held=cat('held'), bearing_rates=cat('bearing_rates'),
-                          links=None if first.links is None else LinkInputs.stack(
-                              [p.links for p in parts if p.links is not None]),
-                          anchor=None if first.anchor is None else AnchorInputs.stack(
-                              [p.anchor for p in parts if p.anchor is not None]))
-
-    def agent(self, i: int) -> StepInputs:
+    def agent_inputs(self, i: int) -> StepInputs:
         """The inputs of agent ``i`` alone (``n_agents = 1``): what its node would pass."""
         sel = np.flatnonzero(self.edges.agent == i)
-        assert self.edges.slot is not None
-        edges = Edges(agent=np.zeros(sel.size, dtype=np.intp), k=self.edges.k[sel], n_agents=1,
-                      slot=self.edges.slot[sel])
-        return StepInputs(t=self.t, links=None if self.links is None else self.links.rows(sel),
-                          delta_R=self.delta_R[i:i + 1], edges=edges,
-                          bearings=self.bearings[sel],
-                          received={c: v[sel] for c, v in self.received.items()},
-                          displacement=(None if self.displacement is None
-                                        else self.displacement[i:i + 1]),
-                          p_own=None if self.p_own is None else self.p_own[sel],
-                          bearing_rates=(None if self.bearing_rates is None
-                                         else self.bearing_rates[sel]),
-                          anchor=None if self.anchor is None else self.anchor.rows(i, sel),
-                          held=None if self.held is None else self.held[sel])
+        return self.select(sel, np.zeros(sel.size, dtype=np.intp), slice(i, i + 1), 1)
+
+    def select(self, sel: Index, agent: Index, rows: Any, n_agents: int) -> StepInputs:
+        """The edges ``sel`` (now owned by the rows ``agent``) of the agents ``rows``."""
+        return StepInputs(edges=self.edges.rows(sel, agent, n_agents), t=self.t,
+                          agent={k: v[rows] for k, v in self.agent.items()},
+                          edge={k: v[sel] for k, v in self.edge.items()},
+                          mask={k: v[sel] for k, v in self.mask.items()})
+
+    def complete(self, keys: Sequence[str]) -> StepInputs:
+        """Only the edges that have every one of ``keys`` (a method without
+        ``partial_edges``: an edge with an input missing sits the step out)."""
+        keep = np.ones(len(self.edges), dtype=bool)
+        for key in keys:
+            if key in self.mask:
+                keep &= self.mask[key]
+        if keep.all():
+            return self
+        sel = np.flatnonzero(keep)
+        n = self.edges.n_agents
+        return dataclasses.replace(self.select(sel, self.edges.agent[sel], slice(None), n),
+                                   mask={})
 
 
 # ----------------------------------------------------------------------------- findings
@@ -536,12 +529,28 @@ class Estimator(ABC, Generic[G, S]):
     sends: ClassVar[tuple[Channel, ...]]
     frame: ClassVar[EstimateFrame]
     edge_gains: ClassVar[bool] = True      # per-edge k_ij (`gains.k_ij`, a neighbour's `k`)
-    # 'sensing': one edge per sensing edge i → j, j's channels flow to i; 'communication': one
-    # per communication neighbour, both ways (StepInputs.links).
+    # 'sensing': one edge per neighbour i → j, j's channels flow to i; 'communication': one
+    # per communication neighbour, both ways (edge_table).
     links: ClassVar[Literal['sensing', 'communication']] = 'sensing'
     # Sensing is directed: a robot measures its `neighbours` only (Presenza et al.'s
     # out-neighbours), not its listeners too.
     directed_sensing: ClassVar[bool] = False
+    # Per own point sensor the step reads: the edge flag of the edges it measures (None:
+    # every edge; with 'sensing' links also the listeners, whom the per-edge channels formed
+    # from that measurement go to).
+    measures: ClassVar[Mapping[Sensor, str | None]] = {}
+    # How an own point sensor's samples pair with the step at t: 'newest', the newest sample
+    # the gyro bridges to t (a moving fleet: the one at the stamp of the neighbour's values it
+    # pairs with); 'interpolated', between the samples around t (waited for).
+    own_pairing: ClassVar[Literal['newest', 'interpolated']] = 'newest'
+    # Whose odometry the step reads besides the own: 'links', every edge's other end (its
+    # motion over the step, PEER_*); 'anchor', the anchor's (ANCHOR_*); 'none'.
+    peer_odometry: ClassVar[Literal['none', 'links', 'anchor']] = 'none'
+    # The step takes edges with inputs missing (masks); False: only the complete ones.
+    partial_edges: ClassVar[bool] = False
+    # The sensor whose measurement of the listener the per-edge channels are formed from
+    # (outbox's ``bearings``): what each agent sends, and what travels on its sensor topic.
+    partner_sensor: ClassVar[Sensor | None] = None
     reference_scenario: ClassVar[str]      # the file in config/ with the paper's simulation
     # How far the truth drifts from a fixed point of the step when the fleet moves, over 300
     # steps of the reference scenario [m, rad]: 0 up to rounding for methods that dead-reckon
@@ -556,6 +565,18 @@ class Estimator(ABC, Generic[G, S]):
     def uses(cls, sensor: Sensor) -> bool:
         """The method consumes ``sensor``, always or when available."""
         return sensor in cls.sensors or sensor in cls.optional_sensors
+
+    @classmethod
+    def rounds(cls) -> int:
+        """Rounds of messages per step (2: what :meth:`reply` forms from round 1)."""
+        return max((c.round for c in cls.sends), default=1)
+
+    @classmethod
+    def required(cls) -> tuple[str, ...]:
+        """The inputs an edge needs to take part in a step, for a method without
+        ``partial_edges``: its own measurements and the channels that are not optional."""
+        return tuple([s.value for s in cls.measures]
+                     + [c.name for c in cls.sends if not c.optional and c.sensor is None])
 
     # --- state
     @abstractmethod
@@ -583,12 +604,12 @@ class Estimator(ABC, Generic[G, S]):
     @abstractmethod
     def outbox(self, x: S, sender: Index, bearings: Array,
                slot: Index | None = None) -> dict[str, Array]:
-        """What agents send their listeners, formed from their state and own measurements at
-        one instant: per-edge channels ``(M, ...)`` for sender rows ``sender`` ``(M,)`` whose
-        own body bearings to the listener are ``bearings`` ``(M, 3)`` (``links =
-        'communication'``: their relative positions, zeros where they do not sense it) and
-        whose edge to the listener has the place ``slot`` ``(M,)`` in their own list
-        (:attr:`Edges.slot`); per-agent channels ``(N, ...)``, one row per agent of ``x``."""
+        """What agents send their listeners in round 1, formed from their state and own
+        measurements at one instant: per-edge channels ``(M, ...)`` for sender rows ``sender``
+        ``(M,)`` whose own measurements of the listener (by ``partner_sensor``; zeros where
+        they have none) are ``bearings`` ``(M, 3)`` and whose edge to the listener has the
+        place ``slot`` ``(M,)`` in their own list (:attr:`Edges.slot`); per-agent channels
+        ``(N, ...)``, one row per agent of ``x``."""
 
     @abstractmethod
     def step(self, x: S, h: float, inputs: StepInputs,
@@ -597,10 +618,6 @@ class Estimator(ABC, Generic[G, S]):
         diagnostics (``'innovation'``: what drove the correction, ``(N, 3)``).
         ``reorthonormalize``: pull rotations back onto SO(3) (the batch simulator does it every
         few steps only)."""
-
-    # 2: every step exchanges two rounds of messages, what ``outbox`` forms and then what
-    # ``reply`` forms from the first round (channels with ``round = 2``).
-    rounds: ClassVar[int] = 1
 
     def reply(self, x: S, h: float, inputs: StepInputs) -> dict[str, Array]:
         """Two-round methods: the round-2 channels, per edge ``(E, ...)``, that each edge's
@@ -614,8 +631,16 @@ class Estimator(ABC, Generic[G, S]):
 
     def due(self, channel: str, t: float, h: float) -> bool:
         """The step at ``t`` reads ``channel`` (multirate methods read some only at their
-        stage's ticks: a node waits for those alone). Default: every step."""
+        stage's ticks: a node waits for those alone, and sends them then). Default: every
+        step."""
         return True
+
+    def carry(self, values: Mapping[str, Array], motion: Motion) -> dict[str, Array] | None:
+        """A sender's channel ``values`` formed at ``t_s`` carried to ``t > t_s`` by the
+        motion over ``[t_s, t]`` alone (:class:`Motion`): what they would be at t if no
+        correction had happened meanwhile. None: the method cannot (with what ``motion``
+        knows); a late value is then used as it is (``'instant'`` pairing) or left out."""
+        return None
 
     # --- assumptions
     @abstractmethod
@@ -633,23 +658,6 @@ class Estimator(ABC, Generic[G, S]):
         """Why the spectrum ``eig`` (ascending) breaks the method's hypothesis, or None."""
         return None
 
-    def carry(self, values: Mapping[str, Array], own_delta_R: Array, other_delta_R: Array,
-              other_displacement: Array) -> dict[str, Array] | None:
-        """A neighbour's channel ``values`` formed at ``t_s`` carried to ``t > t_s`` by the
-        motion over ``[t_s, t]`` alone (the receiver's gyro increment ``own_delta_R``, the
-        sender's ``other_delta_R`` and ``other_displacement`` in its frame at ``t_s``): what
-        they would be at t if no correction had happened meanwhile. None: the method cannot
-        (its node then leaves a late value out)."""
-        return None
-
-    def carry_anchor_frame(self, values: Mapping[str, Array], delta_R_a: Array,
-                           delta_a: Array) -> dict[str, Array] | None:
-        """Methods with an anchor: a neighbour's ``values`` in the anchor frame at ``t_s``
-        carried to ``t > t_s`` by the anchor's motion over ``[t_s, t]`` (``delta_R_a``,
-        ``delta_a``, in its frame at ``t_s``): the values the same world quantities have in the
-        anchor frame at t. None: the method cannot."""
-        return None
-
     def agent_groups(self, scenario: Scenario) -> dict[str, list[str]]:
         """The method's roles among the estimating robots, ``{role: names}``, for outputs
         that show them apart (Presenza et al.: sensing and free robots). Empty: none."""
@@ -664,7 +672,7 @@ class Estimator(ABC, Generic[G, S]):
     # The names of the per-agent diagnostic 'stage' (an index), for methods that report one.
     stages: ClassVar[tuple[str, ...]] = ()
 
-    # --- what recordings show beyond the pose errors
+    # --- what recordings and diagnostics show beyond the pose errors
     edge_error_label: ClassVar[str] = ''   # e.g. 'rel_yaw_err': the column prefix per pair
 
     def edge_errors(self, x: S, R: Array, edges: Edges, other: Index) -> Array | None:
@@ -672,6 +680,18 @@ class Estimator(ABC, Generic[G, S]):
         attitudes ``R`` (NaN where the edge's agent keeps none; ``other``: each edge's other
         end); None when the method has no such state."""
         return None
+
+    def neighbour_report(self, x: S, slots: int) -> dict[str, list[str]]:
+        """What an agent's health report shows for each of its ``slots`` edges from the state
+        of one agent ``x``: ``{label: [text per edge slot]}`` (De Carli et al.: each pair's
+        excitation). Empty: nothing."""
+        return {}
+
+    def covariance(self, x: S) -> Array | None:
+        """``(N, 6, 6)`` the covariance of each agent's pose (position, then rotation) as
+        the estimate's message carries it; None: the method keeps none."""
+        P = getattr(x, 'P', None)
+        return None if P is None else P[:, :6, :6]
 
     def check_motion(self, scenario: Scenario, times: Array,
                      positions: Array) -> list[Finding]:
@@ -683,6 +703,7 @@ class Estimator(ABC, Generic[G, S]):
         return []
 
 
+# ----------------------------------------------------------------------------- the edges
 def owns_pair(i: Any, j: Any, senses: Any, sensed_by: Any) -> Any:
     """Whether agent i keeps the shared state of its pair with j (§8 of the De Carli notes):
     the sensing agent of a one-way pair, the lower index (or id) of a two-way one. Scalars or
@@ -690,16 +711,50 @@ def owns_pair(i: Any, j: Any, senses: Any, sensed_by: Any) -> Any:
     return np.where(np.logical_and(senses, sensed_by), np.less(i, j), senses)
 
 
-def communication_links(tail: Index, head: Index, n: int,
-                        also: Sequence[tuple[int, int]] = ()) -> dict[str, NDArray[Any]]:
-    """The links of ``links = 'communication'`` methods from the sensing edges ``tail → head``
-    of ``n`` agents (and the pairs ``also``, e.g. the anchor's ranged robots, linked without
-    sensing): one per communication neighbour j of each agent i, grouped by agent, j
-    ascending: ``agent``, ``other``, ``senses`` (i senses j), ``sensed_by`` (j senses i),
-    ``owns`` (i keeps the pair's shared state: the sensing agent of a one-way pair, the lower
-    index of a two-way one) and ``reverse`` (the index of the link j → i)."""
-    sensed = set(zip(np.asarray(tail).tolist(), np.asarray(head).tolist()))
-    linked = sensed | {(int(i), int(j)) for i, j in also}
+@dataclass(frozen=True)
+class EdgeTable:
+    """A fleet's edges for one method (:func:`edge_table`), grouped by agent: edge ``e`` joins
+    ``agent[e]`` to ``other[e]`` with gain ``k[e]``; ``flags`` (each ``(E,)``) say what it is:
+    ``senses`` (the agent measures the other), ``sensed_by`` (the other measures it), and for
+    communication links ``owns`` (the agent keeps the pair's shared state: the sensing agent
+    of a one-way pair, the lower index of a two-way one), ``ranges`` and ``ranged_by`` (the
+    anchor measures the other's relative position, or the other's of this one); ``reverse``:
+    the index of the edge ``other → agent`` (-1: none)."""
+
+    agent: Index
+    other: Index
+    k: Array
+    flags: dict[str, Mask]
+    reverse: Index
+
+    def edges(self, n: int) -> Edges:
+        return Edges(agent=self.agent, k=self.k, n_agents=n, flags=self.flags)
+
+    def of(self, i: int) -> Index:
+        """The edges of agent ``i``, in their order (their slots)."""
+        return np.flatnonzero(self.agent == i)
+
+
+def edge_table(method: type[Estimator], n: int, tail: Index, head: Index, k: Array,
+               anchor: int | None = None, ranged: Sequence[int] = ()) -> EdgeTable:
+    """The edges of ``method`` on a fleet of ``n`` agents whose sensing edges are ``tail →
+    head`` (agent ``tail[e]`` measures ``head[e]``, its neighbour; gain ``k[e]``), grouped by
+    agent in that order: one per sensing edge for ``links = 'sensing'``, one per communication
+    neighbour, ids ascending, for ``links = 'communication'`` (the anchor's ranged robots
+    linked to it too)."""
+    tail, head = np.asarray(tail, dtype=np.intp), np.asarray(head, dtype=np.intp)
+    sensed = set(zip(tail.tolist(), head.tolist()))
+    if method.links == 'sensing':
+        both = not method.directed_sensing
+        flags = {'senses': np.ones(len(tail), bool),
+                 'sensed_by': np.array([both or (j, i) in sensed
+                                        for i, j in zip(tail.tolist(), head.tolist())], bool)}
+        where = {(i, j): e for e, (i, j) in enumerate(zip(tail.tolist(), head.tolist()))}
+        reverse = np.array([where.get((j, i), -1) for i, j in zip(tail.tolist(),
+                                                                  head.tolist())], np.intp)
+        return EdgeTable(tail, head, np.asarray(k, dtype=float), flags, reverse)
+    pairs = [(anchor, int(r)) for r in ranged] if anchor is not None else []
+    linked = sensed | set(pairs)
     agent: list[int] = []
     other: list[int] = []
     for i in range(n):
@@ -710,9 +765,14 @@ def communication_links(tail: Index, head: Index, n: int,
     senses = np.array([(i, j) in sensed for i, j in zip(agent, other)], dtype=bool)
     sensed_by = np.array([(j, i) in sensed for i, j in zip(agent, other)], dtype=bool)
     where = {(i, j): e for e, (i, j) in enumerate(zip(agent, other))}
-    return {'agent': agent_a, 'other': other_a, 'senses': senses, 'sensed_by': sensed_by,
-            'owns': owns_pair(agent_a, other_a, senses, sensed_by),
-            'reverse': np.array([where[(j, i)] for i, j in zip(agent, other)], dtype=np.intp)}
+    flags = {'senses': senses, 'sensed_by': sensed_by,
+             'owns': owns_pair(agent_a, other_a, senses, sensed_by)}
+    if method.roles.anchor:
+        ranges = set(pairs)
+        flags['ranges'] = np.array([(i, j) in ranges for i, j in zip(agent, other)], bool)
+        flags['ranged_by'] = np.array([(j, i) in ranges for i, j in zip(agent, other)], bool)
+    return EdgeTable(agent_a, other_a, np.ones(len(agent)), flags,
+                     np.array([where[(j, i)] for i, j in zip(agent, other)], dtype=np.intp))
 
 
 def route(outbox: Mapping[str, Array], sends: Sequence[Channel],

@@ -15,6 +15,7 @@ bearings. Each method adds the spectrum condition of its own lemma (:meth:`Estim
 from __future__ import annotations
 
 from dataclasses import dataclass
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, ClassVar, TypeVar
 
 import numpy as np
@@ -22,14 +23,16 @@ from numpy.typing import NDArray
 
 from ..core import graph, so3
 from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, G,
-                   Index, Roles, Sensor, State, StepInputs)
+                   HELD, Index, P_OWN, POSE_POSITION, Roles, Sensor, State, StepInputs)
 from .covariance import DOF, POSE_COV, initial_covariance
 
 if TYPE_CHECKING:
     from ..scenario.model import Agent, Scenario
 
-P_HAT = Channel('p_hat', per='agent', frame='world', doc='p̂_j, the position estimate [m]')
+P_HAT = Channel('p_hat', per='agent', frame='world', doc='p̂_j, the position estimate [m]',
+                topic='pose', kind=POSE_POSITION)
 WORLD_BEARING = Channel('world_bearing', per='edge', frame='world', unit=True,
+                        topic='world_bearings',
                         doc='R̂_j b^j_ji, j\'s bearing to its listener i in the world frame')
 
 # Bearings closer than this to collinear make Σ P_b singular: an error.
@@ -70,21 +73,23 @@ def own_geometry(x: CovState, inputs: StepInputs, p_nbr: Array) -> tuple[Array, 
     """``(y_ij = R̂_i b^i_ij (E, 3), d_ij = ‖p̂_i − p̂_j‖ (E,))`` before the step: where the
     covariance is linearised."""
     edges = inputs.edges
-    p_own = np.take(x.p_hat, edges.agent, axis=0) if inputs.p_own is None else inputs.p_own
-    y = np.einsum('eab,eb->ea', np.take(x.R_hat, edges.agent, axis=0), inputs.bearings)
+    p_own = inputs.edge.get(P_OWN)
+    if p_own is None:
+        p_own = np.take(x.p_hat, edges.agent, axis=0)
+    y = np.einsum('eab,eb->ea', np.take(x.R_hat, edges.agent, axis=0), inputs.edge['bearings'])
     return y, np.linalg.norm(p_own - p_nbr, axis=1)
 
 
 def neighbour_cov(inputs: StepInputs) -> Array:
     """``P_j`` ``(E, 6, 6)``, what each neighbour sent of its covariance."""
-    return inputs.received[POSE_COV.name]
+    return inputs.edge[POSE_COV.name]
 
 
 def bearing_pull(p_own: Array, edges: Edges, y: Array, p_hat_nbr: Array,
                  bias_std: float = 0.0) -> Array:
     """``Σ_j P_{y_ij} (p̂_i - p̂_j)`` per agent, ``(N, 3)``, with ``P_y e = e - y (y·e)/‖y‖²``:
     the position correction of both observers (``y_ij = R̂_i b^i_ij``, ``(E, 3)``; ``p_own``
-    ``(E, 3)``: the owner's ``p̂_i`` paired with ``p̂_j``, :attr:`StepInputs.p_own`).
+    ``(E, 3)``: the owner's ``p̂_i`` paired with ``p̂_j``, :data:`base.P_OWN`).
 
     ``bias_std`` (σ_b > 0) removes the bias of a noisy bearing's projector: with each of the
     two components of the bearing noise of std σ_b, ``E[P_ỹ] y = 2σ_b² y`` to second order,
@@ -116,6 +121,8 @@ class BearingLeaderEstimator(Estimator[G, S]):
     sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.BEARINGS,
                                                      Sensor.KNOWN_POSE})
     optional_sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.ODOMETRY})
+    measures: ClassVar[Mapping[Sensor, str | None]] = {Sensor.BEARINGS: None}
+    partner_sensor: ClassVar[Sensor | None] = Sensor.BEARINGS
     sends: ClassVar[tuple[Channel, ...]] = (P_HAT, WORLD_BEARING, POSE_COV)
     frame: ClassVar[EstimateFrame] = EstimateFrame.WORLD
     conditioning_label: ClassVar[str]      # the local matrix, e.g. 'M_i = Σ_j k_ij b_ij b_ijᵀ'
@@ -149,7 +156,7 @@ class BearingLeaderEstimator(Estimator[G, S]):
     @staticmethod
     def neighbour_terms(inputs: StepInputs) -> tuple[Array, Array]:
         """``(d_ij = R̂_j b^j_ij (E, 3), p̂_j (E, 3))`` from what the neighbours sent."""
-        return -inputs.received[WORLD_BEARING.name], inputs.received[P_HAT.name]
+        return -inputs.edge[WORLD_BEARING.name], inputs.edge[P_HAT.name]
 
     # ------------------------------------------------------------------ Assumption 2
     def check(self, scenario: Scenario) -> CheckReport:

@@ -65,7 +65,7 @@ from typing import ClassVar
 import numpy as np
 
 from ..core import so3
-from .base import Array, Edges, StepInputs, gain
+from .base import HELD, P_OWN, Array, Edges, StepInputs, gain
 from .bearing_leaders import (BearingLeaderEstimator, CovState, bearing_pull, fed_forward,
                               neighbour_cov, own_geometry, repeated)
 from .covariance import CovarianceModel, cascade_jacobians, propagate
@@ -124,7 +124,7 @@ def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Ed
         displacement: ``(N, 3)`` odometry displacements ``δ_i`` over the step (body frame
             at t) [m], fed forward with ``k_v``; None: none (static agents).
         p_own: ``(E, 3)`` the owner's ``p̂_i`` to pair with ``p̂_j`` (late messages,
-            :attr:`StepInputs.p_own`); None: ``p_hat``.
+            :data:`base.P_OWN`); None: ``p_hat``.
 
     Returns:
         ``(R̂, p̂)`` at ``t + h`` and the innovation ``σ`` used (world frame).
@@ -161,8 +161,8 @@ class BoughellabaTayebi(BearingLeaderEstimator[CascadeGains, CovState]):
         d_world, p_nbr = self.neighbour_terms(inputs)
         g = self.gains
         R_hat, p_hat, sigma = cascade_step(
-            x.R_hat, x.p_hat, inputs.delta_R, h, inputs.edges, inputs.bearings, d_world, p_nbr,
-            g, reorthonormalize, displacement=inputs.displacement, p_own=inputs.p_own)
+            x.R_hat, x.p_hat, inputs.delta_R, h, inputs.edges, inputs.edge['bearings'], d_world, p_nbr,
+            g, reorthonormalize, displacement=inputs.displacement, p_own=inputs.edge.get(P_OWN))
         # The covariance, linearised at the estimate before the step (covariance.py).
         y, dist = own_geometry(x, inputs, p_nbr)
         moved = fed_forward(x, inputs, g.k_v)
@@ -170,7 +170,7 @@ class BoughellabaTayebi(BearingLeaderEstimator[CascadeGains, CovState]):
         P = propagate(x.P, h, inputs.edges, y, neighbour_cov(inputs), g.bearing_std,
                       g.gyro_noise_density,
                       cascade_jacobians(h, inputs.edges, y, dist, lever, g.k_R, g.k_p),
-                      moved, g.odometry_noise_density, inputs.held)
+                      moved, g.odometry_noise_density, inputs.edge.get(HELD))
         return CovState(R_hat=R_hat, p_hat=p_hat, P=P), {'innovation': sigma}
     def conditioning(self, bearings: Array, k: Array) -> Array:
         """``M_i = Σ_j k_ij b_ij b_ijᵀ`` (Lemma 1)."""

@@ -45,13 +45,14 @@ from typing import Any
 import numpy as np
 
 from ..core import so3
-from .base import Array, Channel, Edges, gain
+from .base import POSE_COVARIANCE, Array, Channel, Edges, gain
 
 EYE3 = np.eye(3)
 DOF = 6     # what the pose covariance covers, what neighbours send: (e_i, φ_i)
 # Optional: a neighbour whose covariance is lost still corrects the estimate; the covariance
 # then takes the prior for it (Estimator.missing).
 POSE_COV = Channel('pose_cov', per='agent', frame='estimate', shape=(DOF, DOF), optional=True,
+                   topic='pose', kind=POSE_COVARIANCE,
                    doc="P_j, the covariance of the sender's pose estimate (position, then "
                        'rotation; covariance.py, de_carli_covariance.py)')
 
@@ -156,7 +157,7 @@ def propagate(P: Array, h: float, edges: Edges, y: Array, P_nbr: Array, bearing_
     displacement fed forward, ``k_v R̂_i δ_i`` [m] (world): its error ``φ_i × R_i δ_i`` adds
     ``−[R̂ δ]x`` to ``∂e⁺/∂φ``, and the odometry noise ``h N_v² I`` to the position. ``held``
     ``(E, 2)``: the steps each own bearing and each neighbour's bearing serve
-    (:attr:`base.StepInputs.held`): a noise held over m steps of a slower loop counts m times
+    (:data:`base.HELD`): a noise held over m steps of a slower loop counts m times
     (its m equal draws add up, m² σ², where m fresh ones give m σ²)."""
     F, G, own, theirs, rates = jacobians
     if moved is not None:

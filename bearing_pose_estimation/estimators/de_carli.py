@@ -73,7 +73,7 @@ relation to the world no stage determines.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, ClassVar, Literal
 
@@ -83,8 +83,9 @@ from scipy.sparse.csgraph import connected_components
 
 from ..core.motion import rot_z, yaw_of
 from . import de_carli_covariance as cov
-from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, Index,
-                   Roles, Sensor, State, StepInputs, gain)
+from .base import (PEER_DELTA_R, PEER_DISPLACEMENT, PEER_ODOMETRY, POSE_POSITION, VECTOR, Array,
+                   Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, Index, Mask,
+                   Motion, Roles, Sensor, State, StepInputs, gain)
 from .covariance import POSE_COV, PoseCovarianceModel
 
 if TYPE_CHECKING:
@@ -92,13 +93,20 @@ if TYPE_CHECKING:
 
 Complex = NDArray[np.complex128]
 
-Z_HAT = Channel('z_hat', per='agent', frame='estimation', shape=(2,),
+# Every value a robot receives is checked against this bound [m] (a camera with depth sees
+# metres).
+MAX_VALUE = 1e4
+Z_HAT = Channel('z_hat', per='agent', frame='estimate', shape=(2,), topic='yaw_estimate',
+                kind=VECTOR, pairing='exact', bound=MAX_VALUE,
                 doc='ẑ_j = |ẑ_j| e^{ιψ̂_j}, the unnormalised yaw estimate, [re, im]')
-P_HAT = Channel('p_hat', per='agent', frame='estimation', doc='p̂_j, the position estimate [m]')
+P_HAT = Channel('p_hat', per='agent', frame='estimate', doc='p̂_j, the position estimate [m]',
+                topic='pose', kind=POSE_POSITION, pairing='exact', bound=MAX_VALUE)
 MEAS = Channel('meas', per='edge', frame='body', sensor=Sensor.RELATIVE_POSITIONS,
+               on='sensed_by', pairing='exact', bound=MAX_VALUE,
                doc='ʲp_ji, j\'s measurement of the listener i (body frame of j) [m]; zeros if '
                    'j does not sense i')
 RELYAW = Channel('relyaw', per='edge', frame='body', shape=(2,), owner_only=True, unit=True,
+                 topic='relative_yaws', pairing='exact', bound=MAX_VALUE,
                  doc='unit(ẑ_ji), the relative yaw of the pair j owns, [re, im] (a node sends '
                      'it only to the other robot of each pair it owns)')
 
@@ -122,6 +130,16 @@ POSITION_DONE_M = 1e-2
 UNKNOWN_RESIDUAL = 1e300
 # Stage 3's Euler correction diverges when h₃ k_p λ_max(L̄) reaches this (§7).
 EULER_LIMIT = 2.0
+
+
+def usable(inputs: StepInputs) -> tuple[Mask, Mask, Mask, Mask]:
+    """``(y_ok, m_ok, present, fresh)`` ``(E,)``: the robot senses j and its measurement is
+    here; j senses it and j's is here; j's odometry over the step is here; j's channels of
+    this instant are here (or were carried to it)."""
+    edges = inputs.edges
+    return (edges.flag('senses') & inputs.here('relative_positions'),
+            edges.flag('sensed_by') & inputs.here('meas'), inputs.here(PEER_ODOMETRY),
+            inputs.here('z_hat') & inputs.here('p_hat'))
 
 
 def unit(z: Complex) -> Complex:
@@ -219,10 +237,16 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
     roles: ClassVar[Roles] = Roles()
     sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.ODOMETRY,
                                                      Sensor.RELATIVE_POSITIONS})
-    sends: ClassVar[tuple[Channel, ...]] = (Z_HAT, P_HAT, MEAS, RELYAW, POSE_COV)
+    sends: ClassVar[tuple[Channel, ...]] = (
+        Z_HAT, P_HAT, MEAS, RELYAW, replace(POSE_COV, pairing='exact', bound=MAX_VALUE))
     frame: ClassVar[EstimateFrame] = EstimateFrame.COMMON_YAW_TRANSLATION
     edge_gains: ClassVar[bool] = False
     links: ClassVar[Literal['sensing', 'communication']] = 'communication'
+    measures: ClassVar[Mapping[Sensor, str | None]] = {Sensor.RELATIVE_POSITIONS: 'senses'}
+    own_pairing = 'interpolated'
+    peer_odometry = 'links'
+    partial_edges: ClassVar[bool] = True
+    partner_sensor: ClassVar[Sensor | None] = Sensor.RELATIVE_POSITIONS
     stages: ClassVar[tuple[str, ...]] = ('waiting_for_excitation', 'relative_yaw', 'yaw',
                                          'position', 'converged')
     reference_scenario: ClassVar[str] = 'de_carli_8_quadrotors.yaml'
@@ -283,11 +307,15 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         position = tick % self.every(self.gains.position_rate, h) == 0
         return {'z_hat': yaw or position, 'relyaw': yaw, 'p_hat': position}.get(channel, True)
 
-    def carry(self, values: Mapping[str, Array], own_delta_R: Array, other_delta_R: Array,
-              other_displacement: Array) -> dict[str, Array] | None:
+    def carry(self, values: Mapping[str, Array], motion: Motion) -> dict[str, Array] | None:
         """j's values of ``t_s`` at t (§8, timing pitfalls): ``ẑ_j`` turned by j's yaw
         increment, ``p̂_j`` dead-reckoned with ``R̂_j(t_s) δ_j``, the owner's relative yaw
-        turned by ``Δψ_i - Δψ_j``; exact when no correction happens over ``[t_s, t]``."""
+        turned by ``Δψ_i - Δψ_j``; exact when no correction happens over ``[t_s, t]``. None
+        without j's odometry and the own gyro over that span."""
+        own_delta_R, other_delta_R = motion.own_delta_R, motion.peer_delta_R
+        other_displacement = motion.peer_displacement
+        if own_delta_R is None or other_delta_R is None or other_displacement is None:
+            return None
         out: dict[str, Array] = {}
         dpsi_j, dpsi_i = float(yaw_of(other_delta_R)), float(yaw_of(own_delta_R))
         if 'z_hat' in values:
@@ -305,14 +333,13 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
     def step(self, x: DeCarliState, h: float, inputs: StepInputs,
              reorthonormalize: bool = True) -> tuple[DeCarliState, dict[str, Array]]:
         g = self.gains
-        L = inputs.links
         edges = inputs.edges
-        assert L is not None and edges.slot is not None, 'de_carli steps need link inputs'
+        assert edges.slot is not None
         n = x.p_hat.shape[0]
         ag, sl = edges.agent, edges.slot
         x = x.grown(int(sl.max()) + 1 if len(sl) else 0)
         out = x.rows(slice(None))
-        rec = inputs.received
+        rec = inputs.edge
         tick = int(round(inputs.t / h))
         h2, h3 = self.every(g.yaw_rate, h) * h, self.every(g.position_rate, h) * h
 
@@ -320,14 +347,14 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         delta_i = (np.zeros((n, 3)) if inputs.displacement is None
                    else np.asarray(inputs.displacement, dtype=float))
         dc_i = as_complex(delta_i)
-        dpsi_j = yaw_of(L.other_delta_R)
-        delta_j = L.other_displacement
+        dpsi_j = yaw_of(rec[PEER_DELTA_R])
+        delta_j = rec[PEER_DISPLACEMENT]
         dc_j = as_complex(delta_j)
         z_j = as_complex(rec['z_hat'])
-        y, meas = L.relative_positions, rec['meas']
+        y, meas = rec['relative_positions'], rec['meas']
         y_c, meas_c = as_complex(y), as_complex(meas)
-        senses, sensed_by, owns = L.senses, L.sensed_by, L.owns
-        y_ok, m_ok, present, fresh = L.usable()
+        senses, sensed_by, owns = edges.flag('senses'), edges.flag('sensed_by'), edges.flag('owns')
+        y_ok, m_ok, present, fresh = usable(inputs)
 
         # An edge whose other end's odometry is missing sits the step out; its relative
         # estimates restart from the next measurements (their prediction needs δ_j).
@@ -445,10 +472,9 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
                    active: NDArray[np.bool_], z_mid: Complex) -> cov.RobotMaps:
         """The linearised step of the robots' poses at ``x`` (de_carli_covariance.py):
         ``active`` the pairs stage 2 used, ``z_mid`` the yaws after it."""
-        g, L, edges, rec = self.gains, inputs.links, inputs.edges, inputs.received
-        assert L is not None
+        g, edges, rec = self.gains, inputs.edges, inputs.edge
         tick = int(round(inputs.t / h))
-        y_ok, m_ok, _, fresh = L.usable()
+        y_ok, m_ok, _, fresh = usable(inputs)
         yaw_tick = tick % self.every(g.yaw_rate, h) == 0
         moved = (None if inputs.displacement is None else np.einsum(
             'nab,nb->na', rot_z(np.angle(z_mid)), np.asarray(inputs.displacement, float)))
@@ -470,25 +496,25 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         measurements (from the owner's ``relyaw``), so that both ends hold the same
         covariance. Returns the links ``(K,)``, the relative yaw each link linearises at
         ``(E,)`` (0 where none), :func:`.de_carli_covariance.pair_maps` and two-way flags."""
-        L, edges, rec = inputs.links, inputs.edges, inputs.received
-        assert L is not None and edges.slot is not None
+        edges, rec = inputs.edges, inputs.edge
+        assert edges.slot is not None
         ag, sl = edges.agent, edges.slot
-        y_ok, m_ok, present, fresh = L.usable()
+        y_ok, m_ok, present, fresh = usable(inputs)
         relyaw = as_complex(rec['relyaw'])
-        replica = ~L.owns & present & fresh & (np.abs(relyaw) > 0.5)
+        replica = ~edges.flag('owns') & present & fresh & (np.abs(relyaw) > 0.5)
         z_all = np.where(owned, z_owned, np.where(replica, relyaw, 0.0))
         e = np.flatnonzero(owned | replica)
         o = owned[e]
         a_, s_ = ag[e], sl[e]
         dpsi_i = yaw_of(inputs.delta_R)[a_]
-        dpsi_j = yaw_of(L.other_delta_R)[e]
+        dpsi_j = yaw_of(rec[PEER_DELTA_R])[e]
         d_i = (np.zeros(len(e), complex) if inputs.displacement is None
                else as_complex(np.asarray(inputs.displacement, dtype=float))[a_])
-        d_j = as_complex(L.other_displacement)[e]
-        y_c, meas_c = as_complex(L.relative_positions)[e], as_complex(rec['meas'])[e]
+        d_j = as_complex(rec[PEER_DISPLACEMENT])[e]
+        y_c, meas_c = as_complex(rec['relative_positions'])[e], as_complex(rec['meas'])[e]
         # In the owner's orientation: the owner o and the other robot x of each pair.
         z, dpsi_o, dpsi_x = z_all[e], np.where(o, dpsi_i, dpsi_j), np.where(o, dpsi_j, dpsi_i)
-        two_way = L.senses[e] & L.sensed_by[e]
+        two_way = edges.flag('senses')[e] & edges.flag('sensed_by')[e]
         maps = cov.pair_maps(
             h, self.gains.k_pe, self.gains.k_psi, z, np.exp(1j * (dpsi_x - dpsi_o)) * z,
             np.where(o, x.d_other[a_, s_], x.d_own[a_]),
@@ -498,8 +524,17 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
             np.where(o, m_ok[e], y_ok[e]), two_way)
         return e, z_all, maps, two_way
 
-    # --- what the recordings show
+    # --- what the recordings and the health report show
     edge_error_label: ClassVar[str] = 'rel_yaw_err'
+
+    def neighbour_report(self, x: DeCarliState, slots: int) -> dict[str, list[str]]:
+        """Each pair's excitation so far [m²/s] and whether it is excited now (Theorem 1)."""
+        total, recent = x.excitation[0], x.excitation_recent[0]
+        threshold = self.gains.pe_threshold
+        return {'excitation': [
+            f'{float(total[e]) if e < total.size else 0.0:.3g} m2/s, '
+            + ('excited now' if e < recent.size and recent[e] >= threshold
+               else 'not excited now') for e in range(slots)]}
 
     def edge_errors(self, x: DeCarliState, R: Array, edges: Edges, other: Index) -> Array:
         """Fig. 2(a): per link, ``|ẑ_ij - e^{ι(ψ_j - ψ_i)}|`` (chordal, no alignment needed)

@@ -54,14 +54,14 @@ One step ``h``, everything on the right at the step's start:
 
 The covariance ``P`` of ``(q̃_i, φ_i)`` is propagated with the step, linearised at the
 estimate before it (:mod:`.presenza_covariance`). The anchor runs as a sensing robot (its
-estimate leaves ``(I, 0)`` and returns, as in the paper) or, ``anchor.pinned``, holds ``(I, 0)``
+estimate leaves ``(I, 0)`` and returns, as in the paper) or, pinned, holds ``(I, 0)``
 (and a zero covariance). Estimates are in the anchor's body frame
 (``EstimateFrame.ANCHOR_BODY``): no alignment when measuring errors (§11).
 """
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import TYPE_CHECKING, ClassVar
 
@@ -70,28 +70,36 @@ from numpy.typing import NDArray
 
 from ..core import angles, so3
 from . import presenza_covariance as cov
-from .base import (AnchorInputs, Array, Channel, CheckReport, Edges, EstimateFrame, Estimator,
-                   Finding, Index, Roles, Sensor, State, StepInputs, gain)
+from .base import (ANCHOR_DELTA_R, ANCHOR_DISPLACEMENT, IS_ANCHOR, PINNED, POSE_POSITION, Array,
+                   Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, Index, Mask,
+                   Motion, Roles, Sensor, State, StepInputs, gain)
 from .covariance import POSE_COV, initial_covariance
 
 if TYPE_CHECKING:
     from ..scenario.model import Scenario
 
-Q_HAT = Channel('q_hat', per='agent', frame='anchor', doc='q̂_j, the position estimate in the '
-                'anchor frame [m]')
+# Every value a robot receives is checked against this bound [m, 1/m, 1/m², m/s].
+MAX_VALUE = 1e4
+Q_HAT = Channel('q_hat', per='agent', frame='estimate', doc='q̂_j, the position estimate in '
+                'the anchor frame [m]', topic='pose', kind=POSE_POSITION, on='senses',
+                pairing='exact', bound=MAX_VALUE)
 Q_RANGED = Channel('q_ranged', per='edge', frame='body', sensor=Sensor.RELATIVE_POSITIONS,
+                   on='ranged_by', pairing='exact', bound=MAX_VALUE,
                    doc='q_i = R_aᵀ (p_i - p_a), the anchor j\'s measurement of its ranged robot '
                        'i (its body frame) [m]; zeros otherwise')
-GRADIENT = Channel('angle_gradient', per='edge', frame='anchor', round=2,
+_ROUND_2 = dict(per='edge', frame='estimate', round=2, on='sensed_by', pairing='exact',
+                bound=MAX_VALUE)
+GRADIENT = Channel('angle_gradient', **_ROUND_2,  # type: ignore[arg-type]
                    doc='g_{j→i} = Σ_{k∈O_j\\{i}} α̃_jik χ̂_jik, sensing robot j\'s angle terms '
                        'of the listener i\'s gradient (6) [1/m]; zeros otherwise')
-HESSIAN = Channel('angle_hessian', per='edge', frame='anchor', round=2, shape=(6,),
+HESSIAN = Channel('angle_hessian', **_ROUND_2, shape=(6,),  # type: ignore[arg-type]
+                  fields=('xx', 'yy', 'zz', 'xy', 'xz', 'yz'),
                   doc='Σ_k χ̂_jik χ̂_jikᵀ, its Gauss-Newton block (§9) [1/m²], as xx, yy, zz, '
                       'xy, xz, yz')
-ANCHOR_BEARING = Channel('anchor_bearing', per='edge', frame='anchor', round=2,
+ANCHOR_BEARING = Channel('anchor_bearing', **_ROUND_2,  # type: ignore[arg-type]
                          doc='𝔟̂_ji = Q̂_j β_ji, j\'s bearing of the listener in the anchor '
                              'frame (11); zeros when j is not a sensing robot that sees it')
-VELOCITY_TERM = Channel('velocity_term', per='edge', frame='anchor', round=2,
+VELOCITY_TERM = Channel('velocity_term', **_ROUND_2,  # type: ignore[arg-type]
                         doc='n_ji, j\'s term of the listener\'s velocity reconstruction (11) '
                             '[m/s]')
 
@@ -168,13 +176,19 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
     sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.BEARINGS,
                                                       Sensor.ODOMETRY, Sensor.BEARING_RATES,
                                                       Sensor.RELATIVE_POSITIONS})
-    sends: ClassVar[tuple[Channel, ...]] = (Q_HAT, Q_RANGED, GRADIENT, HESSIAN, ANCHOR_BEARING,
-                                            VELOCITY_TERM, POSE_COV, cov.TERM_COV)
+    sends: ClassVar[tuple[Channel, ...]] = (
+        Q_HAT, Q_RANGED, GRADIENT, HESSIAN, ANCHOR_BEARING, VELOCITY_TERM,
+        replace(POSE_COV, on='senses', pairing='exact', bound=MAX_VALUE), cov.TERM_COV)
     frame: ClassVar[EstimateFrame] = EstimateFrame.ANCHOR_BODY
     edge_gains: ClassVar[bool] = False
     links = 'communication'
     directed_sensing: ClassVar[bool] = True
-    rounds: ClassVar[int] = 2
+    measures: ClassVar[Mapping[Sensor, str | None]] = {Sensor.BEARINGS: 'senses',
+                                                       Sensor.BEARING_RATES: 'senses'}
+    own_pairing = 'interpolated'
+    peer_odometry = 'anchor'
+    partial_edges: ClassVar[bool] = True
+    partner_sensor: ClassVar[Sensor | None] = Sensor.RELATIVE_POSITIONS
     reference_scenario: ClassVar[str] = 'presenza_case1.yaml'
     # The free robots dead-reckon with the velocity reconstructed from the bearing rates at the
     # step's start (18) and every robot's terms use step-average velocities: first order in h
@@ -208,12 +222,14 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         return {'q_hat': x.p_hat.copy(), 'q_ranged': np.array(bearings, dtype=float),
                 'pose_cov': x.P.copy()}
 
-    def carry_anchor_frame(self, values: Mapping[str, Array], delta_R_a: Array,
-                           delta_a: Array) -> dict[str, Array]:
-        """Values formed at ``t_s`` seen in the anchor frame at t: a position
-        ``ΔR_aᵀ (q - δ_a)`` (as if the sender had not moved meanwhile), a vector ``ΔR_aᵀ v``, the
-        Gauss-Newton block ``ΔR_aᵀ D ΔR_a``. What a node uses for a late value (the sender's
-        newest), instead of one of another frame."""
+    def carry(self, values: Mapping[str, Array], motion: Motion) -> dict[str, Array] | None:
+        """Values formed at ``t_s`` seen in the anchor frame at t, by the anchor's motion
+        ``ΔR_a``, ``δ_a``: a position ``ΔR_aᵀ (q - δ_a)`` (as if the sender had not moved
+        meanwhile), a vector ``ΔR_aᵀ v``, the Gauss-Newton block ``ΔR_aᵀ D ΔR_a``. What a node
+        uses for a late value (the sender's newest), instead of one of another frame."""
+        delta_R_a, delta_a = motion.anchor_delta_R, motion.anchor_displacement
+        if delta_R_a is None or delta_a is None:
+            return None
         out = {}
         for name, v in values.items():
             if name == 'q_hat':
@@ -247,33 +263,26 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                                                                                   out))))}
 
     @staticmethod
-    def _structure(x: PresenzaState, inputs: StepInputs
-                   ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_],
-                              AnchorInputs]:
-        """Per link whether its sensing terms are used this step (i senses j, and a node
-        has its bearing and ``q̂_j``: ``LinkInputs.measured``, ``fresh``) and ``sensed_by``;
-        per robot ``sensing`` (two or more out-neighbours: a role, whatever this step
-        lacks); the anchor inputs."""
-        links, anchor = inputs.links, inputs.anchor
-        assert links is not None and anchor is not None, 'Presenza et al. step over links'
-        n = x.p_hat.shape[0]
-        count = np.bincount(inputs.edges.agent[links.senses], minlength=n)
-        used = links.senses.copy()
-        for have in (links.measured, links.fresh):
-            if have is not None:
-                used &= have
-        return used, links.sensed_by, count >= 2, anchor
+    def _structure(x: PresenzaState, inputs: StepInputs) -> tuple[Mask, Mask, Mask]:
+        """Per link whether its sensing terms are used this step (i senses j, and has its
+        bearing, bearing rate and ``q̂_j``) and ``sensed_by``; per robot ``sensing`` (two or
+        more out-neighbours: a role, whatever this step lacks)."""
+        edges = inputs.edges
+        senses = edges.flag('senses')
+        count = np.bincount(edges.agent[senses], minlength=x.p_hat.shape[0])
+        used = (senses & inputs.here('bearings') & inputs.here('bearing_rates')
+                & inputs.here('q_hat'))
+        return used, edges.flag('sensed_by'), count >= 2
 
     @staticmethod
     def _motion(h: float, inputs: StepInputs, n: int) -> tuple[Array, Array, Array, Array,
                                                                 Array, Array]:
         """Own ``ω_i``, ``u_i``, the anchor's ``ω_a``, ``u_a`` (step averages, ``(N, 3)``) and
         the anchor's increments ``ΔR_a``, ``δ_a``."""
-        anchor = inputs.anchor
-        assert anchor is not None
+        a_R, a_d = inputs.agent[ANCHOR_DELTA_R], inputs.agent[ANCHOR_DISPLACEMENT]
         delta = inputs.displacement if inputs.displacement is not None else np.zeros((n, 3))
-        return (so3.log_small(inputs.delta_R) / h, delta / h, so3.log_small(anchor.delta_R) / h,
-                anchor.displacement / h, anchor.delta_R, anchor.displacement)
+        return (so3.log_small(inputs.delta_R) / h, delta / h, so3.log_small(a_R) / h,
+                a_d / h, a_R, a_d)
 
     def _angle_terms(self, x: PresenzaState, inputs: StepInputs, senses: NDArray[np.bool_]
                      ) -> tuple[Array, Array, Array, Array, cov.AngleTerms]:
@@ -283,7 +292,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         n, n_edges = x.p_hat.shape[0], len(inputs.edges)
         agent = inputs.edges.agent
         e1, e2 = _pairs(agent.tobytes(), np.ascontiguousarray(senses).tobytes())
-        terms = cov.angle_terms(x.p_hat, inputs.received['q_hat'], agent, e1, e2,
+        terms = cov.angle_terms(x.p_hat, inputs.edge['q_hat'], agent, e1, e2,
                                 MIN_DISTANCE_M)
         zeta, D = np.zeros((n, 3)), np.zeros((n, 3, 3))
         g_out, D_out = np.zeros((n_edges, 3)), np.zeros((n_edges, 3, 3))
@@ -291,7 +300,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
             return zeta, D, g_out, D_out, terms
         _, _, chi_jk, chi_kj, g_own, c = terms
         i = agent[e1]
-        b = inputs.bearings
+        b = inputs.edge['bearings']
         err = c - np.sum(b[e1] * b[e2], axis=1, keepdims=True)     # α̃_ijk
         np.add.at(zeta, i, err * g_own)
         np.add.at(D, i, _outer(g_own, g_own))
@@ -303,24 +312,25 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
 
     def reply(self, x: PresenzaState, h: float, inputs: StepInputs) -> dict[str, Array]:
         """Round 2, from each sensing robot to each out-neighbour (zeros on other links)."""
-        senses, _, sensing, _ = self._structure(x, inputs)
+        senses, _, sensing = self._structure(x, inputs)
         agent = inputs.edges.agent
         n = x.p_hat.shape[0]
         _, _, g_out, D_out, terms = self._angle_terms(x, inputs, senses)
         send = (senses & sensing[agent])[:, None]
         omega, u, omega_a, u_a, _, _ = self._motion(h, inputs, n)
         Q = x.R_hat[agent]
-        beta = inputs.bearings
+        beta = inputs.edge['bearings']
         b_hat = np.einsum('eab,eb->ea', Q, beta)                   # 𝔟̂ = Q̂_j β_ji
         upsilon = (np.einsum('nab,nb->na', x.R_hat, u) - u_a
                    - so3.cross(omega_a, x.p_hat))[agent]          # (10)
-        dist = np.linalg.norm(inputs.received['q_hat'] - x.p_hat[agent], axis=1, keepdims=True)
+        dist = np.linalg.norm(inputs.edge['q_hat'] - x.p_hat[agent], axis=1, keepdims=True)
         g = self.gains
-        if inputs.bearing_rates is None:
+        rates = inputs.edge.get('bearing_rates')
+        if rates is None:
             velocity, b_sent = np.zeros_like(b_hat), np.zeros_like(b_hat)
             linear = None
         else:
-            derotated = inputs.bearing_rates + so3.cross(omega[agent], beta)
+            derotated = rates + so3.cross(omega[agent], beta)
             s = np.einsum('eab,eb->ea', Q, derotated)             # Q̂_j (β̇ + ω_j × β)
             r_dot = s - so3.cross(omega_a[agent], b_hat)           # the rate of 𝔟_ji
             velocity = (upsilon - b_hat * np.sum(b_hat * upsilon, axis=1, keepdims=True)
@@ -330,7 +340,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                                        np.einsum('nab,nb->na', x.R_hat, u)[agent],
                                        omega[agent], omega_a[agent])
         term_cov = cov.sender_terms(
-            len(agent), terms, beta, x.P, inputs.received[POSE_COV.name], agent, linear,
+            len(agent), terms, beta, x.P, inputs.edge[POSE_COV.name], agent, linear,
             g.bearing_std ** 2, g.bearing_rate_std ** 2, g.odometry_noise_density ** 2,
             g.gyro_noise_density ** 2, h)
         return {'angle_gradient': np.where(send, g_out, 0.0),
@@ -342,8 +352,10 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
     def step(self, x: PresenzaState, h: float, inputs: StepInputs,
              reorthonormalize: bool = True) -> tuple[PresenzaState, dict[str, Array]]:
         g = self.gains
-        senses, sensed_by, sensing, anchor = self._structure(x, inputs)
-        edges, r = inputs.edges, inputs.received
+        senses, sensed_by, sensing = self._structure(x, inputs)
+        edges, r = inputs.edges, inputs.edge
+        is_anchor = inputs.agent[IS_ANCHOR]
+        ranged_by = edges.flag('ranged_by') & inputs.here('q_ranged')
         agent = edges.agent
         n = x.p_hat.shape[0]
         _, u, omega_a, u_a, dR_a, delta_a = self._motion(h, inputs, n)
@@ -352,15 +364,14 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         into = sensed_by[:, None]
         zeta += edges.sum_by_agent(np.where(into, r['angle_gradient'], 0.0))
         D += self._sum_blocks(edges, np.where(into, r['angle_hessian'], 0.0))
-        ranged_by = anchor.ranged_by[:, None]
-        zeta += g.kappa_s * (anchor.is_anchor[:, None] * x.p_hat
+        zeta += g.kappa_s * (is_anchor[:, None] * x.p_hat
                              + edges.sum_by_agent(np.where(
-                                 ranged_by, x.p_hat[agent] - r['q_ranged'], 0.0)))
-        anchored = anchor.is_anchor | (edges.sum_by_agent(ranged_by.astype(float))[:, 0] > 0)
+                                 ranged_by[:, None], x.p_hat[agent] - r['q_ranged'], 0.0)))
+        anchored = is_anchor | (edges.sum_by_agent(ranged_by[:, None].astype(float))[:, 0] > 0)
         D += g.kappa_s * anchored[:, None, None] * np.eye(3)
         # Sensing robots' innovation (12).
         d_own = np.where(senses[:, None], r['q_hat'] - x.p_hat[agent], 0.0)
-        beta = inputs.bearings
+        beta = inputs.edge['bearings']
         Q_T_d = np.einsum('eba,eb->ea', x.R_hat[agent], d_own)
         Omega = edges.sum_by_agent(np.where(senses[:, None], so3.cross(beta, Q_T_d), 0.0))
         dist = np.linalg.norm(d_own, axis=1)[:, None, None]
@@ -400,8 +411,8 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         if reorthonormalize:
             R_new = so3.reorthonormalize(R_new)
         gamma_next = np.einsum('nab,nb->na', dR_a_T, gamma)
-        if anchor.pinned:
-            hold = anchor.is_anchor
+        hold = inputs.agent[PINNED]
+        if hold.any():
             p_new[hold], R_new[hold] = 0.0, eye
         # The covariance, linearised at the estimate before the step (presenza_covariance.py).
         b_own = np.einsum('eab,eb->ea', x.R_hat[agent], beta)     # Q̂_i β_ij
@@ -414,9 +425,9 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         P_next = cov.propagate(
             x.P, lin, dR_a, agent, used=senses, b_own=b_own, own_bearings=beta, angles=terms,
             d_own=dist[:, 0, 0], P_nbr=r[POSE_COV.name], terms=r[cov.TERM_COV.name],
-            sensed_by=sensed_by, valid=valid, ranged_by=anchor.ranged_by,
-            is_anchor=anchor.is_anchor, sensing=sensing, gamma=gamma, R_hat=x.R_hat,
-            q_next=p_new, model=g, kappa_s=g.kappa_s, h=h, pinned=anchor.pinned)
+            sensed_by=sensed_by, valid=valid, ranged_by=ranged_by,
+            is_anchor=is_anchor, sensing=sensing, gamma=gamma, R_hat=x.R_hat,
+            q_next=p_new, model=g, kappa_s=g.kappa_s, h=h, pinned=hold)
         out = PresenzaState(R_hat=R_new, p_hat=p_new, gamma_hat=gamma_next, P=P_next)
         diag = {'innovation': Omega, 'zeta': zeta,
                 'lambda_P': np.where(sensing, 0.0, lam_P),

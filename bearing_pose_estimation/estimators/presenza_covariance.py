@@ -77,8 +77,13 @@ ANGLE_WHITE, ANGLE_SLOW, VELOCITY_WHITE, VELOCITY_SLOW = (slice(6 * k, 6 * k + 6
 RATE = slice(24, 27)
 TERM_SIZE = 27
 
-TERM_COV = Channel('term_cov', per='edge', frame='anchor', round=2, shape=(TERM_SIZE,),
-                   optional=True,
+# The point fields of term_cov on the wire: the four blocks, each packed, then the rate.
+TERM_FIELDS = tuple(f'{block}_{f}' for block in ('angle_white', 'angle_slow', 'velocity_white',
+                                                   'velocity_slow')
+                    for f in ('xx', 'yy', 'zz', 'xy', 'xz', 'yz')) + ('rate_x', 'rate_y', 'rate_z')
+TERM_COV = Channel('term_cov', per='edge', frame='estimate', round=2, shape=(TERM_SIZE,),
+                   optional=True, on='sensed_by', pairing='exact', bound=1e4,
+                   topic='term_covariance', fields=TERM_FIELDS,
                    doc='what only sensing robot j knows of the listener\'s covariance: its '
                        'angle terms\' covariance (white, slow), its velocity term\'s '
                        '(white, slow; free listeners) as xx, yy, zz, xy, xz, yz each, and '
@@ -341,7 +346,7 @@ def propagate(P: Array, lin: OwnLinearisation, dR_a: Array, agent: Index, *, use
               P_nbr: Array, terms: Array, sensed_by: Mask, valid: Mask,
               ranged_by: Mask, is_anchor: Mask, sensing: Mask, gamma: Array,
               R_hat: Array, q_next: Array, model: PresenzaCovarianceModel, kappa_s: float,
-              h: float, pinned: bool) -> Array:
+              h: float, pinned: Mask) -> Array:
     """``P⁺`` ``(N, 6, 6)`` of every robot (module docstring) from its ``P``, its linearised
     step ``lin``, the anchor's rotation ``ΔR_a`` ``(N, 3, 3)`` and what it has of the others.
 
@@ -388,8 +393,7 @@ def propagate(P: Array, lin: OwnLinearisation, dR_a: Array, agent: Index, *, use
     a_map[:, 3:] = -EYE3
     out += np.where(other[:, None, None], gyro * a_map @ _t(a_map), 0.0)
     out[:, :3, :3] += np.where((sensing & other)[:, None, None], odo * EYE3, 0.0)
-    if pinned:
-        out[is_anchor] = 0.0
+    out[pinned] = 0.0   # the anchor that holds (I, 0)
     return capped(0.5 * (out + _t(out)))
 
 

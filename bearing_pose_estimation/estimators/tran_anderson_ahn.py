@@ -56,7 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core import so3
-from .base import Array, Edges, StepInputs, gain
+from .base import HELD, P_OWN, Array, Edges, StepInputs, gain
 from .bearing_leaders import (EIGEN_GAP_REL, BearingLeaderEstimator, CovState, bearing_pull,
                               fed_forward, neighbour_cov, own_geometry, repeated)
 from .covariance import CovarianceModel, propagate, tran_jacobians
@@ -176,15 +176,15 @@ class TranAndersonAhn(BearingLeaderEstimator[TranGains, TranState]):
         pairs = self.pairs(inputs.edges)
         R_hat, Omega, p_hat, torque = tran_step(
             x.R_hat, x.Omega_tilde, x.p_hat, inputs.delta_R, h, inputs.edges,
-            pairs, inputs.bearings, d_world, p_nbr, g, reorthonormalize,
-            displacement=inputs.displacement, p_own=inputs.p_own)
+            pairs, inputs.edge['bearings'], d_world, p_nbr, g, reorthonormalize,
+            displacement=inputs.displacement, p_own=inputs.edge.get(P_OWN))
         # The covariance, linearised at the estimate before the step (covariance.py).
         y, dist = own_geometry(x, inputs, p_nbr)
         P = propagate(x.P, h, inputs.edges, y, neighbour_cov(inputs), g.bearing_std,
                       g.gyro_noise_density,
                       tran_jacobians(h, inputs.edges, y, dist, x.R_hat, pairs, g.k_omega, g.k_p,
                                      g.k_c),
-                      fed_forward(x, inputs, g.k_v), g.odometry_noise_density, inputs.held)
+                      fed_forward(x, inputs, g.k_v), g.odometry_noise_density, inputs.edge.get(HELD))
         return (TranState(R_hat=R_hat, p_hat=p_hat, P=P, Omega_tilde=Omega),
                 {'innovation': torque})
 

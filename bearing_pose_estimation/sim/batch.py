@@ -17,22 +17,16 @@ simulator node's world uses; a scenario and its ``noise.seed`` give the same run
 
 Leaders (for methods that have them) know their pose: their estimate is their truth.
 
-Methods whose robots talk both ways over every sensing edge (``links = 'communication'``, De
-Carli et al.) step over communication links instead (:func:`estimators.base.communication_links`):
-each robot's own relative positions ``ⁱp_ij = R_iᵀ (p_j - p_i)`` (+ noise) to the robots it
-senses, what each neighbour sends formed from its state and its own measurement of the robot
-(where it senses it), and the neighbour's gyro increment and odometry over the step. In the
-formation controller's ``paper`` mode the truth moves with the estimated yaws (a closed loop).
-Their recordings add each pair's error (:meth:`Estimator.edge_errors`) and, under formation
+What a step reads comes from the method's declarations (:mod:`estimators.base`): its edges
+(:func:`estimators.base.edge_table`), each own point sensor on the edges it measures (noise drawn
+there only), the other end's measurement of each edge's agent by the method's
+``partner_sensor`` (what its per-edge channels are formed from, or what travels on its sensor
+topic), what every agent sends (round 1, then round 2 from what round 1 gave), the other ends'
+odometry or the anchor's. In the formation controller's ``paper`` mode the truth moves with the
+estimated yaws (a closed loop); agents with ``anchor_estimate`` velocities move with the
+commands their estimates give (:meth:`sim.truth.Truth.command`). Recordings of methods with
+per-pair states add each pair's error (:meth:`Estimator.edge_errors`) and, under formation
 control, each robot's formation error (:func:`core.formation.formation_error`).
-
-Two-round methods (``rounds = 2``, Presenza et al.) step over the same links, the anchor's
-ranged robots linked too: own bearings and bearing rates of the robots each senses (directed
-sensing), the round-1 channels (:meth:`Estimator.outbox`; the anchor's relative positions of
-its ranged robots), then the round-2 channels each robot forms from them
-(:meth:`Estimator.reply`), and the anchor's gyro increment and odometry for every robot
-(:class:`estimators.base.AnchorInputs`). Agents with ``anchor_estimate`` velocities move with
-the commands their estimates give (:meth:`sim.truth.Truth.command`, a closed loop).
 """
 from __future__ import annotations
 
@@ -46,8 +40,9 @@ from ..core import so3
 from ..core.bearing_rates import BearingRateFilter
 from ..core.formation import formation_error
 from ..core.motion import in_anchor_frame, yaw_of
-from ..estimators.base import (AnchorInputs, Edges, EstimateFrame, LinkInputs, State, StepInputs,
-                               communication_links, route)
+from ..estimators.base import (ANCHOR_DELTA_R, ANCHOR_DISPLACEMENT, DELTA_R, DISPLACEMENT,
+                               IS_ANCHOR, PEER_DELTA_R, PEER_DISPLACEMENT, PINNED, EstimateFrame,
+                               Index, Mask, Sensor, State, StepInputs, edge_table, route)
 from ..scenario.model import Scenario, initial_estimates
 from ..studies.results import PoseErrors, Recording, pose_errors, to_world
 from .noise import NoiseModel
@@ -69,35 +64,20 @@ class BatchSimulator(OnTruth):
         self.h = float(step if step is not None else scenario.step)
         self.estimator = scenario.estimator()
         self.truth = Truth(scenario, self.h)
-        agents = scenario.agents
-        self.n = len(agents)
+        self.n = len(scenario.agents)
         self.leader_idx = np.array([scenario.index[name] for name in scenario.leaders],
                                    dtype=np.intp)
         self.follower_idx = np.array([scenario.index[a.name] for a in scenario.followers],
                                      dtype=np.intp)
-        owner, nbr, k = [], [], []
-        for a in agents:
-            for nb in a.neighbours:
-                owner.append(scenario.index[a.name])
-                nbr.append(scenario.index[nb.name])
-                k.append(nb.k)
-        self.links = None
-        anchor = scenario.anchor_index
-        self._ranged = ([(anchor, scenario.index[r]) for r in scenario.ranged]
-                        if anchor is not None else [])
-        if self.estimator.links == 'communication':
-            self.links = communication_links(np.array(owner, np.intp), np.array(nbr, np.intp),
-                                             self.n, also=self._ranged)
-            owner, nbr = list(self.links['agent']), list(self.links['other'])
-            k = [1.0] * len(owner)
-        self.edge_nbr = np.array(nbr, dtype=np.intp)
-        self.edges = Edges(agent=np.array(owner, dtype=np.intp), k=np.array(k), n_agents=self.n)
-        # Both ends of every edge measure: i its b^i_ij, j its b^j_ji.
-        self._ends = np.concatenate([self.edges.agent, self.edge_nbr])
-        self._other_ends = np.concatenate([self.edge_nbr, self.edges.agent])
-        # Static positions: the world bearings never change.
-        self._ends_b_world = (None if self.truth.moves
-                              else self.truth.world_bearings(self._ends, self._other_ends))
+        tail, head = scenario.sensing_edges()
+        k = np.array([nb.k for a in scenario.agents for nb in a.neighbours])
+        self.table = edge_table(type(self.estimator), self.n, tail, head, k,
+                                scenario.anchor_index,
+                                [scenario.index[r] for r in scenario.ranged])
+        self.edges = self.table.edges(self.n)
+        self.edge_nbr = self.table.other
+        # Static positions: the world bearings never change (per sensor's rows).
+        self._world_bearings: dict[tuple[str | None, bool], Array] = {}
         self.odometry = scenario.simulates('odometry')
         self.reset()
 
@@ -139,109 +119,96 @@ class BatchSimulator(OnTruth):
         spec = self.scenario.sensors.bearing_rates
         self._rates: BearingRateFilter | None = (
             BearingRateFilter(len(self.edges), spec.tau)
-            if spec.from_bearings and self.links is not None else None)
+            if spec.from_bearings and Sensor.BEARING_RATES in type(self.estimator).measures
+            else None)
         self._prev_delta_R = np.tile(np.eye(3), (self.n, 1, 1))
 
+    def _rows(self, flag: str | None) -> Index:
+        """The edges with ``flag`` (None: all)."""
+        return (np.arange(len(self.edges)) if flag is None
+                else np.flatnonzero(self.table.flags[flag]))
+
+    def measure(self, sensor: Sensor, flag: str | None, theirs: bool = False) -> Array:
+        """What the edges with ``flag`` measure now by ``sensor``, noise drawn ``(M, 3)``: each
+        edge's agent of the other end, or (``theirs``) the other end of the agent."""
+        rows = self._rows(flag)
+        owner, target = self.edges.agent[rows], self.edge_nbr[rows]
+        if theirs:
+            owner, target = target, owner
+        if sensor is Sensor.BEARINGS:
+            key = (flag, theirs)
+            b_world = self._world_bearings.get(key)
+            if b_world is None:
+                b_world = self.truth.world_bearings(owner, target)
+                if not self.truth.moves:   # static positions: the world bearings never change
+                    self._world_bearings[key] = b_world
+            return self.noise.bearings(self.truth.body_bearings(owner, b_world), self.t)
+        if sensor is Sensor.RELATIVE_POSITIONS:
+            return self.noise.sensor(sensor.value, self.truth.relative_positions(owner, target))
+        if sensor is Sensor.BEARING_RATES:
+            return self.noise.sensor(sensor.value, self.truth.bearing_rates(owner, target))
+        raise ValueError(f'the batch simulator cannot simulate {sensor.value} per edge')
+
     def inputs(self) -> StepInputs:
-        """What every agent's next step consumes, measured now (noise drawn)."""
-        if self.estimator.rounds == 2:
-            return self.two_round_inputs()
-        if self.links is not None:
-            return self.link_inputs()
-        b_world = (self._ends_b_world if self._ends_b_world is not None
-                   else self.truth.world_bearings(self._ends, self._other_ends))
-        both = self.truth.body_bearings(self._ends, b_world)
+        """What every agent's next step consumes, measured now (noise drawn): from the
+        method's declarations (module docstring)."""
+        est = self.estimator
+        cls = type(est)
+        agent, other = self.edges.agent, self.edge_nbr
         n_edges = len(self.edges)
-        b_own = self.noise.bearings(both[:n_edges], self.t)
-        b_theirs = self.noise.bearings(both[n_edges:], self.t)
-        sent = self.estimator.outbox(self.x, self.edge_nbr, b_theirs)
-        displacement = None
-        if self.odometry:
-            displacement = self.odometry_displacement()
-        return StepInputs(delta_R=self.gyro_increment(self.truth.increment()), edges=self.edges,
-                          bearings=b_own,
-                          received=route(sent, self.estimator.sends, self.edge_nbr),
-                          displacement=displacement)
-
-    def link_inputs(self) -> StepInputs:
-        """:meth:`inputs` of a ``links = 'communication'`` method."""
-        assert self.links is not None
-        agent, other = self.edges.agent, self.edge_nbr
-        senses, sensed_by = self.links['senses'], self.links['sensed_by']
-        y = self.noise.sensor('relative_positions',
-                              self.truth.relative_positions(agent, other)) * senses[:, None]
-        theirs = self.noise.sensor('relative_positions', self.truth.relative_positions(
-            other, agent)) * sensed_by[:, None]
-        assert self.edges.slot is not None
-        sent = self.estimator.outbox(self.x, other, theirs,
-                                     slot=self.edges.slot[self.links['reverse']])
+        edge: dict[str, Array] = {}
+        mask: dict[str, Mask] = {}
+        for sensor, flag in cls.measures.items():
+            if sensor is Sensor.BEARING_RATES and self._rates is not None:
+                continue   # estimated from the bearings below, once the gyro is known
+            values = np.zeros((n_edges, 3))
+            values[self._rows(flag)] = self.measure(sensor, flag)
+            edge[sensor.value] = values
+        # The other end's measurement of each edge's agent, where it makes one.
+        theirs = np.zeros((n_edges, 3))
+        if cls.partner_sensor is not None:
+            carrier = next((c for c in cls.sends if c.sensor is cls.partner_sensor), None)
+            flag = None if carrier is None else carrier.on
+            theirs[self._rows(flag)] = self.measure(cls.partner_sensor, flag, theirs=True)
         delta_R = self.gyro_increment(self.truth.increment())
-        displacement = self.odometry_displacement()
-        links = LinkInputs(senses=senses, sensed_by=sensed_by, owns=self.links['owns'],
-                           relative_positions=y, other_delta_R=delta_R[other],
-                           other_displacement=displacement[other])
-        return StepInputs(delta_R=delta_R, edges=self.edges, bearings=np.zeros((len(agent), 3)),
-                          received=route(sent, self.estimator.sends, other),
-                          displacement=displacement, links=links, t=self.t)
-
-    def two_round_inputs(self) -> StepInputs:
-        """:meth:`inputs` of a two-round method (module docstring)."""
-        assert self.links is not None
-        agent, other = self.edges.agent, self.edge_nbr
-        senses, sensed_by = self.links['senses'], self.links['sensed_by']
-        pairs = set(self._ranged)
-        ranges = np.array([(int(i), int(j)) in pairs for i, j in zip(agent, other)], bool)
-        ranged_by = ranges[self.links['reverse']]
-        sensing = np.flatnonzero(senses)
-        bearings = np.zeros((len(agent), 3))
-        rates = np.zeros((len(agent), 3))
-        if len(sensing):
-            owner, target = agent[sensing], other[sensing]
-            b = self.truth.body_bearings(owner, self.truth.world_bearings(owner, target))
-            bearings[sensing] = self.noise.bearings(b, self.t)
-            if self._rates is None:
-                rates[sensing] = self.noise.sensor('bearing_rates',
-                                                   self.truth.bearing_rates(owner, target))
-        delta_R = self.gyro_increment(self.truth.increment())
-        measured = None
+        values_agent: dict[str, Array] = {DELTA_R: delta_R}
         if self._rates is not None:   # (11) reads back this de-rotated one: β̇ = β̇° - ω × β
+            bearings = edge[Sensor.BEARINGS.value]
+            senses = self._rows(cls.measures[Sensor.BEARING_RATES])
+            sensing = np.zeros(n_edges, dtype=bool)
+            sensing[senses] = True
             derotated, have = self._rates.update(self.t, bearings, self._prev_delta_R[agent],
-                                                 senses)
+                                                 sensing)
             omega = so3.log_small(delta_R) / self.h
-            rates = np.where(have[:, None], derotated - so3.cross(omega[agent], bearings), 0.0)
-            measured = have | ~senses   # no rate before the second bearing
+            edge[Sensor.BEARING_RATES.value] = np.where(
+                have[:, None], derotated - so3.cross(omega[agent], bearings), 0.0)
+            mask[Sensor.BEARING_RATES.value] = have   # none before the second bearing
         self._prev_delta_R = delta_R
-        # The anchor's measurement of each ranged robot, on the anchor → robot link.
-        ranged_measured = np.zeros((len(agent), 3))
-        if ranged_by.any():
-            theirs = np.flatnonzero(ranged_by)
-            ranged_measured[theirs] = self.noise.sensor('relative_positions',
-                                                 self.truth.relative_positions(
-                                                     other[theirs], agent[theirs]))
-        assert self.edges.slot is not None
-        sent = self.estimator.outbox(self.x, other, ranged_measured,
-                                     slot=self.edges.slot[self.links['reverse']])
-        displacement = self.odometry_displacement()
+        if self.odometry:
+            values_agent[DISPLACEMENT] = self.odometry_displacement()
+        displacement = values_agent.get(DISPLACEMENT, np.zeros((self.n, 3)))
+        if cls.peer_odometry == 'links':
+            edge[PEER_DELTA_R], edge[PEER_DISPLACEMENT] = delta_R[other], displacement[other]
         a = self.scenario.anchor_index
-        assert a is not None
-        is_anchor = np.arange(self.n) == a
-        anchor = AnchorInputs(is_anchor=is_anchor, delta_R=np.repeat(delta_R[a:a + 1], self.n, 0),
-                              displacement=np.repeat(displacement[a:a + 1], self.n, 0),
-                              ranges=ranges, ranged_by=ranged_by,
-                              pinned=self.scenario.anchor_pinned)
-        links = LinkInputs(senses=senses, sensed_by=sensed_by, owns=self.links['owns'],
-                           relative_positions=np.zeros((len(agent), 3)),
-                           other_delta_R=delta_R[other], other_displacement=displacement[other],
-                           measured=measured)
-        first = [c for c in self.estimator.sends if c.round == 1]
-        inputs = StepInputs(delta_R=delta_R, edges=self.edges, bearings=bearings,
-                            received=route(sent, first, other), displacement=displacement,
-                            links=links, t=self.t, bearing_rates=rates, anchor=anchor)
-        second = self.estimator.reply(self.x, self.h, inputs)
-        reverse = self.links['reverse']
-        received = dict(inputs.received)
-        received.update({name: v[reverse] for name, v in second.items()})
-        return dataclasses.replace(inputs, received=received)
+        if cls.roles.anchor:
+            assert a is not None
+            is_anchor = np.arange(self.n) == a
+            values_agent.update({
+                ANCHOR_DELTA_R: np.repeat(delta_R[a:a + 1], self.n, 0),
+                ANCHOR_DISPLACEMENT: np.repeat(displacement[a:a + 1], self.n, 0),
+                IS_ANCHOR: is_anchor, PINNED: is_anchor & self.scenario.anchor_pinned})
+        reverse = self.table.reverse
+        assert self.edges.slot is not None
+        slot = None if cls.links == 'sensing' else self.edges.slot[reverse]
+        sent = est.outbox(self.x, other, theirs, slot=slot)
+        edge.update(route(sent, [c for c in cls.sends if c.round == 1], other))
+        inputs = StepInputs(edges=self.edges, agent=values_agent, edge=edge, mask=mask,
+                            t=self.t)
+        if cls.rounds() == 1:
+            return inputs
+        second = est.reply(self.x, self.h, inputs)
+        return dataclasses.replace(inputs, edge={**edge, **{name: v[reverse]
+                                                            for name, v in second.items()}})
 
     def extra_errors(self) -> dict[str, float]:
         """The recording's columns beyond the pose errors, now: each pair's error (one
@@ -252,8 +219,7 @@ class BatchSimulator(OnTruth):
         per_edge = self.estimator.edge_errors(self.x, self.R, self.edges, self.edge_nbr)
         if per_edge is not None:
             label = self.estimator.edge_error_label
-            for e in np.flatnonzero(self.links['owns'] if self.links is not None
-                                    else np.ones(len(self.edges), bool)):
+            for e in np.flatnonzero(self.edges.flag('owns')):
                 a, b = sorted((int(self.edges.agent[e]), int(self.edge_nbr[e])))
                 out[f'{label}_{names[a]}_{names[b]}'] = float(per_edge[e])
         if self.truth.p_star is not None:
@@ -312,7 +278,7 @@ class BatchSimulator(OnTruth):
         every = max(1, int(round(record_every / self.h)))
         prog_every = max(1, int(round(progress_every / self.h)))
         tracks = self.truth.moves
-        extras = self.links is not None or self.truth.p_star is not None
+        extras = (self.estimator.edge_error_label != '' or self.truth.p_star is not None)
         extra: list[dict[str, float]] = []
         t, rows = [], []
         p: list[Array] = []

@@ -1,66 +1,61 @@
-"""The distributed system without DDS: per-agent estimators, the simulator node's world, and
-the links between agents, in one process and deterministic.
+"""The distributed system without DDS: one agent runtime per agent
+(:class:`runtime.agent.AgentRuntime`, what the estimator node runs), the simulator node's
+world, and the links between agents, in one process and deterministic.
 
-It runs the same :class:`estimators.agent.AgentEstimator` the estimator node runs, fed exactly
-as the simulator node feeds it (:class:`.world.World`: interval-average gyro, bearings, leaders'
-known pose). Neighbour messages are exchanged at the estimators' ``publish_rate``. Methods that
-talk over communication links (:class:`estimators.link_agent.LinkAgentEstimator`, De Carli et
-al.) exchange theirs after each step whose instant a neighbour's next step reads (what their
-node publishes), plus each robot's odometry and relative positions, which its neighbours read
-from its sensor topics (neighbour messages too: the link faults apply). The world never waits
-for them (a simulator without lockstep): a robot whose neighbour input is late waits at most
-the estimator's ``neighbour_timeout`` of its own sensors' time. netsim only drives the estimators: every check, rejection and
-time rule is the estimator's own. Faults:
+The agents are fed exactly as the simulator node feeds theirs (:class:`.world.World`:
+interval-average gyro, the point sensors, odometry, leaders' known pose) and read from each
+other what the one table of subscriptions says (:mod:`runtime.table`): channels, the others'
+point sensor readings and odometry, through the link faults. 'instant' channels go out at the
+``publish_rate``, 'exact' ones after each step that a neighbour's next step reads, a second
+round's as soon as its first is in. The world never waits for them (a simulator without
+lockstep): a step waits at most ``link_wait`` of its own sensors' time. A fault-free run pairs
+its inputs as a lockstep simulation does (:class:`runtime.buffers.Exchange`), so a DDS run
+equals it to rounding; netsim only drives the runtimes: every check, rejection and time rule
+is theirs. Faults:
 
 - :class:`LinkFaults`: each neighbour message is dropped with ``drop_rate`` and delivered
-  ``delay`` seconds late (what the node's ``inject_*`` parameters do);
+  ``delay`` seconds late (what the node's ``inject_*`` parameters do, :mod:`runtime.faults`);
 - :class:`Outage`: an agent is cut off over ``[start, end)``. ``network_only=True`` is a
-  network partition: no neighbour message in or out, while its own sensors (gyro, bearings,
-  known pose) keep feeding it, as on a robot whose IMU and camera are on board. Otherwise the
-  process is down — no input at all, no output — and comes back either as it was
-  (``restart=False``: paused, e.g. SIGSTOP; input sent meanwhile is lost) or as a fresh process
-  from its initial estimate (``restart=True``: killed and restarted). A process outage
-  starting at 0 is a late joiner;
+  network partition: no neighbour message in or out, while its own sensors keep feeding it,
+  as on a robot whose IMU and camera are on board. Otherwise the process is down — no input
+  at all, no output — and comes back either as it was (``restart=False``: paused, e.g.
+  SIGSTOP; input sent meanwhile is lost) or as a fresh process from its initial estimate
+  (``restart=True``: killed and restarted). A process outage starting at 0 is a late joiner;
 - :class:`ClockJump`: the simulator restarts at a given run time: its clock, truth and noise go
   back to t = 0, so every estimator sees stamps jump back;
-- :class:`Garbage`: a fraction of every incoming input (gyro sample, bearing message,
+- :class:`Garbage`: a fraction of every incoming input (gyro sample, point sensor message,
   neighbour message, leader's known pose) comes with a corrupted copy, or is replaced by it
   (``replace=True``: the good input is lost): NaN/inf, zero-length or non-unit vectors,
   unknown ids, stale, late or future stamps, absurd rates.
 
 :func:`simulate_network` also counts what the estimators rejected (by cause), their time-rule
-events, and any non-finite estimate. Exceptions are not caught: a crash of the estimator logic
+events, and any non-finite estimate. Exceptions are not caught: a crash of the agent logic
 ends the run. :func:`fault_cases` is the one list of faults that ``bench/fault_matrix.py``
-measures and ``test/test_robustness.py`` tests, with :func:`reconvergence_time` and
-:func:`convergence_cost` as their shared measures. The DDS tests show that the nodes behave the
-same way.
+measures and the tests test, with :func:`reconvergence_time` and :func:`convergence_cost` as
+their shared measures.
 """
 from __future__ import annotations
 
 from collections import Counter, deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..core.errors import ScenarioError
-from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits, advance_together
-from ..estimators.base import Channel
-from ..estimators.link_agent import LinkAgentEstimator, agent_for
-from ..estimators.two_round_agent import TwoRoundAgent
-from ..scenario.model import Scenario, initial_estimates
+from ..estimators.base import Channel, Sensor
 from ..studies.results import PoseErrors, Recording, pose_errors
+from ..runtime.agent import AgentRuntime, AgentSpec
+from ..runtime.buffers import TIME_EVENTS, Limits
+from ..runtime.faults import FaultyLink, LinkFaults
+from ..runtime.table import ODOMETRY, Subscription, subscriptions
+from ..runtime.together import advance_together
+from ..scenario.model import Scenario
+from ..scenario.runtimes import agent_specs, exchange_of, runtime_for
 from .world import World
 
 Array = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class LinkFaults:
-    drop_rate: float = 0.0  # probability of losing each neighbour message
-    delay: float = 0.0      # extra delay of each neighbour message [s]
-    seed: int = 0
 
 
 @dataclass(frozen=True)
@@ -164,8 +159,8 @@ class _Corruptor:
     GYRO = ('nan', 'inf', 'absurd_rate', 'late_stamp', 'future_stamp')
     BEARINGS = ('nan', 'inf', 'zero', 'not_unit', 'huge', 'unknown_id', 'own_id',
                 'stale_stamp', 'future_stamp')
-    # On the message's first per-agent channel (e.g. p̂_j) for the first two, on the value of
-    # its first per-edge channel meant for the listener (e.g. R̂_j b^j_ji) for the next two.
+    # On the message's first per-agent value (e.g. p̂_j) for the first two (else its per-edge
+    # value meant for the listener), on that per-edge value (e.g. R̂_j b^j_ji) for the next two.
     NEIGHBOUR = ('nan_value', 'inf_value', 'zero', 'not_unit', 'unknown_sender',
                  'none_for_me', 'future_stamp')
 
@@ -173,11 +168,8 @@ class _Corruptor:
     # (a relative position three times longer is still a plausible one).
     RELATIVE = tuple(k for k in BEARINGS if k != 'not_unit')
 
-    def __init__(self, garbage: Garbage, channels: tuple[Channel, ...]) -> None:
-        sent = [c for c in channels if c.sensor is None]   # sensor readings go elsewhere
-        self.agent_channel = next((c.name for c in sent if c.per == 'agent'), None)
-        self.edge_channel = next((c.name for c in sent if c.per == 'edge'), None)
-        self.edge_shape = next((c.shape for c in sent if c.per == 'edge'), (3,))
+    def __init__(self, garbage: Garbage, channels: dict[str, Channel]) -> None:
+        self.channels = channels
         self.fraction = garbage.fraction
         self.replace = garbage.replace
         self.rng = np.random.default_rng(garbage.seed)
@@ -239,17 +231,21 @@ class _Corruptor:
             return None
         sender, stamp, values = msg
         values = dict(values)
-        per_edge = dict(values.get(self.edge_channel, {}))
-        mine = per_edge.get(listener_id, np.eye(self.edge_shape[0])[0])
+        agent_channel = next((n for n in values if self.channels[n].per == 'agent'), None)
+        edge_channel = next((n for n in values if self.channels[n].per == 'edge'), None)
+        edge_shape = (self.channels[edge_channel].shape if edge_channel is not None
+                      else (3,))
+        per_edge = dict(values.get(edge_channel, {})) if edge_channel is not None else {}
+        mine = per_edge.get(listener_id, np.eye(edge_shape[0])[0])
         if kind in ('nan_value', 'inf_value'):
             bad = np.nan if kind == 'nan_value' else np.inf
-            if self.agent_channel in values:   # not in a two-round method's second round
-                values[self.agent_channel] = np.array(values[self.agent_channel], dtype=float)
-                values[self.agent_channel][0 if kind == 'nan_value' else -1] = bad
+            if agent_channel is not None:
+                values[agent_channel] = np.array(values[agent_channel], dtype=float)
+                values[agent_channel].ravel()[0 if kind == 'nan_value' else -1] = bad
             else:
-                per_edge[listener_id] = np.full(self.edge_shape, bad)
+                per_edge[listener_id] = np.full(edge_shape, bad)
         elif kind == 'zero':
-            per_edge[listener_id] = np.zeros(self.edge_shape)
+            per_edge[listener_id] = np.zeros(edge_shape)
         elif kind == 'not_unit':
             per_edge[listener_id] = 3.0 * mine
         elif kind == 'unknown_sender':
@@ -258,8 +254,8 @@ class _Corruptor:
             per_edge.pop(listener_id, None)
         elif kind == 'future_stamp':
             stamp += 5.0
-        if self.edge_channel is not None:
-            values[self.edge_channel] = per_edge
+        if edge_channel is not None:
+            values[edge_channel] = per_edge
         return sender, stamp, values
 
     def known_pose(self, R: Array) -> tuple[Array] | None:
@@ -317,47 +313,53 @@ class _Network:
 
     def __init__(self, scenario: Scenario, links: LinkFaults, outages: tuple[Outage, ...],
                  garbage: Garbage, limits: Limits, batched: bool = True) -> None:
-        self.scenario, self.links, self.outages, self.limits = scenario, links, outages, limits
+        self.scenario, self.outages, self.limits = scenario, outages, limits
         self.batched = batched
         if scenario.formation is not None and scenario.formation.mode == 'paper':
             raise ScenarioError(f'{scenario.source}: formation_control.mode: paper needs the '
                                 'estimates inside the truth; netsim\'s world, like the '
                                 'simulator node, cannot have them. Fix: mode: exogenous')
-        problem = scenario.not_distributable()
-        if problem:
-            raise ScenarioError(f'{scenario.source}: {problem}')
+        self.specs = {spec.name: spec for spec in agent_specs(scenario)}
         self.world = World(scenario)
-        self.rng = np.random.default_rng(links.seed)
+        self.link = FaultyLink(links)
         estimator = scenario.estimator()
+        self.method = type(estimator)
         self.frame = estimator.frame
-        self.bad = _Corruptor(garbage, estimator.sends)
+        self.channels = {c.name: c for c in self.method.sends}
+        self.bad = _Corruptor(garbage, self.channels)
         self.names = [a.name for a in scenario.agents]
-        self.initial = initial_estimates(scenario)  # drawn once for the whole fleet
-        self.agents: dict[str, AgentEstimator | LinkAgentEstimator] = {
-            n: agent_for(scenario, n, limits, self.initial) for n in self.names}
-        self.link_method = estimator.links == 'communication'
-        self.two_rounds = estimator.rounds == 2
-        # Who receives what an agent sends: those that sense it, or, for link methods, every
-        # communication neighbour (two-round methods: its estimate to those that sense it,
-        # its second round to those it senses, the anchor's odometry to everyone and its
-        # ranges to the ranged robots; see ros.wiring).
-        self.receivers = {n: (sorted(set(scenario.listeners(n))
-                                     | {nb.name for nb in scenario.agent(n).neighbours},
-                                     key=scenario.index.__getitem__)
-                              if self.link_method and not self.two_rounds
-                              else scenario.listeners(n))
-                          for n in self.names}
-        self.sensed = {n: [nb.name for nb in scenario.agent(n).neighbours] for n in self.names}
+        # A fault-free run pairs its inputs as a lockstep simulation does (so a DDS run
+        # equals it); with faults, as robots do (nothing waits for a fixed instant).
+        self.exchange = (exchange_of(scenario) if not (links or outages or garbage.fraction)
+                         else None)
+        self.agents: dict[str, AgentRuntime] = {n: self._runtime(n) for n in self.names}
+        # Who reads what: (sender, topic) -> readers, from the one table.
+        self.readers: dict[tuple[str, str], list[str]] = {}
+        for name, spec in self.specs.items():
+            for sub in subscriptions(self.method, spec):
+                self.readers.setdefault((sub.source, sub.topic), []).append(name)
+        self.subs = {name: subscriptions(self.method, spec) for name, spec in self.specs.items()}
+        self.topics = {}   # round -> topic -> the sender's channels on it
+        for c in self.method.sends:
+            if c.sensor is None:
+                self.topics.setdefault(c.round, {}).setdefault(c.topic, []).append(c.name)
+        # The point sensors someone reads: its own step, or a neighbour from its topic.
+        read = {c.sensor for c in self.method.sends if c.sensor is not None}
+        self.point_sensors = [s for s in (Sensor.BEARINGS, Sensor.RELATIVE_POSITIONS,
+                                          Sensor.BEARING_RATES)
+                              if s in self.method.measures or s in read]
         self.sent_k = dict.fromkeys(self.names, -1)
         self.per_step = int(round(scenario.step / self.world.dt))
         self.per_publish = self.per_step * scenario.publish_every
-        self.in_flight: deque[tuple[float, str, tuple]] = deque()  # (deliver at, to, message)
         self.tally = InputTally()
         self.non_finite = 0
         # The truth at the last second of estimator-step instants (step index -> (R, p)): an
         # estimator waiting for a lost gyro sample is a step behind the world, and its error
         # is measured against the truth at its own state time, as the monitor pairs stamps.
         self.truth: dict[int, tuple[Array, Array]] = {}
+
+    def _runtime(self, name: str) -> AgentRuntime:
+        return runtime_for(self.scenario, self.specs[name], self.limits, self.exchange)
 
     # ------------------------------------------------------------------ who is cut off
     def offline(self, name: str, now: float) -> bool:
@@ -369,10 +371,12 @@ class _Network:
         return any(o.agent == name and not o.network_only and o.start <= now < o.end
                    for o in self.outages)
 
-    def restart(self, name: str) -> None:
-        """A restarted process: a fresh estimator from its initial estimate."""
-        self.agents[name] = agent_for(self.scenario, name, self.limits, self.initial)
+    def restart(self, name: str, now: float) -> None:
+        """A restarted process: a fresh runtime from its initial estimate, announcing its
+        t0 state as a node does."""
+        self.agents[name] = self._runtime(name)
         self.sent_k[name] = -1
+        self.publish(name, now, lambda n: True)
 
     # ------------------------------------------------------------------ inputs
     def feed_gyro(self, now: float) -> None:
@@ -384,7 +388,8 @@ class _Network:
                 self.tally.count([self.agents[name].add_gyro(stamp, rate, now=world.t)], bad)
 
     def sense(self, now: float) -> None:
-        """Bearings, odometry (moving fleets) and the leaders' known pose, when due."""
+        """Odometry (moving fleets), the point sensors and the leaders' known pose, when due:
+        to the agent itself and to whoever reads them from its topics."""
         world, scenario = self.world, self.scenario
         every = world.sensor_every.get('odometry')
         if every is not None and world.due(every) and world.tick > 0:
@@ -392,165 +397,120 @@ class _Network:
                 if not self.stopped(name, now):
                     self.tally.count([self.agents[name].add_odometry(world.t, v, w,
                                                                      now=world.t)], 0)
-                    if self.two_rounds and name == scenario.anchor:
-                        self.send(name, now, ('odometry', i + 1, world.t, v, w),
-                                  to=[n for n in self.names if n != name])
-                    elif self.link_method and not self.two_rounds:
-                        self.send(name, now, ('odometry', i + 1, world.t, v, w))
-        if self.two_rounds:
-            self.sense_two_rounds(now)
-            return
-        every = world.sensor_every.get('relative_positions')
-        if self.link_method and every is not None and world.due(every):
+                    self.send(name, ODOMETRY, now, ('odometry', i + 1, world.t, v, w))
+        for sensor in self.point_sensors:
+            every = (world.bearing_every if sensor is Sensor.BEARINGS
+                     else world.sensor_every.get(sensor.value))
+            if every is None or not world.due(every):
+                continue
+            kinds = _Corruptor.BEARINGS if sensor is Sensor.BEARINGS else _Corruptor.RELATIVE
             for i, name in enumerate(self.names):
                 if self.stopped(name, now):
                     continue
-                j, y = world.sensed('relative_positions', i)
-                good = (world.t, j + 1, y)
-                for args, bad in self.bad.inputs(good, self.bad.bearings(
-                        i + 1, *good, kinds=_Corruptor.RELATIVE)):
-                    agent = self.agents[name]
-                    assert isinstance(agent, LinkAgentEstimator)
-                    self.tally.count(agent.add_relative_positions(*args), bad * len(j))
-                self.send(name, now, ('measurements', i + 1, *good))
-        if not self.link_method and world.due(world.bearing_every):
-            for i, name in enumerate(self.names):
+                j, v = (world.bearings(i) if sensor is Sensor.BEARINGS
+                        else world.sensed(sensor.value, i))
+                good = (world.t, j + 1, v)
                 agent = self.agents[name]
-                if self.stopped(name, now) or not isinstance(agent, AgentEstimator):
-                    continue
-                j, b = world.bearings(i)
-                good = (world.t, j + 1, b)
-                for args, bad in self.bad.inputs(
-                        good, self.bad.bearings(scenario.agent_id(name), *good)):
-                    self.tally.count(agent.add_bearings(*args), bad * len(j))
+                for args, bad in self.bad.inputs(good, self.bad.bearings(i + 1, *good,
+                                                                         kinds=kinds)):
+                    self.tally.count(agent.add_points(sensor, *args), bad * len(j))
+                self.send(name, sensor.value, now, ('points', i + 1, sensor, *good))
         if world.due(world.truth_every):
             for name in scenario.leaders:
-                agent = self.agents[name]
-                if self.stopped(name, now) or not isinstance(agent, AgentEstimator):
+                if self.stopped(name, now):
                     continue
                 i = scenario.index[name]
                 for (R,), bad in self.bad.inputs((world.R[i],), self.bad.known_pose(world.R[i])):
-                    self.tally.count([agent.set_known_pose(world.t, R, world.p[i])], bad)
-
-    def sense_two_rounds(self, now: float) -> None:
-        """A two-round method's own bearings and bearing rates, and the anchor's ranges of
-        its ranged robots, when due."""
-        world, scenario = self.world, self.scenario
-        for i, name in enumerate(self.names):
-            agent = self.agents[name]
-            if self.stopped(name, now) or not isinstance(agent, TwoRoundAgent):
-                continue
-            own = scenario.agent_id(name)
-            if world.due(world.bearing_every):
-                j, b = world.bearings(i)
-                good = (world.t, j + 1, b)
-                for args, bad in self.bad.inputs(good, self.bad.bearings(own, *good)):
-                    self.tally.count(agent.add_bearings(*args), bad * len(j))
-            every = world.sensor_every.get('bearing_rates')
-            if every is not None and world.due(every):
-                j, rates = world.sensed('bearing_rates', i)
-                good = (world.t, j + 1, rates)
-                for args, bad in self.bad.inputs(good, self.bad.bearings(
-                        own, *good, kinds=_Corruptor.RELATIVE)):
-                    self.tally.count(agent.add_bearing_rates(*args), bad * len(j))
-            every = world.sensor_every.get('relative_positions')
-            if name == scenario.anchor and every is not None and world.due(every):
-                j, y = world.sensed('relative_positions', i)
-                self.send(name, now, ('measurements', i + 1, world.t, j + 1, y),
-                          to=list(scenario.ranged))
+                    self.tally.count([self.agents[name].add_known_pose(world.t, R, world.p[i])],
+                                     bad)
 
     # ------------------------------------------------------------------ links
-    def send(self, name: str, now: float, msg: tuple, to: list[str] | None = None) -> None:
-        """``msg`` from ``name`` to everyone who receives from it (or ``to``), through the
-        link faults."""
+    def send(self, name: str, topic: str, now: float, msg: tuple) -> None:
+        """``msg`` on ``name``'s ``topic`` to every agent that reads it, through the link
+        faults."""
         if self.offline(name, now):
             return
-        for receiver in self.receivers[name] if to is None else to:
-            if self.links.drop_rate and self.rng.uniform() < self.links.drop_rate:
-                continue
-            self.in_flight.append((now + self.links.delay, receiver, msg))
+        for receiver in self.readers.get((name, topic), ()):
+            self.link.send(now, lambda at, r=receiver: self.receive(r, at, msg))
 
-    def publish(self, now: float) -> None:
-        """Every estimator sends its channels (p̂ and world bearings for the leader-follower
-        methods) to its listeners."""
-        for name in self.names:
-            ag = self.agents[name]
-            self.send(name, now, (self.scenario.agent_id(name), ag.t, ag.outbox()))
-
-    def publish_due(self, name: str, now: float) -> None:
-        """A link method's robot, after a step: its channels, when a neighbour's step at this
-        instant reads them."""
-        ag = self.agents[name]
-        if self.sent_k[name] == ag.k:
+    def receive(self, to: str, now: float, msg: tuple) -> None:
+        if self.offline(to, now) or self.stopped(to, now):
             return
-        self.sent_k[name] = ag.k
-        if any(ag.estimator.due(c, ag.t, ag.h) for c in ag.channels):
-            self.send(name, now, (self.scenario.agent_id(name), ag.t, ag.outbox()))
+        agent = self.agents[to]
+        if msg[0] == 'odometry':
+            self.tally.count([agent.add_peer_odometry(*msg[1:])], 0)
+        elif msg[0] == 'points':
+            self.tally.count([agent.add_peer_points(*msg[1:])], 0)
+        else:
+            corrupt = self.bad.neighbour(self.scenario.agent_id(to), msg[1:])
+            for args, bad in self.bad.inputs(msg[1:], corrupt):
+                self.tally.count([agent.add_message(*args)], bad)
 
-    def deliver(self, now: float) -> None:
-        while self.in_flight and self.in_flight[0][0] <= now + 1e-9:
-            _, to, msg = self.in_flight.popleft()
-            if self.offline(to, now) or self.stopped(to, now):
+    def publish(self, name: str, now: float, which: Callable[[str], bool]) -> None:
+        """``name``'s round-1 topics that carry a channel ``which`` picks, with their
+        values at its state time (a per-edge one with nothing in it: not sent)."""
+        ag = self.agents[name]
+        values: dict[str, object] | None = None
+        for topic, names in self.topics.get(1, {}).items():
+            if not any(which(n) for n in names):
                 continue
-            agent = self.agents[to]
-            if msg[0] == 'odometry':
-                assert isinstance(agent, LinkAgentEstimator)
-                self.tally.count([agent.add_neighbour_odometry(*msg[1:])], 0)
+            if values is None:
+                values = ag.outbox()
+            content = {n: values[n] for n in names
+                       if not (isinstance(values[n], dict) and not values[n])}
+            if content:
+                self.send(name, topic, now, ('channels', self.scenario.agent_id(name), ag.t,
+                                             content))
+
+    def publish_stepped(self, name: str, now: float) -> None:
+        """After a step: the 'exact' channels a neighbour's step reads at the new instant."""
+        ag = self.agents[name]
+        self.publish(name, now, lambda n: self.channels[n].pairing == 'exact'
+                     and ag.sends_now(n, False))
+
+    def reply(self, name: str, now: float, reply: dict[str, dict[int, Array]]) -> None:
+        """A second round, on its topics."""
+        ag = self.agents[name]
+        for r, topics in self.topics.items():
+            if r == 1:
                 continue
-            if msg[0] == 'measurements':
-                assert isinstance(agent, LinkAgentEstimator)
-                self.tally.count([agent.add_neighbour_measurements(*msg[1:])], 0)
-                continue
-            corrupt = self.bad.neighbour(self.scenario.agent_id(to), msg)
-            for args, bad in self.bad.inputs(msg, corrupt):
-                self.tally.count([agent.add_neighbour(*args)], bad)
+            for topic, names in topics.items():
+                content = {n: reply[n] for n in names if n in reply}
+                if content:
+                    self.send(name, topic, now, ('channels', self.scenario.agent_id(name),
+                                                 ag.t, content))
 
     # ------------------------------------------------------------------ stepping
     def step(self, now: float) -> None:
-        """Every running estimator takes the steps its gyro data allows; count any
-        non-finite estimate."""
-        if self.link_method:
-            return self.step_links(now)
-        running = [self.agents[name] for name in self.names if not self.stopped(name, now)]
-        if self.batched:   # the steps of one instant in one call, as an estimators process
-            batch = [ag for ag in running if isinstance(ag, AgentEstimator)]
-            while advance_together(batch):
-                pass
-        for ag in running:
-            if not self.batched:
-                ag.advance()
-            if not (np.all(np.isfinite(ag.R_hat)) and np.all(np.isfinite(ag.p_hat))):
-                self.non_finite += 1
-
-    def step_links(self, now: float) -> None:
-        """A link method's robots step in turns, each sending what its neighbours wait for,
-        until none can go on."""
+        """Every running agent takes the steps its inputs allow, sending what its neighbours
+        wait for, until none can go on; count any non-finite estimate."""
         progress = True
         while progress:
             progress = False
-            for name in self.names:
-                ag = self.agents[name]
-                if self.stopped(name, now) or not isinstance(ag, LinkAgentEstimator):
-                    continue
-                reply = ag.pending_reply() if isinstance(ag, TwoRoundAgent) else None
-                if reply is not None:   # round 2, to the robots it senses
+            running = [name for name in self.names if not self.stopped(name, now)]
+            for name in running:
+                reply = self.agents[name].pending_reply()
+                if reply is not None:
                     progress = True
-                    self.send(name, now, (self.scenario.agent_id(name), ag.t, reply),
-                              to=self.sensed[name])
-                    self.deliver(now)
-                if ag.advance(1):
-                    progress = True
-                    if not (np.all(np.isfinite(ag.R_hat)) and np.all(np.isfinite(ag.p_hat))):
-                        self.non_finite += 1
-                    self.publish_due(name, now)
-                    self.deliver(now)
+                    self.reply(name, now, reply)
+            agents = [self.agents[name] for name in running]
+            if self.batched:
+                stepped = advance_together(agents)
+            else:
+                stepped = [ag for ag in agents if ag.advance(1)]
+            for ag in stepped:
+                progress = True
+                if not (np.all(np.isfinite(ag.R_hat)) and np.all(np.isfinite(ag.p_hat))):
+                    self.non_finite += 1
+                if self.sent_k[ag.name] != ag.k:
+                    self.sent_k[ag.name] = ag.k
+                    self.publish_stepped(ag.name, now)
 
     def start(self) -> None:
         self.sense(0.0)
-        self.publish(0.0)
-        if self.link_method:
-            self.sent_k = dict.fromkeys(self.names, 0)
-        self.deliver(0.0)
+        for name in self.names:
+            self.publish(name, 0.0, lambda n: True)
+            self.sent_k[name] = 0
 
     def tick(self, now: float) -> None:
         """One internal step; ``now`` is the run time after it."""
@@ -559,19 +519,21 @@ class _Network:
         if world.due(world.imu_every):
             self.feed_gyro(now)
         self.sense(now)
-        self.deliver(now)
+        self.link.release(now)
         if world.tick % self.per_step == 0:
             k = world.tick // self.per_step
             self.truth[k] = (world.R.copy(), world.p.copy())
             self.truth.pop(k - int(round(1.0 / self.scenario.step)), None)
             self.step(now)
-        if world.tick % self.per_publish == 0 and not self.link_method:
-            self.publish(now)
-            self.deliver(now)
+        if world.tick % self.per_publish == 0:
+            for name in self.names:   # 'instant' channels at the publish rate
+                if not self.stopped(name, now):
+                    self.publish(name, now, lambda n: self.channels[n].pairing == 'instant')
+            self.link.release(now)
 
     def errors(self, followers: list[int]) -> PoseErrors:
-        """The followers' pose errors (:func:`studies.results.pose_errors`), each estimate
-        against the truth at its estimator's state time (now, unless it waits for gyro data)."""
+        """The followers' pose errors (:func:`metrics.pose_errors`), each estimate against
+        the truth at its estimator's state time (now, unless it waits for gyro data)."""
         R, p = self.world.R.copy(), self.world.p.copy()
         for i, name in enumerate(self.names):
             k = int(round(self.agents[name].t / self.scenario.step))
@@ -590,11 +552,9 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
     """Run the fleet for ``duration`` seconds of run time with the given faults; record the
     followers' errors every ``record_every`` (run time, monotonic across a clock jump).
     ``batched``: the agents' steps of one instant in one call of the method's step
-    (:func:`.agent.advance_together`, as an ``estimators`` process runs them): the same
-    results bit for bit (``test_agent.py``), 20-30 % faster; False: each agent's own
-    ``advance``. Link methods step in turns either way: a robot may read the newest covariance
-    (an optional channel) a neighbour sent earlier in the same turn, and the garbage that
-    replaces messages is drawn in the order they are delivered."""
+    (:func:`runtime.together.advance_together`, as an ``estimators`` process runs them): the
+    same results bit for bit (``test_runtime.py``), 20-30 % faster; False: each agent's own
+    ``advance``."""
     net = _Network(scenario, links, outages, garbage, limits, batched)
     dt = net.world.dt
     per_record = int(round(record_every / dt))
@@ -610,7 +570,7 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
     while tick * dt < duration - 1e-9:
         tick += 1
         for name in restart_at.get(tick, ()):
-            net.restart(name)
+            net.restart(name, tick * dt)
         if tick == jump_tick:  # the simulator restarts: clock, truth and noise back to t = 0
             net.world.reset()  # (instead of a step: world and run ticks stay in phase)
             net.truth.clear()
@@ -622,7 +582,7 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
     rec = Recording.of(times, [net.names[i] for i in followers], rows)
     return NetRun(rec, net.tally, non_finite_estimates=net.non_finite,
                   non_finite_steps=sum(ag.non_finite_steps for ag in net.agents.values()),
-                  carried=sum(getattr(ag, 'carried', 0) for ag in net.agents.values()))
+                  carried=sum(ag.carried for ag in net.agents.values()))
 
 
 def run_network(scenario: Scenario, duration: float, record_every: float = 0.1,

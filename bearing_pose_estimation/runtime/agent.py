@@ -1,0 +1,1215 @@
+"""One agent running any registered estimator, independent of ROS: the logic of the estimator
+node, of netsim's agents and of the steps an ``estimators`` process runs together.
+
+:class:`AgentRuntime` is configured by its method's declarations (:mod:`estimators.base`) and
+never names a method's quantity. Inputs arrive at their own rates and stamps; the fixed steps
+``h`` run as soon as their inputs are in:
+
+- **Own motion.** The gyro is integrated sample by sample (:class:`core.gyro.GyroBuffer`),
+  never held over a step; odometry likewise (:class:`core.odometry.OdometryBuffer`), and
+  while it is live the steps wait for it as for the gyro.
+- **Own point sensors** (``measures``: bearings, relative positions, bearing rates) are kept
+  per agent seen and rotated to the body frame of the step's instant with the gyro
+  (pairing a 20 ms old bearing with the current R̂ leaves an error of order ``|ω| · 20 ms``).
+  ``own_pairing = 'interpolated'``: between the samples around t (the step waits for the one
+  after t); ``'newest'``: the newest sample the gyro bridges, or in a moving fleet the one at
+  the stamp of the neighbour's values it pairs with.
+- **What neighbours send** (``sends``), per edge and channel, on the edges its ``on`` flag
+  names. ``pairing = 'exact'``: the value of t; the step waits for it until it is here or a
+  later one says it is lost, then carries the sender's newest earlier one to t
+  (:meth:`Estimator.carry`) or goes without it (masked). ``'instant'``: the sender's newest
+  instant at or before t at which it sent every required channel; a simulation
+  (:class:`.buffers.Exchange`) waits for it, a robot takes what is here; in a moving fleet the
+  own measurement and ``p̂_i`` are paired at that instant instead (:data:`base.P_OWN`).
+  Optional channels are never waited for. A channel the method does not read at t
+  (:meth:`Estimator.due`) is its newest value.
+- **The other end's measurement of this agent** (a channel with a ``sensor``) is interpolated
+  at t like the own, rotated with the sender's odometry when the method reads it.
+- **Whose odometry** (``peer_odometry``): every edge's other end (its motion over the step), or
+  the anchor's (the frame the estimates are in moves with it).
+- **Rounds.** A two-round method's reply (:meth:`Estimator.reply`) goes out once round 1 is in
+  (:meth:`AgentRuntime.pending_reply`); the step then waits for round 2.
+
+Every wait ends when the own sensors are ``link_wait`` ahead of the step (own samples:
+``sensor_timeout``), or at once with ``impatient``; what is missing then is counted
+(``missing``) and masked. Time rules: a gyro stamp more than ``jump_back`` before the newest
+means the clock jumped back (the estimate restarts from its initial value, ``time_jump``); a
+gap longer than ``max_gyro_gap`` restarts the state time after it, keeping the estimate
+(``gyro_gap``); the step grid stays aligned to ``t0`` across both. Leaders take their known
+pose and propagate it with the gyro (and odometry) between pose samples.
+
+Every ``add_*`` method returns None when the input is used, or the cause of its rejection
+(``non_finite``, ``absurd_rate``, ``zero_vector``, ``not_unit``, ``unknown_id``,
+``out_of_order``, ``future_stamp``, ``stale``, ...).
+"""
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core import so3
+from ..core.bearing_rates import BearingRateFilter
+from ..core.gyro import GyroBuffer
+from ..core.odometry import OdometryBuffer
+from ..estimators.base import (ANCHOR_DELTA_R, ANCHOR_DISPLACEMENT, DELTA_R, DISPLACEMENT, HELD,
+                               IS_ANCHOR, P_OWN, PEER_DELTA_R, PEER_DISPLACEMENT, PEER_ODOMETRY,
+                               PINNED, Channel, Edges, Estimator, Motion, Sensor, State,
+                               StepInputs)
+from .buffers import (SAME, Exchange, Limits, Stamped, bounded_problem, complete,
+                      finite_max_norm, twist_problem, unit_problem)
+
+Array = NDArray[np.float64]
+# The largest component [unit per sensor] of an own or received point measurement.
+POINT_BOUNDS = {Sensor.BEARINGS: 2.0, Sensor.RELATIVE_POSITIONS: 1e4,
+                Sensor.BEARING_RATES: 100.0}
+# The receiver's flag of an edge on which the sender's flag holds (and back).
+MIRROR = {'senses': 'sensed_by', 'sensed_by': 'senses', 'ranges': 'ranged_by',
+          'ranged_by': 'ranges'}
+
+
+@dataclass(frozen=True)
+class PeerSpec:
+    """One edge of an agent: the other end's name, id, ``k_ij`` and the edge's flags."""
+
+    name: str
+    agent_id: int
+    k: float = 1.0
+    flags: Mapping[str, bool] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """One agent's place in its fleet: its edges in slot order (:func:`base.edge_table`), its
+    initial estimate, its role (``leader``: its pose is known; ``anchor``: the anchor's name
+    and id; ``pinned``: it is the anchor and holds ``(I, 0)``), the ids that exist (points of
+    others are rejected; None: any) and ``rate_tau``: no bearing-rate sensor, the rates come
+    from consecutive bearings through this filter (:mod:`core.bearing_rates`)."""
+
+    name: str
+    agent_id: int
+    peers: tuple[PeerSpec, ...]
+    R0: Array
+    p0: Array
+    leader: bool = False
+    anchor: tuple[str, int] | None = None
+    pinned: bool = False
+    known_ids: frozenset[int] | None = None
+    rate_tau: float | None = None
+
+
+class Peer:
+    """What the agent keeps of one edge's other end: its channels' values (and its
+    measurements of this agent) by name, the newest stamp of each channel it was heard on
+    (with or without a value for this agent), and its odometry."""
+
+    __slots__ = ('name', 'agent_id', 'k', 'slot', 'flags', 'values', 'heard', 'odometry')
+
+    def __init__(self, spec: PeerSpec, slot: int, odometry: OdometryBuffer | None) -> None:
+        self.name, self.agent_id, self.k, self.slot = spec.name, spec.agent_id, spec.k, slot
+        self.flags = dict(spec.flags)
+        self.values: dict[str, Stamped] = {}
+        self.heard: dict[str, float] = {}
+        self.odometry = odometry
+
+    def newest(self) -> float:
+        """The newest stamp of anything it sent (channels, measurements, odometry)."""
+        stamps = [v.newest_stamp for v in self.values.values()]
+        if self.odometry is not None and not self.odometry.empty:
+            stamps.append(self.odometry.end)
+        return max(stamps, default=-math.inf)
+
+    def latest(self, name: str) -> Array | None:
+        hist = self.values.get(name)
+        return hist.samples[-1][1] if hist else None
+
+    def at_one_instant(self, names: Sequence[str],
+                       not_after: float) -> tuple[float, dict[str, Array]] | None:
+        """The newest stamp, not after ``not_after``, at which every channel ``names`` has a
+        value, with those values; None if there is none."""
+        first = self.values.get(names[0]) if names else None
+        if not first:
+            return None
+        for stamp, value in reversed(first.samples):
+            if stamp > not_after + SAME:
+                continue
+            out = {names[0]: value}
+            for name in names[1:]:
+                hist = self.values.get(name)
+                match = hist.at(stamp)[0] if hist else None
+                if match is None:
+                    break
+                out[name] = match
+            else:
+                return stamp, out
+        return None
+
+
+@dataclass
+class StepInfo:
+    """Diagnostics of the last step: its time, the edges it used, the neighbours left out for
+    being silent, whether odometry fed it, and the method's per-agent diagnostics (row 0)."""
+
+    t: float = 0.0
+    edges_used: int = 0
+    stale: tuple[str, ...] = ()
+    odometry: bool = False
+    diagnostics: dict[str, Array] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A step up to the method's own (:func:`.together.advance_together` runs that for
+    several agents at once): its time, the silent neighbours, its inputs."""
+
+    t: float
+    stale: tuple[str, ...]
+    inputs: StepInputs
+
+
+class AgentRuntime:
+    """One agent of any registered method, fed by time-stamped inputs (module docstring).
+
+    Args:
+        estimator: the method with its gains (:func:`bearing_pose_estimation.estimators.build`).
+        spec: the agent's edges, initial estimate and role.
+        step: the estimator step ``h`` [s].
+        t0: the scenario's start time; the first gyro interval starts here.
+        limits: input checks and timeouts.
+        exchange: a simulation's deterministic exchange (None: a step takes what is here).
+        expects_odometry: odometry comes with the first step (simulated): wait for it from
+            the start (a method that needs odometry always does).
+    """
+
+    def __init__(self, estimator: Estimator, spec: AgentSpec, step: float, t0: float = 0.0,
+                 limits: Limits = Limits(), exchange: Exchange | None = None,
+                 expects_odometry: bool = False, gyro_horizon: float = 2.0) -> None:
+        self.estimator = estimator
+        cls = type(estimator)
+        self.spec = spec
+        self.agent_id, self.name = spec.agent_id, spec.name
+        self.h = float(step)
+        self.limits = limits
+        self.exchange = exchange
+        self.leader = spec.leader
+        self.known_ids = spec.known_ids
+        self.origin = float(t0)   # the step grid is origin + n h, across restarts too
+        self.t0 = float(t0)
+        self.k = 0
+        self.R0 = np.array(spec.R0, dtype=float).reshape(3, 3)
+        self.p0 = np.array(spec.p0, dtype=float).reshape(3)
+        self.x: State = estimator.initial_state(self.R0[None], self.p0[None])
+        self.channels = {c.name: c for c in cls.sends}
+        self.rounds = cls.rounds()
+        # Own point sensors the step reads (estimated bearing rates are not received).
+        self.rate_tau = spec.rate_tau if Sensor.BEARING_RATES in cls.measures else None
+        self._own_flag = {s: f for s, f in cls.measures.items()
+                          if not (s is Sensor.BEARING_RATES and self.rate_tau is not None)}
+        self.own: dict[Sensor, dict[int, Stamped]] = {s: {} for s in self._own_flag}
+        self._own_stamps: dict[Sensor, deque[float]] = {s: deque(maxlen=2) for s in self.own}
+        gyro_odometry = cls.peer_odometry == 'links'
+        self.peers = [Peer(p, e, OdometryBuffer(t0, gyro_horizon) if gyro_odometry else None)
+                      for e, p in enumerate(spec.peers)]
+        self._by_id = {p.agent_id: p for p in self.peers}
+        self._flag_arrays = {name: np.array([p.flags.get(name, False) for p in self.peers],
+                                            dtype=bool)
+                             for name in sorted({f for p in self.peers for f in p.flags})}
+        self.is_anchor = spec.anchor is not None and spec.anchor[1] == spec.agent_id
+        self.anchor_odometry = (OdometryBuffer(t0, gyro_horizon)
+                                if cls.peer_odometry == 'anchor' and not self.is_anchor
+                                else None)
+        self.gyro = GyroBuffer(t0, gyro_horizon)
+        self.odometry = OdometryBuffer(t0, gyro_horizon)
+        self.uses_odometry = estimator.uses(Sensor.ODOMETRY)
+        self.requires_odometry = Sensor.ODOMETRY in cls.sensors or (
+            expects_odometry and self.uses_odometry)
+        self._rate_filter = (None if self.rate_tau is None
+                             else BearingRateFilter(len(self.peers), self.rate_tau))
+        self._known_poses: deque[tuple[float, Array, Array]] = deque(maxlen=8)
+        self._pose_stamps: deque[float] = deque(maxlen=2)
+        # What went wrong, by what: inputs left out of a step; attempts that waited; steps
+        # that went on without an awaited input.
+        self.missing: Counter[str] = Counter()
+        self.waits: Counter[str] = Counter()
+        self.incomplete: Counter[str] = Counter()
+        self.awaited: str | None = None           # what the latest wait was for
+        self.carried = 0                          # late values carried to the step's instant
+        self.unpaired = 0                         # values a moving fleet could not pair
+        self.odometry_missing_steps = 0           # steps without the odometry expected
+        self.anchor_still_steps = 0               # steps without the anchor's odometry
+        self.non_finite_steps = 0                 # steps discarded as non-finite
+        self.impatient = False
+        self._pending: StepInputs | None = None   # the inputs of step _pending_k
+        self._pending_k = -1
+        self._round1: StepInputs | None = None    # round 1 of step _replied_k, replied to
+        self._replied_k = -1
+        self.last = StepInfo(t=self.t0)
+
+    # ------------------------------------------------------------------------------ state
+    @property
+    def gains(self) -> object:
+        return self.estimator.gains
+
+    @property
+    def R_hat(self) -> Array:
+        """``(1, 3, 3)`` attitude estimate at the state time (body → the method's frame)."""
+        return self.x.R_hat
+
+    @property
+    def p_hat(self) -> Array:
+        """``(1, 3)`` position estimate at the state time [m]."""
+        return self.x.p_hat
+
+    @property
+    def t(self) -> float:
+        """State time: the estimate describes the agent at this time."""
+        return self.t0 + self.k * self.h
+
+    def _restart_at(self, stamp: float, reset_estimate: bool) -> None:
+        """Restart the state time at the first grid instant at or after ``stamp``."""
+        n = np.ceil((stamp - self.origin) / self.h - 1e-9)
+        self.t0, self.k = self.origin + n * self.h, 0
+        self.gyro.reset(stamp)
+        self.odometry.reset(stamp)
+        if reset_estimate:
+            self.x = self.estimator.initial_state(self.R0[None], self.p0[None])
+        for by_target in self.own.values():
+            by_target.clear()
+        for stamps in self._own_stamps.values():
+            stamps.clear()
+        self._pose_stamps.clear()
+        self._pending, self._pending_k = None, -1
+        self._round1, self._replied_k = None, -1
+        if self._rate_filter is not None and self.rate_tau is not None:
+            self._rate_filter = BearingRateFilter(len(self.peers), self.rate_tau)
+        if reset_estimate:
+            for peer in self.peers:
+                peer.values.clear()
+                peer.heard.clear()
+                if peer.odometry is not None:
+                    peer.odometry.reset(self.t0)
+            if self.anchor_odometry is not None:
+                self.anchor_odometry.reset(self.t0)
+        self.last = StepInfo(t=self.t)
+
+    # ------------------------------------------------------------------------------ own motion
+    def add_gyro(self, stamp: float, omega: Array, now: float | None = None) -> str | None:
+        """An interval-average gyro sample (see :mod:`core.gyro`). ``now``: the receiver's
+        clock, to reject stamps from the future."""
+        lim = self.limits
+        omega = np.asarray(omega, dtype=float)
+        finite, _, norm = finite_max_norm(omega)
+        if not (finite and math.isfinite(stamp)):
+            return 'non_finite'
+        if norm > lim.max_rate:   # math.hypot does not overflow: no entry-wise check first
+            return 'absurd_rate'
+        if now is not None and stamp > now + lim.max_future:
+            return 'future_stamp'
+        end = self.gyro.end
+        if stamp <= end:
+            if stamp < end - lim.jump_back:
+                self._restart_at(stamp, reset_estimate=True)
+                return 'time_jump'
+            return 'out_of_order'
+        if stamp - end > lim.max_gyro_gap:
+            self._restart_at(stamp, reset_estimate=False)
+            return 'gyro_gap'
+        self.gyro.add(stamp, omega)
+        return None
+
+    def add_odometry(self, stamp: float, v: Array, omega: Array,
+                     now: float | None = None) -> str | None:
+        """An interval-average odometry twist (body velocity ``v`` [m/s], rate ``omega``
+        [rad/s]; see :mod:`core.odometry`); ``unused`` by methods without odometry. After a gap
+        longer than ``max_gyro_gap`` its integration restarts at this sample
+        (``odometry_gap``); the steps over the gap run without it."""
+        if not self.uses_odometry:
+            return 'unused'
+        v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
+        problem = twist_problem(stamp, v, omega, self.limits)
+        if problem is not None:
+            return problem
+        if now is not None and stamp > now + self.limits.max_future:
+            return 'future_stamp'
+        end = self.odometry.end
+        if stamp <= end:
+            if self.odometry.empty and stamp >= end - 1e-9:
+                return None   # the sample that closed a gap: the restart began at its stamp
+            return 'out_of_order'
+        if stamp - end > self.limits.max_gyro_gap:
+            self.odometry.reset(stamp)
+            return 'odometry_gap'
+        self.odometry.add_twist(stamp, v, omega)
+        return None
+
+    def odometry_live(self) -> bool:
+        """Odometry samples keep up with the gyro (within ``sensor_timeout``): steps wait for
+        them and feed them forward. A method that needs odometry counts it live from the start,
+        before its first sample."""
+        keeps_up = self.odometry.end >= self.gyro.end - self.limits.sensor_timeout
+        return self.uses_odometry and keeps_up and (not self.odometry.empty
+                                                    or self.requires_odometry)
+
+    def own_inputs_ready(self) -> bool:
+        """The own gyro (and live odometry) cover the next step: only what comes from others
+        may be missing."""
+        end = self.gyro.end
+        if self.odometry_live():
+            end = min(end, self.odometry.end)
+        return end - self.t >= self.h - 1e-9 * self.h
+
+    # ------------------------------------------------------------------------------ inputs
+    def add_points(self, sensor: Sensor, stamp: float, ids: NDArray[np.integer],
+                   vectors: Array) -> list[str]:
+        """An own point sensor's message: one vector per agent seen (``ids``), measured at
+        ``stamp``, in the body frame. Points of agents the step does not read are ignored
+        (unknown ids rejected). Returns the causes of the rejected points."""
+        by_target = self.own.get(sensor)
+        n = len(ids)
+        if by_target is None:
+            return []   # the step does not read it (another agent reads it from the topic)
+        if not math.isfinite(stamp):
+            return ['non_finite'] * n
+        if stamp > self.gyro.end + self.limits.max_future:
+            return ['future_stamp'] * n
+        if stamp < self.gyro.start:
+            return ['stale'] * n
+        stamps = self._own_stamps[sensor]
+        if not stamps or stamp > stamps[-1]:
+            stamps.append(float(stamp))
+        flag = self._own_flag[sensor]
+        anyone = flag is None and type(self.estimator).links == 'sensing'
+        rejected = []
+        for j, v in zip(np.asarray(ids).tolist(), np.asarray(vectors, dtype=float)):
+            j = int(j)
+            if j == self.agent_id or (self.known_ids is not None and j not in self.known_ids):
+                rejected.append('unknown_id')
+                continue
+            peer = self._by_id.get(j)
+            if not anyone and (peer is None or not (flag is None or peer.flags.get(flag))):
+                continue   # an agent this step does not read
+            problem = (unit_problem(v, self.limits.unit_tolerance) if sensor is Sensor.BEARINGS
+                       else bounded_problem(v, POINT_BOUNDS[sensor]))
+            hist = by_target.setdefault(j, Stamped())
+            if problem is None and hist and stamp <= hist.newest_stamp:
+                problem = 'out_of_order'
+            if problem is None:
+                hist.add(float(stamp), v / np.linalg.norm(v) if sensor is Sensor.BEARINGS
+                         else v.copy())
+            else:
+                rejected.append(problem)
+        return rejected
+
+    def add_known_pose(self, stamp: float, R: Array, p: Array) -> str | None:
+        """A leader's true pose at ``stamp`` (motion capture, GNSS/INS)."""
+        R, p = np.asarray(R, dtype=float), np.asarray(p, dtype=float)
+        if not (np.isfinite(R).all() and np.isfinite(p).all() and math.isfinite(stamp)):
+            return 'non_finite'
+        self._known_poses.append((float(stamp), R, p))
+        if not self._pose_stamps or stamp > self._pose_stamps[-1]:
+            self._pose_stamps.append(float(stamp))
+        return None
+
+    def expects(self, peer: Peer, channel: Channel) -> bool:
+        """This agent reads ``channel`` from ``peer`` (its ``on`` flag; an owner-only value
+        comes from the owner)."""
+        if channel.on is not None and not peer.flags.get(channel.on, False):
+            return False
+        return not (channel.owner_only and peer.flags.get('owns', False))
+
+    def add_message(self, sender: int, stamp: float, values: Mapping[str, object]) -> str | None:
+        """A message of neighbour ``sender`` with its values of some channels at its state
+        time ``stamp``: per-agent channels as arrays, per-edge ones as ``{listener id:
+        value}`` (this agent takes its own; ``not_seen`` when none of them has one). Used
+        whole or rejected whole."""
+        peer = self._by_id.get(sender)
+        if peer is None:
+            return 'unknown_id'
+        mine: dict[str, Array] = {}
+        heard = []
+        for name, value in values.items():
+            c = self.channels.get(name)
+            if c is None or c.sensor is not None:   # readings travel on sensor topics
+                return 'unknown_channel'
+            heard.append(name)
+            if c.per == 'edge':
+                value = value.get(self.agent_id) if isinstance(value, dict) else None
+                if value is None:
+                    continue   # nothing for this agent in it
+            v = np.asarray(value, dtype=float)
+            if v.shape != c.shape:
+                return 'malformed'
+            mine[name] = v
+        lim = self.limits
+        in_time = math.isfinite(stamp) and stamp <= self.gyro.end + lim.max_future
+        if not mine:
+            if in_time:
+                for name in heard:   # the sender's message of this instant: none for us
+                    peer.heard[name] = max(peer.heard.get(name, -math.inf), float(stamp))
+            return 'not_seen'
+        if not math.isfinite(stamp):
+            return 'non_finite'
+        for name, v in mine.items():
+            c = self.channels[name]
+            problem = bounded_problem(v, c.bound)
+            # The owner's zeros: no value of the pair yet (the step takes them as such).
+            none_yet = c.owner_only and not v.any()
+            if problem is None and c.unit and not none_yet:
+                problem = unit_problem(v, lim.unit_tolerance)
+            if problem is not None:
+                return problem
+        if not in_time:
+            return 'future_stamp'
+        for name, v in mine.items():
+            hist = peer.values.setdefault(name, Stamped())
+            if hist and stamp < hist.newest_stamp - SAME:
+                if hist.newest_stamp - stamp > lim.jump_back:
+                    hist.clear()   # the sender restarted its clock
+                else:
+                    return 'out_of_order'
+        for name, v in mine.items():
+            hist = peer.values[name]
+            if not (self.channels[name].owner_only and not v.any()
+                    and hist.at(stamp)[0] is not None):   # zeros undo no value
+                hist.add(float(stamp), v)
+        for name in heard:
+            peer.heard[name] = max(peer.heard.get(name, -math.inf), float(stamp))
+        return None
+
+    def add_peer_points(self, sender: int, sensor: Sensor, stamp: float,
+                        ids: NDArray[np.integer], vectors: Array) -> str | None:
+        """Neighbour ``sender``'s point sensor message: its point of this agent is kept when a
+        channel of the method carries that sensor's readings from it."""
+        peer = self._by_id.get(sender)
+        if peer is None:
+            return 'unknown_id'
+        carriers = [c for c in self.channels.values()
+                    if c.sensor is sensor and self.expects(peer, c)]
+        if not carriers:
+            return None   # not read from this sender
+        if not math.isfinite(stamp):
+            return 'non_finite'
+        mine = np.flatnonzero(np.asarray(ids) == self.agent_id)
+        if not mine.size:
+            return None
+        v = np.asarray(vectors, dtype=float)[mine[0]]
+        c = carriers[0]
+        problem = bounded_problem(v, min(c.bound, POINT_BOUNDS[sensor]))
+        hist = peer.values.setdefault(c.name, Stamped())
+        if problem is None and hist and stamp <= hist.newest_stamp:
+            problem = 'out_of_order'
+        if problem is not None:
+            return problem
+        hist.add(float(stamp), v.copy())
+        return None
+
+    def add_peer_odometry(self, sender: int, stamp: float, v: Array,
+                          omega: Array) -> str | None:
+        """Another agent's odometry sample, for a method that reads it (its edges' other
+        ends', or the anchor's): out of order, non-finite or absurd samples are rejected; its
+        clock restarted or a gap: the integration restarts."""
+        if self.anchor_odometry is not None and self.spec.anchor is not None:
+            odometry = self.anchor_odometry if sender == self.spec.anchor[1] else None
+        else:
+            peer = self._by_id.get(sender)
+            odometry = None if peer is None else peer.odometry
+        if odometry is None:
+            return 'unknown_id'
+        v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
+        problem = twist_problem(stamp, v, omega, self.limits)
+        if problem is not None:
+            return problem
+        end = odometry.end
+        if stamp <= end:
+            if stamp < end - self.limits.jump_back:   # its clock restarted
+                odometry.reset(stamp)
+                return None
+            return 'out_of_order'
+        if stamp - end > self.limits.max_gyro_gap:
+            odometry.reset(stamp)
+            return 'odometry_gap'
+        odometry.add_twist(stamp, v, omega)
+        return None
+
+    # ------------------------------------------------------------------------------ readiness
+    def stale_neighbours(self, t: float) -> list[str]:
+        """Neighbours this agent reads from that were silent for longer than
+        ``neighbour_timeout`` before ``t`` (counting from the start: one whose first values
+        are on their way is not stale before that)."""
+        limit = t - self.limits.neighbour_timeout
+        return [p.name for p in self.peers
+                if self._reads_from(p) and max(p.newest(), self.t0) < limit]
+
+    def _reads_from(self, peer: Peer) -> bool:
+        return peer.odometry is not None or any(self.expects(peer, c)
+                                                for c in self.channels.values())
+
+    def _due(self, t: float, round_: int) -> list[Channel]:
+        """The round's channels that the step at t waits for: not optional, read at t."""
+        est = self.estimator
+        return [c for c in self.channels.values() if c.round == round_ and not c.optional
+                and est.due(c.name, t, self.h)]
+
+    def _awaiting(self, t: float, round_: int) -> str | None:
+        """What round ``round_`` of the step at ``t`` still waits for, or None when every
+        input is here or known not to come (module docstring)."""
+        h = self.h
+        own_late = self.gyro.end - t > self.limits.sensor_timeout
+        behind = self.gyro.end - t > self.limits.link_wait
+        cls = type(self.estimator)
+        if self.exchange is not None and round_ == 1:
+            awaited = self._awaiting_exchange(t)
+            if awaited is not None:
+                return awaited
+        if self.leader:
+            return None
+        if round_ == 1:
+            if (self.anchor_odometry is not None and not behind
+                    and not self.anchor_odometry.covers(t, t + h)
+                    and self.anchor_odometry.end >= t - self.limits.neighbour_timeout):
+                return 'anchor_odometry'
+            if cls.own_pairing == 'interpolated' and not own_late:
+                for sensor, by_target in self.own.items():
+                    flag = self._own_flag[sensor]
+                    for p in self.peers:
+                        if flag is None or p.flags.get(flag):
+                            hist = by_target.get(p.agent_id)
+                            if not (hist and hist.newest_stamp >= t - SAME):
+                                return sensor.value
+        if behind:
+            return None
+        stale = set(self.stale_neighbours(t))
+        due = [c for c in self._due(t, round_) if c.pairing == 'exact']
+        sensors = [c for c in due if c.sensor is not None]
+        sent = [c for c in due if c.sensor is None]
+        for p in self.peers:
+            if p.name in stale:
+                continue
+            odo = p.odometry
+            if (round_ == 1 and odo is not None and not odo.covers(t, t + h)
+                    and odo.end >= t - self.limits.neighbour_timeout):
+                return 'odometry'
+            for c in sensors:
+                hist = p.values.get(c.name)
+                if self.expects(p, c) and not (hist and hist.newest_stamp >= t - SAME):
+                    return c.name
+            for c in sent:
+                if self.expects(p, c):
+                    hist = p.values.get(c.name)
+                    if hist is None or (hist.at(t)[0] is None and not hist.at(t)[1]):
+                        return c.name
+        return None
+
+    def _awaiting_exchange(self, t: float) -> str | None:
+        """Under a simulation's exchange: the own 'newest'-paired samples measured by ``t +
+        h``, a leader's known pose, and each live neighbour's 'instant' channels of its publish
+        instant at or before ``t`` (heard within ``neighbour_timeout``, counting from t0 until
+        it is)."""
+        ex = self.exchange
+        assert ex is not None
+        end = t + self.h
+        if type(self.estimator).own_pairing == 'newest':
+            for sensor, stamps in self._own_stamps.items():
+                if not complete(stamps, ex.sensor_period, end):
+                    return sensor.value
+        if self.leader:
+            return None if complete(self._pose_stamps, ex.known_pose_period, end) else 'known_pose'
+        required = {c.name for c in self.channels.values()
+                    if c.pairing == 'instant' and not c.optional and c.sensor is None}
+        if not required:
+            return None
+        alive = t - self.limits.neighbour_timeout
+        due = t + SAME - ex.publish_period   # a newest stamp at or before this: one is due
+        for p in self.peers:
+            heard = p.heard
+            if not heard:
+                if self.t0 < alive:
+                    continue   # silent since t0: not waited for
+                return p.name
+            stamps = heard.values()
+            if max(stamps) < alive:
+                continue   # silent: not waited for
+            if min(stamps) <= due or not required <= heard.keys():
+                return p.name
+        return None
+
+    def _wait(self, t: float, round_: int) -> bool:
+        """Whether round ``round_`` of the step at ``t`` waits (counted by what), or goes on
+        (with what is here, ``impatient`` or waited out: counted as incomplete)."""
+        awaited = self._awaiting(t, round_)
+        if awaited is None:
+            return False
+        if not self.impatient and self.gyro.end - t <= self.limits.link_wait:
+            self.waits[awaited] += 1
+            self.awaited = awaited
+            return True
+        self.incomplete[awaited] += 1
+        return False
+
+    def steps_ready(self) -> int:
+        """1 when the next step's inputs are here (or known not to come, or waited out);
+        else 0."""
+        if self._pending is not None and self._pending_k == self.k:
+            return 1   # complete inputs stay complete
+        if not self.own_inputs_ready():
+            return 0
+        t = self.t
+        if self.rounds > 1 and not self.leader:
+            if self._replied_k != self.k or self._wait(t, self.rounds):
+                return 0
+        elif self._wait(t, 1):
+            return 0
+        self._pending, self._pending_k = self._gather(t), self.k
+        return 1
+
+    def advance(self, max_steps: int | None = None, impatient: bool = False) -> int:
+        """Run the steps whose inputs are in (at most ``max_steps``; ``impatient``: the first
+        one with what is here); return how many ran."""
+        ran = 0
+        self.impatient = impatient
+        try:
+            while max_steps is None or ran < max_steps:
+                if not self.steps_ready():   # (two rounds: the caller sends pending_reply)
+                    break
+                self._step()
+                ran += 1
+                self.impatient = False
+        finally:
+            self.impatient = False
+        return ran
+
+    def pending_reply(self, impatient: bool = False) -> dict[str, dict[int, Array]] | None:
+        """Round 2 of the current step, once: ``{channel: {listener id: value}}`` for every
+        agent it goes to, when round 1 is in (``impatient``: with what is here); else None."""
+        if self.rounds == 1 or self.leader or self._replied_k == self.k:
+            return None
+        if not self.own_inputs_ready():
+            return None
+        was, self.impatient = self.impatient, self.impatient or impatient
+        try:
+            if self._wait(self.t, 1):
+                return None
+            inputs = self._gather(self.t, rounds=1)
+        finally:
+            self.impatient = was
+        sent = self.estimator.reply(self.x, self.h, inputs)
+        self._round1, self._replied_k = inputs, self.k
+        return {name: self._addressed(self.channels[name], v) for name, v in sent.items()}
+
+    def _addressed(self, c: Channel, values: Array) -> dict[int, Array]:
+        """A per-edge channel's values ``(E, ...)`` for the edges whose other end reads it."""
+        flag = 'owns' if c.owner_only else MIRROR.get(c.on) if c.on is not None else None
+        return {p.agent_id: values[p.slot] for p in self.peers
+                if flag is None or p.flags.get(flag, False)}
+
+    # ------------------------------------------------------------------------------ the step
+    def _step(self) -> None:
+        prepared = self.begin_step()
+        if prepared is not None:
+            self.end_step(prepared, *self.estimator.step(self.x, self.h, prepared.inputs))
+
+    def begin_step(self) -> Prepared | None:
+        """The step's inputs, gathered by :meth:`steps_ready`, or None for a leader, whose
+        whole step this is."""
+        inputs = self._pending
+        assert inputs is not None and self._pending_k == self.k
+        t = self.t
+        if self.leader:
+            self._apply_known_pose(t)
+            self.x = self.estimator.propagate(self.x, inputs.delta_R, inputs.displacement)
+            self.last = StepInfo(t=t, odometry=inputs.displacement is not None)
+            self._pending = None
+            self.k += 1
+            return None
+        return Prepared(t, tuple(self.stale_neighbours(t)), inputs)
+
+    def end_step(self, prepared: Prepared, x: State, diagnostics: dict[str, Array]) -> None:
+        """The step's end, from the new state ``x`` (one row) the method's step returned."""
+        inputs = prepared.inputs
+        if x.is_finite():
+            self.x = x
+        else:  # cannot happen with validated inputs; never let it reach the estimate
+            self.non_finite_steps += 1
+            self.x = self.estimator.propagate(self.x, inputs.delta_R, inputs.displacement)
+        self.last = StepInfo(t=prepared.t, edges_used=self._edges_used(inputs),
+                             stale=prepared.stale, odometry=inputs.displacement is not None,
+                             diagnostics={k: v[0] for k, v in diagnostics.items()})
+        self._pending = self._round1 = None
+        self.k += 1
+
+    def _edges_used(self, inputs: StepInputs) -> int:
+        """The edges whose own inputs the step had: all of them for a method that takes
+        complete edges only; else those it senses with its measurements and values here."""
+        if not type(self.estimator).partial_edges:
+            return len(inputs.edges)
+        used = inputs.edges.flag('senses').copy()
+        cls = type(self.estimator)
+        for key in [s.value for s in cls.measures] + [c.name for c in cls.sends if c.round == 1
+                                                      and not c.optional and c.sensor is None]:
+            used &= inputs.here(key)
+        return int(np.count_nonzero(used))
+
+    # ------------------------------------------------------------------------------ gathering
+    def _gather(self, t: float, rounds: int | None = None) -> StepInputs:
+        """The inputs of the step at ``t`` (rounds up to ``rounds``, default all) with what is
+        here, counting what is missing."""
+        rounds = self.rounds if rounds is None else rounds
+        if rounds == self.rounds and self.rounds > 1 and self._round1 is not None:
+            inputs = self._round1   # round 1 as replied to, with the later rounds added
+            edge, mask = dict(inputs.edge), dict(inputs.mask)
+            for r in range(2, rounds + 1):
+                self._exact_channels(t, r, edge, mask)
+            return StepInputs(edges=inputs.edges, agent=inputs.agent, edge=edge, mask=mask,
+                              t=t)
+        h = self.h
+        delta_R = self.gyro.increment(t, t + h)[None]
+        agent: dict[str, Array] = {DELTA_R: delta_R}
+        cls = type(self.estimator)
+        if self.odometry_live():
+            if self.odometry.covers(t, t + h):
+                agent[DISPLACEMENT] = self.odometry.displacement(t, t + h)[None]
+            else:
+                self.odometry_missing_steps += 1
+        if cls.roles.anchor:
+            self._anchor_motion(t, agent)
+        edges = Edges(agent=np.zeros(len(self.peers), dtype=np.intp),
+                      k=np.array([p.k for p in self.peers]), n_agents=1,
+                      slot=np.arange(len(self.peers), dtype=np.intp),
+                      flags=self._flag_arrays)
+        if self.leader:
+            return StepInputs(edges=edges, agent=agent, edge={}, t=t)
+        edge: dict[str, Array] = {}
+        mask: dict[str, NDArray[np.bool_]] = {}
+        if any(c.pairing == 'instant' for c in self.channels.values()):
+            self._instant_channels(t, agent.get(DISPLACEMENT) is not None, edge, mask)
+        else:
+            self._own_interpolated(t, edge, mask)
+        if cls.peer_odometry == 'links':
+            self._peer_motion(t, edge, mask)
+        for r in range(1, rounds + 1):
+            self._exact_channels(t, r, edge, mask)
+        inputs = StepInputs(edges=edges, agent=agent, edge=edge, mask=mask, t=t)
+        if not cls.partial_edges:
+            inputs = inputs.complete(cls.required())
+        return inputs
+
+    def _anchor_motion(self, t: float, agent: dict[str, Array]) -> None:
+        """The anchor's motion over the step as this agent knows it (the anchor: its own),
+        and the anchor's flags. Without the anchor's odometry the anchor is taken as still
+        (counted)."""
+        h = self.h
+        displacement = agent.get(DISPLACEMENT, np.zeros((1, 3)))
+        if self.is_anchor:
+            a_R, a_d = agent[DELTA_R], displacement
+        elif self.anchor_odometry is not None and self.anchor_odometry.covers(t, t + h):
+            a_R = self.anchor_odometry.rotation(t, t + h)[None]
+            a_d = self.anchor_odometry.displacement(t, t + h)[None]
+        else:
+            self.anchor_still_steps += 1
+            a_R, a_d = np.eye(3)[None], np.zeros((1, 3))
+        agent.update({ANCHOR_DELTA_R: a_R, ANCHOR_DISPLACEMENT: a_d,
+                      IS_ANCHOR: np.array([self.is_anchor]),
+                      PINNED: np.array([self.is_anchor and self.spec.pinned])})
+
+    def _rotate_own(self, s: float, t: float) -> Array:
+        """``R(t)ᵀ R(s)`` from the gyro (raises ValueError when it does not cover)."""
+        return self.gyro.increment(t, s)
+
+    def _own_interpolated(self, t: float, edge: dict[str, Array],
+                          mask: dict[str, NDArray[np.bool_]]) -> None:
+        """Each own point sensor's measurement of each edge it measures at ``t``, between
+        the samples around t; estimated bearing rates from the bearings."""
+        n = len(self.peers)
+        for sensor, by_target in self.own.items():
+            flag = self._own_flag[sensor]
+            values, here = np.zeros((n, 3)), np.zeros(n, dtype=bool)
+            for p in self.peers:
+                hist = by_target.get(p.agent_id)
+                if hist is None or not (flag is None or p.flags.get(flag)):
+                    continue
+                v, _ = hist.interpolate(t, self._rotate_own)
+                if v is None:
+                    self.missing[sensor.value] += 1
+                    continue
+                values[p.slot] = v / np.linalg.norm(v) if sensor is Sensor.BEARINGS else v
+                here[p.slot] = True
+            edge[sensor.value], mask[sensor.value] = values, here
+        if self._rate_filter is not None:
+            self._estimated_rates(t, edge, mask)
+
+    def _estimated_rates(self, t: float, edge: dict[str, Array],
+                         mask: dict[str, NDArray[np.bool_]]) -> None:
+        """Without a bearing-rate sensor: each edge's rate at ``t`` from its bearings at ``t``
+        and at the previous step, as the batch simulator forms them."""
+        filt = self._rate_filter
+        assert filt is not None
+        b, here = edge[Sensor.BEARINGS.value], mask[Sensor.BEARINGS.value]
+        n = len(self.peers)
+        dR = np.tile(np.eye(3), (n, 1, 1))
+        for row in np.flatnonzero(here & ~np.isnan(filt.t_prev)).tolist():
+            if self.gyro.covers(float(filt.t_prev[row]), t):
+                dR[row] = self.gyro.increment(float(filt.t_prev[row]), t)
+            else:   # the rotation since the previous bearing is unknown: start again
+                filt.t_prev[row], filt.started[row] = np.nan, False
+        derotated, have = filt.update(t, b, dR, here)
+        omega = so3.log_small(self.gyro.increment(t, t + self.h)[None])[0] / self.h
+        edge[Sensor.BEARING_RATES.value] = np.where(have[:, None],
+                                                    derotated - np.cross(omega, b), 0.0)
+        mask[Sensor.BEARING_RATES.value] = have
+
+    def _peer_motion(self, t: float, edge: dict[str, Array],
+                     mask: dict[str, NDArray[np.bool_]]) -> None:
+        """Each edge's other end's motion over the step, from its odometry."""
+        n, h = len(self.peers), self.h
+        rot, disp = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
+        here = np.zeros(n, dtype=bool)
+        for p in self.peers:
+            odo = p.odometry
+            if odo is not None and odo.covers(t, t + h):
+                rot[p.slot], disp[p.slot] = odo.rotation(t, t + h), odo.displacement(t, t + h)
+                here[p.slot] = True
+            else:
+                self.missing[PEER_ODOMETRY] += 1
+        edge[PEER_DELTA_R], edge[PEER_DISPLACEMENT], mask[PEER_ODOMETRY] = rot, disp, here
+
+    def _peer_rotation(self, peer: Peer):  # type: ignore[no-untyped-def]
+        """``rotate(s, t) = R(t)ᵀ R(s)`` of a sender's measurement: its odometry's, or none
+        (a method that does not read it: the value is taken as it is)."""
+        odo = peer.odometry
+        if odo is None:
+            return lambda s, t: np.eye(3)
+
+        def rotate(s: float, t: float) -> Array:
+            return odo.rotation(t, s) if s >= t else odo.rotation(s, t).T
+        return rotate
+
+    def _exact_channels(self, t: float, round_: int, edge: dict[str, Array],
+                        mask: dict[str, NDArray[np.bool_]]) -> None:
+        """Round ``round_``'s 'exact' channels and the senders' measurements of this agent,
+        per edge: the value of ``t`` (interpolated for measurements), else the sender's
+        newest earlier one carried to t, else left out; optional ones never wait; channels not
+        read at t are their newest value."""
+        est, n = self.estimator, len(self.peers)
+        chans = [c for c in self.channels.values()
+                 if c.round == round_ and (c.pairing == 'exact' or c.sensor is not None)]
+        if not chans:
+            return
+        for c in chans:
+            edge[c.name] = np.zeros((n,) + c.shape)
+            mask[c.name] = np.zeros(n, dtype=bool)
+        due = {c.name for c in chans if not c.optional and c.sensor is None
+               and est.due(c.name, t, self.h)}
+        for p in self.peers:
+            core = [c.name for c in chans if c.name in due and not c.owner_only
+                    and self.expects(p, c)]
+            found: dict[str, Array] = {}
+            for name in core:
+                v, _ = p.values[name].at(t) if name in p.values else (None, False)
+                if v is not None:
+                    found[name] = v
+            if core and len(found) < len(core):
+                carried = self._carry(p, core, t)   # late or lost: carried to t
+                if carried is not None:
+                    found, self.carried = carried, self.carried + 1
+                else:
+                    for name in core:
+                        if name not in found:
+                            self.missing[name] += 1
+            for c in chans:
+                if not self.expects(p, c):
+                    continue
+                hist = p.values.get(c.name)
+                if c.sensor is not None:
+                    v, _ = (hist.interpolate(t, self._peer_rotation(p)) if hist
+                            else (None, False))
+                    if v is None:
+                        self.missing[c.name] += 1
+                elif c.name in found:
+                    v = found[c.name]
+                elif c.optional:
+                    v = self._optional(p, c, t)
+                elif c.name not in due:
+                    v = hist.samples[-1][1] if hist else None   # not read now: the newest
+                    if v is None:
+                        continue
+                    mask[c.name][p.slot] = True
+                    edge[c.name][p.slot] = v
+                    continue
+                else:   # owner-only: its own value, or carried, or none
+                    v = hist.at(t)[0] if hist else None
+                    if v is None:
+                        v = (self._carry(p, [c.name], t) or {}).get(c.name)
+                        if v is None:
+                            self.missing[c.name] += 1
+                if v is not None:
+                    edge[c.name][p.slot], mask[c.name][p.slot] = v, True
+        if type(est).partial_edges:
+            for c in chans:   # a value not expected on an edge: here, as nothing is missing
+                for p in self.peers:
+                    if not self.expects(p, c):
+                        mask[c.name][p.slot] = True
+
+    def _optional(self, peer: Peer, c: Channel, t: float) -> Array:
+        """An optional value at ``t``: the sender's of t, else its newest earlier one carried
+        to t (or as it is), else the method's stand-in; never waited for, not counted."""
+        hist = peer.values.get(c.name)
+        if hist:
+            v, _ = hist.at(t)
+            if v is not None:
+                return v
+            carried = self._carry(peer, [c.name], t)
+            if carried is not None and c.name in carried:
+                return carried[c.name]
+            newest = hist.newest(t)
+            if newest is not None:
+                return newest[1]
+        return self.estimator.missing(c.name)
+
+    def _carry(self, peer: Peer, names: Sequence[str], t: float) -> dict[str, Array] | None:
+        """The sender's channels ``names`` at ``t`` from its newest instant ``t_s < t`` that
+        has them all, no older than ``neighbour_timeout``, carried over ``[t_s, t]`` by the
+        method (:meth:`Estimator.carry`) with what this agent knows of the motion; None when
+        nothing can be carried."""
+        first = peer.values.get(names[0])
+        if first is None:
+            return None
+        for stamp, value in first.before(t):
+            if stamp < t - self.limits.neighbour_timeout:
+                return None   # too old: its estimator is silent (its sensors may not be)
+            values = {names[0]: value}
+            for name in names[1:]:
+                hist = peer.values.get(name)
+                v = hist.at(stamp)[0] if hist else None
+                if v is None:
+                    break
+                values[name] = v
+            else:
+                out = self.estimator.carry(values, self._motion(peer, stamp, t))
+                return None if out is None or out.keys() < set(names) else out
+        return None
+
+    def _motion(self, peer: Peer, s: float, t: float) -> Motion:
+        """What this agent knows of the motion over ``[s, t]``."""
+        own = self.gyro.increment(s, t) if self.gyro.covers(s, t) else None
+        odo = peer.odometry
+        peer_R = peer_d = anchor_R = anchor_d = None
+        if odo is not None and odo.covers(s, t):
+            peer_R, peer_d = odo.rotation(s, t), odo.displacement(s, t)
+        anchor = self.odometry if self.is_anchor else self.anchor_odometry
+        if type(self.estimator).roles.anchor and anchor is not None and anchor.covers(s, t):
+            anchor_R, anchor_d = anchor.rotation(s, t), anchor.displacement(s, t)
+        return Motion(own, peer_R, peer_d, anchor_R, anchor_d)
+
+    # 'instant' pairing (module docstring): the leader-follower methods' exchange.
+    def _instant_channels(self, t: float, moving: bool, edge: dict[str, Array],
+                          mask: dict[str, NDArray[np.bool_]]) -> None:
+        """Each neighbour's 'instant' channels of its newest instant at or before ``t`` (a
+        robot: its newest values) with the own measurement paired with them."""
+        n = len(self.peers)
+        names = [c.name for c in self.channels.values() if not c.optional]
+        sensors = list(self.own)
+        values = {c.name: np.zeros((n,) + c.shape) for c in self.channels.values()}
+        values.update({s.value: np.zeros((n, 3)) for s in sensors})
+        here = np.zeros(n, dtype=bool)
+        p_own, held = np.zeros((n, 3)), np.ones((n, 2))
+        until = self._until(t + self.h)
+        for p in self.peers:
+            if self._silent(p, names, t):
+                continue
+            latest = {name: v for name in self.channels if (v := p.latest(name)) is not None}
+            t_s, sent = t, latest
+            if not moving and self.exchange is not None:   # its values of its instant ≤ t
+                fixed = p.at_one_instant(names, not_after=t)
+                sent = dict(fixed[1]) if fixed is not None else latest
+                for c in self.channels.values():
+                    if c.optional and (hist := p.values.get(c.name)):
+                        newest = hist.newest(t)
+                        if newest is not None:
+                            sent[c.name] = newest[1]
+            if moving:   # its values of one instant, paired with the own at that instant
+                own = self.own[sensors[0]].get(p.agent_id) if sensors else None
+                newest_own = own.newest_stamp if own else t
+                same = p.at_one_instant(names, not_after=min(t, newest_own))
+                if same is None:
+                    self.unpaired += 1
+                    if p.at_one_instant(names, not_after=math.inf) is not None:
+                        continue   # this step without it: exact, unlike values of two instants
+                    stamps = [p.values[name].newest_stamp for name in latest]
+                    t_s = max(stamps, default=t)
+                else:
+                    t_s, sent = same[0], {**latest, **same[1]}
+                t_s = min(t_s, t)
+            if any(name not in sent for name in names):
+                continue
+            own_values = [self.body_measurement(s, p.agent_id, t, at=t_s if moving else None,
+                                                until=until) for s in sensors]
+            if any(v is None for v in own_values):
+                continue
+            here[p.slot] = True
+            for s, v in zip(sensors, own_values):
+                values[s.value][p.slot] = v
+            for c in self.channels.values():
+                value = sent.get(c.name, latest.get(c.name))
+                values[c.name][p.slot] = (value if value is not None
+                                          else self.estimator.missing(c.name))
+            own_hist = self.own[sensors[0]].get(p.agent_id) if sensors else None
+            first = p.values.get(names[0]) if names else None
+            held[p.slot] = (own_hist.interval(self.h) if own_hist else 1.0,
+                            first.interval(self.h) if first else 1.0)
+            back = self.moved_back(t, t_s) if t_s < t else None
+            if back is None and t_s < t:
+                self.unpaired += 1
+            p_own[p.slot] = self.x.p_hat[0] if back is None else back
+        edge.update(values)
+        for key in list(values):
+            mask[key] = here
+        edge[HELD] = held
+        if moving:
+            edge[P_OWN] = p_own
+
+    def _silent(self, peer: Peer, names: Sequence[str], t: float) -> bool:
+        """A neighbour that never sent a required channel, or whose newest value of one is
+        older than ``neighbour_timeout``."""
+        limit = t - self.limits.neighbour_timeout
+        return any(name not in peer.values or peer.values[name].newest_stamp < limit
+                   for name in names)
+
+    def _until(self, t: float) -> float:
+        """The newest own measurement a step or message at ``t`` may use (a simulation's
+        exchange fixes it; a robot uses anything)."""
+        return t if self.exchange is not None else math.inf
+
+    def body_measurement(self, sensor: Sensor, agent_id: int, t: float,
+                         at: float | None = None, until: float = math.inf) -> Array | None:
+        """The own ``sensor``'s measurement of ``agent_id`` rotated to the body frame at
+        ``t`` with the gyro, or None (none, or older than ``sensor_timeout``): the newest
+        sample the gyro can bridge (a static fleet: every sample sees the same world vector),
+        or, given ``at``, the one measured at ``at`` (moving): interpolated between the two
+        samples around it (rotated to t, then a normalised linear interpolation), the newest
+        held after it. ``until``: no sample measured after it."""
+        hist = self.own.get(sensor, {}).get(agent_id)
+        if not hist:
+            return None
+        timeout = self.limits.sensor_timeout
+        if at is None:
+            for stamp, b in reversed(hist.samples):
+                if stamp > until + SAME:
+                    continue
+                if t - stamp > timeout:
+                    return None
+                if self.gyro.covers(stamp, t):
+                    return self.gyro.increment(t, stamp) @ b   # R(t)ᵀ R(t_b) b(t_b)
+            return None
+        later: tuple[float, Array] | None = None
+        for stamp, b in reversed(hist.samples):   # the newest sample the gyro can bridge
+            if t - stamp > timeout:
+                return None
+            if not self.gyro.covers(stamp, t):
+                continue
+            b_t = self.gyro.increment(t, stamp) @ b
+            if stamp > at + SAME:
+                later = (stamp, b_t)
+                continue
+            if later is None or stamp >= at - SAME:
+                return b_t
+            w = (at - stamp) / (later[0] - stamp)
+            mixed = (1.0 - w) * b_t + w * later[1]
+            return mixed / np.linalg.norm(mixed)
+        return later[1] if later is not None else None
+
+    def moved_back(self, t: float, t_s: float) -> Array | None:
+        """``p̂_i`` moved back from ``t`` to ``t_s <= t`` by the own odometry,
+        ``p̂_i(t) - R̂_i(t) R(t)ᵀ R(t_s) δ(t_s → t)`` (:data:`base.P_OWN`); None without odometry
+        over that span."""
+        if not (self.odometry_live() and self.odometry.covers(t_s, t)
+                and self.gyro.covers(t_s, t)):
+            return None
+        delta = self.odometry.displacement(t_s, t)
+        return self.x.p_hat[0] - self.x.R_hat[0] @ (self.gyro.increment(t, t_s) @ delta)
+
+    def _apply_known_pose(self, t: float) -> None:
+        """A leader's newest known pose up to the step's end, carried to ``t`` by the gyro
+        and, moving, the odometry (waited for until both cover the way)."""
+        until = self._until(t + self.h)
+        usable = [pose for pose in self._known_poses if pose[0] <= until + SAME]
+        if not usable:
+            return
+        stamp, R, p = max(usable, key=lambda pose: pose[0])
+        moving = self.odometry_live()
+        if self.gyro.covers(stamp, t) and (not moving or self.odometry.covers(stamp, t)):
+            R_t = R @ self.gyro.increment(stamp, t)
+            if moving:
+                p = (p + R @ self.odometry.displacement(stamp, t) if stamp <= t
+                     else p - R_t @ self.odometry.displacement(t, stamp))
+            self.x = self.estimator.with_known_pose(self.x, np.zeros(1, dtype=np.intp),
+                                                    R_t[None], p[None])
+            newer = [pose for pose in self._known_poses if pose[0] > stamp]
+            self._known_poses.clear()
+            self._known_poses.extend(newer)
+
+    # ------------------------------------------------------------------------------ outputs
+    def measured_at(self, t: float) -> bool:
+        """A sample measured at ``t`` (or later) has arrived from every agent this agent
+        measures: what it sends at ``t`` is then exact for a moving fleet."""
+        return all(hist.newest_stamp >= t - SAME for by_target in self.own.values()
+                   for hist in by_target.values() if hist)
+
+    def outbox(self) -> dict[str, object]:
+        """What this agent sends in round 1, formed at the state time (the time-consistent
+        values its listeners need): per-agent channels as arrays, per-edge ones as
+        ``{listener id: value}``. Measurements travel on the sensor topics, not here."""
+        cls = type(self.estimator)
+        t = self.t
+        if cls.links == 'sensing':   # to every agent it measures, from that measurement
+            sensor = cls.partner_sensor
+            ids, vectors = [], []
+            at = t if self.odometry_live() else None
+            for agent_id in (self.own.get(sensor, {}) if sensor is not None else {}):
+                v = self.body_measurement(sensor, agent_id, t, at=at,  # type: ignore[arg-type]
+                                          until=self._until(t))
+                if v is not None:
+                    ids.append(agent_id)
+                    vectors.append(v)
+            sent = self.estimator.outbox(self.x, np.zeros(len(ids), dtype=np.intp),
+                                         np.array(vectors).reshape(-1, 3))
+            addressed = {c.name: dict(zip(ids, sent[c.name])) for c in cls.sends
+                         if c.per == 'edge' and c.round == 1 and c.sensor is None}
+        else:
+            n = len(self.peers)
+            sent = self.estimator.outbox(self.x, np.zeros(n, dtype=np.intp), np.zeros((n, 3)),
+                                         slot=np.arange(n, dtype=np.intp))
+            addressed = {c.name: self._addressed(c, sent[c.name]) for c in cls.sends
+                         if c.per == 'edge' and c.round == 1 and c.sensor is None}
+        return {c.name: addressed[c.name] if c.per == 'edge' else sent[c.name][0]
+                for c in cls.sends if c.round == 1 and c.sensor is None}
+
+    def sends_now(self, name: str, publish_grid: bool) -> bool:
+        """Channel ``name`` goes out after the step that reached the state time: 'exact'
+        ones when a listener's step reads them at this instant, 'instant' ones on the
+        publish grid."""
+        c = self.channels[name]
+        if c.pairing == 'exact':
+            return self.estimator.due(name, self.t, self.h)
+        return publish_grid
+
+    def covariance(self) -> Array | None:
+        """``(6, 6)`` the pose covariance (position, then rotation), or None."""
+        P = self.estimator.covariance(self.x)
+        return None if P is None else P[0]
+
+    def conditioning(self) -> Array | None:
+        """Eigenvalues of the method's local matrix (:meth:`Estimator.conditioning`) from the
+        current own measurements, or None (no such matrix, or a measurement is missing)."""
+        sensor = type(self.estimator).partner_sensor
+        if sensor is None or not self.peers:
+            return None
+        vectors = [self.body_measurement(sensor, p.agent_id, self.t) for p in self.peers]
+        if any(v is None for v in vectors):
+            return None
+        matrix = self.estimator.conditioning(np.array(vectors),
+                                             np.array([p.k for p in self.peers]))
+        return None if matrix is None else np.linalg.eigvalsh(matrix).astype(np.float64)

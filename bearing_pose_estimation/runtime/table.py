@@ -1,0 +1,74 @@
+"""What each agent reads from the others, derived once from its method's declarations: the
+one table that netsim, the estimator node, the simulator node (whose clock waits for these
+readers) and the recorder read.
+
+Per edge and topic: the channels the sender sends on that topic (grouped by topic, optional
+ones first: a node subscribes and publishes in this order, so that a value no step waits for
+usually arrives before the one its neighbour's step does wait for), the sender's point sensor
+readings of this agent, and the sender's odometry; and the anchor's odometry for a method that
+moves with the anchor's frame.
+"""
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+from ..estimators.base import Channel, Estimator
+from .agent import AgentSpec, PeerSpec
+
+ODOMETRY = 'odometry'   # the kind of an odometry subscription (its topic is the wire's)
+
+
+@dataclass(frozen=True)
+class Subscription:
+    """One topic of agent ``source`` (id ``source_id``) that an agent reads: ``kind``
+    ``'channels'`` (the ``channels`` it sends on ``topic``), ``'points'`` (its point sensor
+    readings, carried by the channel ``channels[0]``), or ``'odometry'``."""
+
+    source: str
+    source_id: int
+    topic: str
+    kind: Literal['channels', 'points', 'odometry']
+    channels: tuple[str, ...] = ()
+
+
+def optional_first(channels: Sequence[Channel]) -> list[Channel]:
+    """The optional channels first, the others in their order (module docstring)."""
+    return sorted(channels, key=lambda c: not c.optional)
+
+
+def _expects(peer: PeerSpec, c: Channel) -> bool:
+    if c.on is not None and not peer.flags.get(c.on, False):
+        return False
+    return not (c.owner_only and peer.flags.get('owns', False))
+
+
+def subscriptions(method: type[Estimator], spec: AgentSpec) -> list[Subscription]:
+    """What the agent of ``spec`` reads from the others (module docstring)."""
+    out: list[Subscription] = []
+    for peer in spec.peers if not spec.leader else ():
+        topics: dict[str, tuple[str, ...]] = {}
+        for c in optional_first(method.sends):
+            if not _expects(peer, c):
+                continue
+            if c.sensor is not None:
+                out.append(Subscription(peer.name, peer.agent_id, c.topic, 'points', (c.name,)))
+            else:
+                topics[c.topic] = topics.get(c.topic, ()) + (c.name,)
+        out += [Subscription(peer.name, peer.agent_id, topic, 'channels', names)
+                for topic, names in topics.items()]
+        if method.peer_odometry == 'links':
+            out.append(Subscription(peer.name, peer.agent_id, ODOMETRY, ODOMETRY))
+    if (method.peer_odometry == 'anchor' and spec.anchor is not None
+            and spec.anchor[1] != spec.agent_id):
+        out.append(Subscription(spec.anchor[0], spec.anchor[1], ODOMETRY, ODOMETRY))
+    return out
+
+
+def listener_counts(method: type[Estimator],
+                    specs: Sequence[AgentSpec]) -> Counter[tuple[str, str]]:
+    """``(agent, topic) → how many other agents' estimators read it``."""
+    return Counter((sub.source, sub.topic) for spec in specs
+                   for sub in subscriptions(method, spec))
