@@ -8,7 +8,7 @@ one topic. Topic names are relative: each agent's node runs in the namespace ``/
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,6 +21,8 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from sensor_msgs.msg import Imu, PointCloud2, PointField
 
 from bearing_pose_estimation.core import so3
+from bearing_pose_estimation.estimators.base import (POINTS, POSE_COVARIANCE, POSE_POSITION,
+                                                     VECTOR, Channel)
 
 Array = NDArray[np.float64]
 
@@ -470,189 +472,86 @@ def decode_pose(msg: PoseStamped) -> tuple[float, Array, Array]:
 
 
 # ----------------------------------------------------------------------------- channels
-@dataclass(frozen=True)
-class ChannelWire:
-    """How one estimator channel (``estimators.base.Channel``, by name) travels: the topic of
-    the sender's namespace, its type and frame, and the decoder to ``(stamp, value)``; a
-    per-edge value is ``{listener id: vector}``. ``frame`` is a fixed frame id or a template:
-    ``{estimate}`` the frame of the method's estimates (:func:`estimate_frame`),
-    ``{sender_body}`` the sender's body frame, ``{world}`` the world frame (the scenario's
-    ``world_frame``). ``encode(t, value, frame)`` builds the message;
-    None: the channel rides on a message published anyway (the ``pose``, or the sender's
-    sensor topic)."""
-
-    topic: str
-    type: type
-    frame: str
-    decode: Callable[[Any], tuple[float, Any]]
-    encode: Callable[[float, Any, str], Any] | None
-
-    def frame_of(self, sender: str, estimate: str, world: str = WORLD_FRAME) -> str:
-        """The frame id a message of ``sender`` must carry (``estimate``: the frame of the
-        method's estimates; ``world``: the world frame's id)."""
-        return self.frame.format(estimate=estimate, sender_body=body_frame(sender), world=world)
+# How an estimator's channels (``estimators.base.Channel``) travel, by their wire kind, not by
+# their name: a value on the sender's ``pose`` (its position; its covariance), a per-agent
+# vector of its own Vector3Stamped (zero-padded), or one point per listener of a PointCloud2
+# (the channel's fields, FLOAT64, then agent_id UINT32). Each decodes from the message's bytes
+# (msg_defs/cdr.py); a message object is serialised first (one implementation, :func:`raw`).
+KIND_TYPES: dict[str, type] = {POSE_POSITION: PoseWithCovarianceStamped,
+                               POSE_COVARIANCE: PoseWithCovarianceStamped,
+                               VECTOR: Vector3Stamped, POINTS: PointCloud2}
 
 
-def _decode_position(msg: PoseWithCovarianceStamped) -> tuple[float, Array]:
-    """The stamp and position of a ``pose``: its covariance is ``pose_cov``'s, checked on its
-    own, so that a bad covariance does not cost the position."""
-    t, _, p = decode_pose(PoseStamped(header=msg.header, pose=msg.pose.pose))
-    return t, p
+def raw(msg: Any) -> bytes:
+    """A message's serialised bytes (bytes are returned as they are)."""
+    if isinstance(msg, (bytes, bytearray, memoryview)):
+        return bytes(msg)
+    from rclpy.serialization import serialize_message
+    return serialize_message(msg)
 
 
-def _decode_id_vectors(msg: PointCloud2) -> tuple[float, dict[int, Array]]:
-    t, ids, vectors = decode_vectors(msg)
-    return t, dict(zip(ids.tolist(), vectors))
+def channel_type(c: Channel) -> type:
+    """The message type that carries channel ``c`` (a sensor's readings: the sensor's)."""
+    return PointCloud2 if c.sensor is not None else KIND_TYPES[c.kind]
 
 
-def _encode_id_vectors(t: float, value: dict[int, Array], frame: str) -> PointCloud2:
-    ids = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
-    return encode_vectors(t, frame, ids, np.array(list(value.values())).reshape(-1, 3))
+def channel_frame(c: Channel, sender: str, estimate: str, world: str = WORLD_FRAME) -> str:
+    """The frame id a message of ``sender`` carrying ``c`` must have (``estimate``: the frame
+    of the method's estimates; ``world``: the world frame's id)."""
+    return {'world': world, 'body': body_frame(sender)}.get(c.frame, estimate)
 
 
-def _decode_complex(msg: Vector3Stamped) -> tuple[float, Array]:
-    v = np.array([msg.vector.x, msg.vector.y])
-    if not np.all(np.isfinite(v)):
-        raise WireError('non-finite complex number')
-    return from_stamp(msg.header.stamp), v
-
-
-def _encode_complex(t: float, value: Array, frame: str) -> Vector3Stamped:
-    """A complex number ``x + ιy`` (``[x, y]``) as a Vector3Stamped with z = 0."""
-    msg = Vector3Stamped()
-    msg.header.stamp = to_stamp(t)
-    msg.header.frame_id = frame
-    msg.vector.x, msg.vector.y = float(value[0]), float(value[1])
-    return msg
-
-
-def _decode_id_pairs(msg: PointCloud2) -> tuple[float, dict[int, Array]]:
-    t, ids, vectors = decode_vectors(msg)
-    return t, dict(zip(ids.tolist(), vectors[:, :2]))
-
-
-def _encode_id_pairs(t: float, value: dict[int, Array], frame: str) -> PointCloud2:
-    ids = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
-    pairs = np.array(list(value.values()), dtype=float).reshape(-1, 2)
-    return encode_vectors(t, frame, ids, np.column_stack([pairs, np.zeros(len(pairs))]))
-
-
-_HESSIAN_FIELDS = ('xx', 'yy', 'zz', 'xy', 'xz', 'yz')
-_HESSIAN_DTYPE, _HESSIAN_CLOUD = _cloud_layout(
-    {**{f: PointField.FLOAT64 for f in _HESSIAN_FIELDS}, 'agent_id': PointField.UINT32})
-
-
-def _decode_id_blocks(msg: PointCloud2) -> tuple[float, dict[int, Array]]:
-    """Symmetric 3x3 blocks per agent id, packed xx, yy, zz, xy, xz, yz (FLOAT64 fields)."""
-    t, data = _decode_cloud(msg, {**{f: PointField.FLOAT64 for f in _HESSIAN_FIELDS},
-                                  'agent_id': PointField.UINT32})
-    packed = np.stack([data[f] for f in _HESSIAN_FIELDS], axis=1).astype(float)
-    return t, dict(zip(data['agent_id'].astype(np.uint32).tolist(), packed))
-
-
-def _encode_id_blocks(t: float, value: dict[int, Array], frame: str) -> PointCloud2:
-    data = np.empty(len(value), dtype=_HESSIAN_DTYPE)
-    packed = np.array(list(value.values()), dtype=float).reshape(-1, 6)
-    for k, f in enumerate(_HESSIAN_FIELDS):
-        data[f] = packed[:, k]
-    data['agent_id'] = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
-    return _encode_cloud(t, frame, data, _HESSIAN_CLOUD)
-
-
-def _block_fields(prefix: str) -> list[str]:
-    return [f'{prefix}_{f}' for f in _HESSIAN_FIELDS]
-
-
-# Presenza et al.'s term_cov (estimators/presenza_covariance.py, TERM_COV): four packed
-# symmetric blocks [1/m², 1/m², m²/s², m²/s²] and the bearing's rate ṙ_ji [1/s].
-_TERM_FIELDS = (_block_fields('angle_white') + _block_fields('angle_slow')
-                + _block_fields('velocity_white') + _block_fields('velocity_slow')
-                + ['rate_x', 'rate_y', 'rate_z'])
-TERM_WANT = {**{f: PointField.FLOAT64 for f in _TERM_FIELDS}, 'agent_id': PointField.UINT32}
-_TERM_DTYPE, _TERM_CLOUD = _cloud_layout(TERM_WANT)
-
-
-def _decode_id_terms(msg: PointCloud2) -> tuple[float, dict[int, Array]]:
-    return terms_from(*_decode_cloud(msg, TERM_WANT))
-
-
-def terms_from(t: float, data: np.ndarray) -> tuple[float, dict[int, Array]]:
-    """``term_cov`` values per agent id from the cloud's points (fields :data:`TERM_WANT`).
-
-    Raises:
-        WireError: non-finite values or a block that is not a covariance.
-    """
-    values = np.stack([data[f] for f in _TERM_FIELDS], axis=1).astype(float)
-    if not np.all(np.isfinite(values)):
-        raise WireError('non-finite term covariance')
-    blocks = values[:, :24].reshape(-1, 4, 6)
-    mats = so3.sym_unpack(blocks)
-    lam = np.linalg.eigvalsh(mats) if len(mats) else np.zeros((0, 4, 3))
-    if np.any(lam < -1e-9 * np.maximum(np.abs(lam).max(axis=-1, keepdims=True), 1e-300)):
-        raise WireError('a term covariance block is not positive semi-definite')
-    return t, dict(zip(data['agent_id'].astype(np.uint32).tolist(), values))
-
-
-def _encode_id_terms(t: float, value: dict[int, Array], frame: str) -> PointCloud2:
-    data = np.empty(len(value), dtype=_TERM_DTYPE)
-    values = np.array(list(value.values()), dtype=float).reshape(-1, len(_TERM_FIELDS))
-    for k, f in enumerate(_TERM_FIELDS):
-        data[f] = values[:, k]
-    data['agent_id'] = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
-    return _encode_cloud(t, frame, data, _TERM_CLOUD)
-
-
-# Channel name -> wire. p_hat: the position of the sender's `pose` (with pose_cov: one
-# message per neighbour and period, not the `estimate` and the `pose`); world_bearing: its
-# `world_bearings`, one point per listener; De Carli et al.'s z_hat (`yaw_estimate`, the
-# complex ẑ_j), relyaw (`relative_yaws`, one point per listener of a pair it owns, z = 0; x = y
-# = 0 until the owner has one) and meas (the sender's own `relative_positions` sensor topic:
-# the point of the listener).
-CHANNELS = {
-    'p_hat': ChannelWire(POSE, PoseWithCovarianceStamped, '{estimate}', _decode_position,
-                         None),
-    # Every method: P_j on the sender's `pose`, published with each estimate.
-    'pose_cov': ChannelWire(POSE, PoseWithCovarianceStamped, '{estimate}', decode_covariance,
-                            None),
-    'world_bearing': ChannelWire(WORLD_BEARINGS, PointCloud2, '{world}', _decode_id_vectors,
-                                 _encode_id_vectors),
-    'z_hat': ChannelWire(YAW_ESTIMATE, Vector3Stamped, '{estimate}', _decode_complex,
-                         _encode_complex),
-    'relyaw': ChannelWire(RELATIVE_YAWS, PointCloud2, '{sender_body}', _decode_id_pairs,
-                          _encode_id_pairs),
-    'meas': ChannelWire(RELATIVE_POSITIONS, PointCloud2, '{sender_body}', _decode_id_vectors,
-                        None),
-    # Presenza et al.: q̂_j on the pose (anchor frame); the anchor's relative positions of
-    # its ranged robots on its sensor topic; the second round on topics of their own.
-    'q_hat': ChannelWire(POSE, PoseWithCovarianceStamped, '{estimate}', _decode_position,
-                         None),
-    'q_ranged': ChannelWire(RELATIVE_POSITIONS, PointCloud2, '{sender_body}',
-                            _decode_id_vectors, None),
-    'angle_gradient': ChannelWire(ANGLE_GRADIENT, PointCloud2, '{estimate}',
-                                  _decode_id_vectors, _encode_id_vectors),
-    'angle_hessian': ChannelWire(ANGLE_HESSIAN, PointCloud2, '{estimate}', _decode_id_blocks,
-                                 _encode_id_blocks),
-    'anchor_bearing': ChannelWire(ANCHOR_BEARING, PointCloud2, '{estimate}',
-                                  _decode_id_vectors, _encode_id_vectors),
-    'velocity_term': ChannelWire(VELOCITY_TERM, PointCloud2, '{estimate}', _decode_id_vectors,
-                                 _encode_id_vectors),
-    'term_cov': ChannelWire(TERM_COVARIANCE, PointCloud2, '{estimate}', _decode_id_terms,
-                            _encode_id_terms),
-}
-
-
-def channel_topics(names: Iterable[str]) -> dict[str, tuple[str, ...]]:
-    """The topics that carry channels ``names`` (in their order), each with its channels: one
-    subscription per sender and topic (``p_hat`` and ``pose_cov`` share the ``pose``).
-
-    Raises:
-        WireError: a channel without a wire format (:func:`channel`).
-    """
-    out: dict[str, tuple[str, ...]] = {}
-    for name in names:
-        topic = channel(name).topic
-        out[topic] = out.get(topic, ()) + (name,)
+def by_topic(channels: Iterable[Channel]) -> dict[str, list[Channel]]:
+    """The channels that travel on each topic, in their order (``p_hat`` and ``pose_cov``
+    share the ``pose``)."""
+    out: dict[str, list[Channel]] = {}
+    for c in channels:
+        out.setdefault(c.topic, []).append(c)
     return out
+
+
+def decode_channels(msg: Any, channels: Sequence[Channel]
+                    ) -> tuple[float, dict[str, object], dict[str, str]]:
+    """``(stamp, values, problems)`` of a message carrying ``channels`` (one topic's):
+    per-agent values as arrays, per-edge ones as ``{listener id: value}``; a channel that
+    cannot be decoded is left out, with the reason in ``problems`` (a bad covariance does not
+    cost the position)."""
+    data = raw(msg)
+    values: dict[str, object] = {}
+    problems: dict[str, str] = {}
+    t = math.nan
+    for c in channels:
+        try:
+            if c.sensor is not None or c.kind == POINTS:
+                t, ids, points = cdr.decode_points_raw(data, c.fields)
+                values[c.name] = dict(zip(ids.tolist(), points[:, :c.shape[0]]))
+            elif c.kind == POSE_POSITION:
+                t, values[c.name] = cdr.decode_position_raw(data)
+            elif c.kind == POSE_COVARIANCE:
+                t, values[c.name] = cdr.decode_covariance_raw(data)
+            else:
+                t, v = cdr.decode_vector3_raw(data)
+                values[c.name] = v[:c.shape[0]]
+        except WireError as exc:
+            problems[c.name] = str(exc)
+    return t, values, problems
+
+
+def encode_channels(t: float, frame: str, channels: Sequence[Channel],
+                    values: Mapping[str, object]) -> bytes:
+    """The message of one topic's ``channels`` (a Vector3Stamped's or a PointCloud2's: the
+    pose's are the estimate's, :func:`cdr.encode_pose_covariance_raw`)."""
+    c = channels[0]
+    value = values[c.name]
+    if c.kind == VECTOR:
+        v = np.zeros(3)
+        v[:c.shape[0]] = np.asarray(value, dtype=float)
+        return cdr.encode_vector3_raw(t, frame, v)
+    assert isinstance(value, Mapping)
+    ids = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
+    points = np.zeros((len(value), len(c.fields)))
+    points[:, :c.shape[0]] = np.array(list(value.values()), dtype=float).reshape(len(value), -1)
+    return cdr.encode_points_raw(t, frame, ids, points, c.fields)
 
 
 def estimate_frame(frame: str, fleet: str, anchor: str | None = None,
@@ -670,15 +569,4 @@ def estimate_frame(frame: str, fleet: str, anchor: str | None = None,
     return estimation_frame(fleet)
 
 
-def channel(name: str) -> ChannelWire:
-    """The wire of channel ``name``.
-
-    Raises:
-        WireError: no wire format is defined for it (a new method's channel needs an entry in
-            :data:`CHANNELS`).
-    """
-    try:
-        return CHANNELS[name]
-    except KeyError:
-        raise WireError(f'channel {name!r} has no wire format; add it to msg_defs.CHANNELS '
-                        f'(known: {", ".join(CHANNELS)})') from None
+from . import cdr  # noqa: E402  (cdr reads WireError and the frames from here)

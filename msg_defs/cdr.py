@@ -29,7 +29,7 @@ from sensor_msgs.msg import PointField
 
 from bearing_pose_estimation.core import so3
 
-from . import TERM_WANT, WireError, body_frame, checked_covariance, odom_frame, terms_from
+from . import WireError, body_frame, checked_covariance, odom_frame
 
 Array = NDArray[np.float64]
 Buffer = bytes | bytearray | memoryview
@@ -304,26 +304,6 @@ def decode_vector3_raw(data: Buffer) -> tuple[float, Array]:
     return t, np.array(v)
 
 
-def encode_complex_raw(t: float, value: Array, frame: str) -> bytes:
-    """A complex number ``x + ιy`` (``[x, y]``) as a Vector3Stamped with z = 0: the ``z_hat``
-    channel's encoder (``msg_defs.CHANNELS``), same arguments."""
-    return _with_doubles(t, frame, np.array([float(value[0]), float(value[1]), 0.0]))
-
-
-def decode_complex_raw(data: Buffer) -> tuple[float, Array]:
-    """``(t, [x, y])`` of a Vector3Stamped: the ``z_hat`` channel's decoder.
-
-    Raises:
-        WireError: malformed bytes or a non-finite x or y.
-    """
-    data = _as_bytes(data)
-    t, pos = _fixed(data, 'Vector3Stamped', 3)
-    v = _VECTOR3.unpack_from(data, pos)[:2]
-    if not _finite(v):
-        raise WireError('non-finite complex number')
-    return t, np.array(v)
-
-
 # ----------------------------------------------------------------------------- Imu
 # sensor_msgs/Imu after its Header (8-aligned), 37 float64: orientation x y z w [0:4],
 # orientation_covariance [4:13], angular_velocity [13:16], its covariance [16:25],
@@ -479,9 +459,6 @@ def _packed(want: Mapping[str, int]) -> np.dtype:
 
 
 _VECTOR_DTYPE = _packed(_VECTOR_FIELDS)
-_BLOCK_DTYPE = _packed({**{f: PointField.FLOAT64 for f in _BLOCK_FIELDS},
-                        'agent_id': PointField.UINT32})
-_TERM_DTYPE = _packed(TERM_WANT)
 
 
 # The PointFields of the clouds seen (their bytes, count included, and {name: (offset,
@@ -646,101 +623,38 @@ def decode_scalars_raw(data: Buffer,
     return t, points['agent_id'].astype(np.uint32), points[field].astype(float)
 
 
-def encode_blocks_raw(t: float, frame_id: str, ids: NDArray[np.integer],
-                      packed: Array) -> bytes:
-    """Symmetric 3x3 blocks per agent id (the ``angle_hessian`` channel): xx, yy, zz, xy, xz,
-    yz FLOAT64 at 0..40, agent_id UINT32 at 48, point_step 52; ``packed`` is (n, 6) in that
-    order."""
-    packed = np.asarray(packed, dtype=float).reshape(-1, 6)
-    points = np.empty(len(packed), dtype=_BLOCK_DTYPE)
-    for k, f in enumerate(_BLOCK_FIELDS):
-        points[f] = packed[:, k]
+def encode_points_raw(t: float, frame_id: str, ids: NDArray[np.integer], values: Array,
+                      fields: tuple[str, ...]) -> bytes:
+    """One point per agent id: ``values`` ``(n, len(fields))`` as FLOAT64 ``fields``, then
+    agent_id UINT32 (a channel's per-listener values, msg_defs.encode_channels)."""
+    values = np.asarray(values, dtype=float).reshape(-1, len(fields))
+    points = np.empty(len(values), dtype=_packed({**{f: PointField.FLOAT64 for f in fields},
+                                                  'agent_id': PointField.UINT32}))
+    for k, f in enumerate(fields):
+        points[f] = values[:, k]
     points['agent_id'] = np.asarray(ids, dtype=np.uint32)
     return encode_cloud_raw(t, frame_id, points)
 
 
-def decode_blocks_raw(data: Buffer) -> tuple[float, NDArray[np.uint32], Array]:
-    """``(t, ids, packed)`` of :func:`encode_blocks_raw`'s cloud (any field order, padding, or
-    FLOAT32), ``packed`` (n, 6); the values are not checked.
+def decode_points_raw(data: Buffer, fields: tuple[str, ...]
+                      ) -> tuple[float, NDArray[np.uint32], Array]:
+    """``(t, ids, values)`` of :func:`encode_points_raw`'s cloud (any field order, padding, or
+    FLOAT32), ``values`` ``(n, len(fields))``; checked finite.
 
     Raises:
-        WireError: as :func:`decode_cloud_raw`.
+        WireError: as :func:`decode_cloud_raw`, or a non-finite value.
     """
-    t, points = decode_cloud_raw(data, {**{f: PointField.FLOAT64 for f in _BLOCK_FIELDS},
+    t, points = decode_cloud_raw(data, {**{f: PointField.FLOAT64 for f in fields},
                                         'agent_id': PointField.UINT32})
-    return t, points['agent_id'].astype(np.uint32), _columns(points, _BLOCK_FIELDS)
+    values = _columns(points, fields)
+    if not np.isfinite(values).all():
+        raise WireError('non-finite point values')
+    return t, points['agent_id'].astype(np.uint32), values
 
 
-# ----------------------------------------------------------------------------- channels
-def _position_raw(data: Buffer) -> tuple[float, Array]:
-    """The stamp and position of a PoseWithCovarianceStamped (its covariance: ``pose_cov``)."""
+def decode_position_raw(data: Buffer) -> tuple[float, Array]:
+    """The stamp and position of a PoseWithCovarianceStamped (its covariance is read on its
+    own, :func:`decode_covariance_raw`)."""
     data = _as_bytes(data)
     t, pos = _fixed(data, 'PoseWithCovarianceStamped', 43)
     return t, _pose(data, pos)[1]
-
-
-def _id_vectors_raw(data: Buffer) -> tuple[float, dict[int, Array]]:
-    t, ids, vectors = decode_vectors_raw(data)
-    return t, dict(zip(ids.tolist(), vectors))
-
-
-def _id_pairs_raw(data: Buffer) -> tuple[float, dict[int, Array]]:
-    t, ids, vectors = decode_vectors_raw(data)
-    return t, dict(zip(ids.tolist(), vectors[:, :2]))
-
-
-def _id_blocks_raw(data: Buffer) -> tuple[float, dict[int, Array]]:
-    t, ids, packed = decode_blocks_raw(data)
-    return t, dict(zip(ids.tolist(), packed))
-
-
-def _id_terms_raw(data: Buffer) -> tuple[float, dict[int, Array]]:
-    return terms_from(*decode_cloud_raw(data, TERM_WANT))
-
-
-def _ids_values(value: Mapping[int, Array], width: int) -> tuple[NDArray[np.uint32], Array]:
-    ids = np.fromiter(value.keys(), dtype=np.uint32, count=len(value))
-    return ids, np.array(list(value.values()), dtype=float).reshape(-1, width)
-
-
-def _encode_id_vectors_raw(t: float, value: Mapping[int, Array], frame: str) -> bytes:
-    return encode_vectors_raw(t, frame, *_ids_values(value, 3))
-
-
-def _encode_id_pairs_raw(t: float, value: Mapping[int, Array], frame: str) -> bytes:
-    ids, pairs = _ids_values(value, 2)
-    return encode_vectors_raw(t, frame, ids, np.column_stack([pairs, np.zeros(len(pairs))]))
-
-
-def _encode_id_blocks_raw(t: float, value: Mapping[int, Array], frame: str) -> bytes:
-    return encode_blocks_raw(t, frame, *_ids_values(value, 6))
-
-
-def _encode_id_terms_raw(t: float, value: Mapping[int, Array], frame: str) -> bytes:
-    ids, values = _ids_values(value, len(TERM_WANT) - 1)
-    points = np.empty(len(ids), dtype=_TERM_DTYPE)
-    for k, name in enumerate(n for n in TERM_WANT if n != 'agent_id'):
-        points[name] = values[:, k]
-    points['agent_id'] = ids
-    return encode_cloud_raw(t, frame, points)
-
-
-# Channel name -> (decode, encode) on bytes: what msg_defs.CHANNELS' codecs do on messages
-# (encode None: the channel rides on a message published anyway). test_cdr.py checks that the
-# two tables name the same channels and agree on every one.
-RAW_CHANNELS: dict[str, tuple[Callable[[Buffer], tuple[float, Any]],
-                              Callable[[float, Any, str], bytes] | None]] = {
-    'p_hat': (_position_raw, None),
-    'pose_cov': (decode_covariance_raw, None),
-    'world_bearing': (_id_vectors_raw, _encode_id_vectors_raw),
-    'z_hat': (decode_complex_raw, encode_complex_raw),
-    'relyaw': (_id_pairs_raw, _encode_id_pairs_raw),
-    'meas': (_id_vectors_raw, None),
-    'q_hat': (_position_raw, None),
-    'q_ranged': (_id_vectors_raw, None),
-    'angle_gradient': (_id_vectors_raw, _encode_id_vectors_raw),
-    'angle_hessian': (_id_blocks_raw, _encode_id_blocks_raw),
-    'anchor_bearing': (_id_vectors_raw, _encode_id_vectors_raw),
-    'velocity_term': (_id_vectors_raw, _encode_id_vectors_raw),
-    'term_cov': (_id_terms_raw, _encode_id_terms_raw),
-}

@@ -124,7 +124,9 @@ class Channel:
     - ``round`` 2: formed from what the sender received in round 1 of the same step.
     - ``frame``: the frame it is expressed in (``'world'``, ``'body'`` of the sender, or the
       method's estimate frame ``'estimate'``); ``unit`` values are unit vectors (checked on
-      reception); ``bound``: the largest magnitude of a component a receiver accepts.
+      reception); ``bound``: the largest magnitude of a component a receiver accepts;
+      ``psd_blocks``: the value begins with this many packed symmetric 3x3 blocks (xx, yy,
+      zz, xy, xz, yz) that must be positive semi-definite (covariances).
     - ``topic``, ``kind``, ``fields``: how it travels (``msg_defs``): the topic in the
       sender's namespace, the wire kind (:data:`POSE_POSITION`, :data:`POSE_COVARIANCE`,
       :data:`VECTOR`, :data:`POINTS`) and a point's fields.
@@ -143,6 +145,7 @@ class Channel:
     on: str | None = None
     pairing: Literal['instant', 'exact'] = 'instant'
     bound: float = math.inf
+    psd_blocks: int = 0
     topic: str = ''
     kind: str = POINTS
     fields: tuple[str, ...] = ('x', 'y', 'z')

@@ -83,7 +83,7 @@ TERM_FIELDS = tuple(f'{block}_{f}' for block in ('angle_white', 'angle_slow', 'v
                     for f in ('xx', 'yy', 'zz', 'xy', 'xz', 'yz')) + ('rate_x', 'rate_y', 'rate_z')
 TERM_COV = Channel('term_cov', per='edge', frame='estimate', round=2, shape=(TERM_SIZE,),
                    optional=True, on='sensed_by', pairing='exact', bound=1e4,
-                   topic='term_covariance', fields=TERM_FIELDS,
+                   topic='term_covariance', fields=TERM_FIELDS, psd_blocks=4,
                    doc='what only sensing robot j knows of the listener\'s covariance: its '
                        'angle terms\' covariance (white, slow), its velocity term\'s '
                        '(white, slow; free listeners) as xx, yy, zz, xy, xz, yz each, and '

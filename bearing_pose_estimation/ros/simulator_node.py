@@ -104,11 +104,11 @@ class SimulatorNode(Node):
         # The topics the estimators exchange, from what the scenario's method sends (a
         # channel of a sensor's readings rides on that sensor's topic: counted there).
         method = s.estimator()
-        self.channel_topics = list(dict.fromkeys(wire.channel(c.name).topic
-                                                 for c in method.sends if c.sensor is None))
+        self.channel_topics = list(dict.fromkeys(c.topic for c in method.sends
+                                                 if c.sensor is None))
         self.uses_bearings = method.uses(Sensor.BEARINGS)
         # How many subscriptions each (agent, topic) gets from the estimators of the other
-        # agents (ros.wiring: what those nodes subscribe to).
+        # agents (the table of runtime.table, ros.wiring).
         self.link_subs = listener_counts(s)
         self.pub_imu, self.pub_bearings, self.pub_truth = [], [], []
         for name in self.names:

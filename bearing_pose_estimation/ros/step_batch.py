@@ -6,11 +6,11 @@ blocks; eight agents' steps in one call cost little more than one
 together"). So an agent whose step is ready does not run it at once: it asks this batch, and
 once the executor has handled every message already queued (the simulator sends each
 instant's samples to all agents in one burst), the batch runs the steps of every agent that
-asked in one call (:func:`.estimators.agent.advance_together`). Each agent gets exactly what
-its own step would give (``test_agent.py``), after the messages queued before it and at most
+asked in one call (:func:`runtime.together.advance_together`). Each agent gets exactly what
+its own step would give (``test_runtime.py``), after the messages queued before it and at most
 :data:`WAIT_S` of waiting for the others. Every method steps this way; a two-round method's
-(Presenza et al.) replies go out as soon as their first round is in, only the step (its
-second round in) waits for the batch.
+replies go out as soon as their first round is in, only the step (its second round in) waits
+for the batch. The batch sees its members through :class:`Member` only.
 
 The rclpy EventsExecutor of the pinned wheels has no guard conditions, and nothing tells
 whether its queue is empty: :meth:`StepBatch.settle` spins it without waiting until a spin
@@ -22,14 +22,24 @@ import re
 import resource
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from rclpy.executors import Executor
 
-from ..estimators.agent import AgentEstimator, TimedAgent, advance_together
+from ..runtime.agent import AgentRuntime
+from ..runtime.together import advance_together
 
-if TYPE_CHECKING:
-    from .estimator_node import EstimatorNode
+
+class Member(Protocol):
+    """What the batch needs of an agent that runs its steps in it (the estimator node): its
+    name and runtime, and what goes before and after each of its steps."""
+
+    agent: str
+    rt: AgentRuntime | None
+
+    def before_step(self) -> None: ...
+
+    def after_step(self) -> None: ...
 
 # Spins before the steps run even if messages keep coming (a process that never sees an
 # empty queue still steps), and the longest wait [s] for an agent due at the same instant
@@ -48,8 +58,8 @@ class StepBatch:
     """Steps asked for by the nodes of one process, run together by :meth:`settle`."""
 
     def __init__(self, time_callbacks: bool = False) -> None:
-        self.nodes: list[EstimatorNode] = []           # every node that runs its steps here
-        self.pending: dict[EstimatorNode, None] = {}   # in the order they asked
+        self.nodes: list[Member] = []           # every node that runs its steps here
+        self.pending: dict[Member, None] = {}   # in the order they asked
         self.callbacks = 0   # subscription callbacks run so far
         self.rounds = 0      # calls of advance_together: one step of each ready agent
         self.steps = 0
@@ -62,7 +72,7 @@ class StepBatch:
         self.cpu_steps = 0
         self.cpu_flush = 0
 
-    def join(self, node: EstimatorNode) -> None:
+    def join(self, node: Member) -> None:
         """``node`` runs its steps here."""
         self.nodes.append(node)
 
@@ -110,7 +120,7 @@ class StepBatch:
                 self.cpu_callbacks += time.thread_time_ns() - start
         return run
 
-    def request(self, node: EstimatorNode) -> None:
+    def request(self, node: Member) -> None:
         """``node`` may have a step ready: :meth:`settle` runs it."""
         self.pending[node] = None
 
@@ -135,22 +145,18 @@ class StepBatch:
         without its own step ready, and waits for something from outside the process: its
         inputs are on their way (a simulator sends an instant's samples agent after agent).
         One that waits for another agent of the process waits for this round's steps."""
-        ready: list[TimedAgent] = []
-        waiting: list[TimedAgent] = []
+        ready: list[AgentRuntime] = []
+        waiting: list[AgentRuntime] = []
         for node in self.nodes:
-            if node.est is not None:
-                (ready if node.est.steps_ready() > 0 else waiting).append(node.est)
+            if node.rt is not None:
+                (ready if node.rt.steps_ready() > 0 else waiting).append(node.rt)
         if not ready or not waiting:
             return False
-        t = min(est.t for est in ready)
-        # What a link method's step awaits is a channel, not who sends it: only its own
-        # sensors count.
+        t = min(rt.t for rt in ready)
         local = {node.agent for node in self.nodes}
-        outside = {est for est in waiting
-                   if isinstance(est, AgentEstimator) and est.awaited not in local}
-        return any(abs(est.t - t) < 0.5 * est.h
-                   and (not est.own_inputs_ready() or est in outside)
-                   for est in waiting)
+        return any(abs(rt.t - t) < 0.5 * rt.h
+                   and (not rt.own_inputs_ready() or rt.awaited_peer not in local)
+                   for rt in waiting)
 
     def flush(self) -> None:
         """Every step the asking agents have ready, one step of all of them at a time."""
@@ -166,13 +172,13 @@ class StepBatch:
         while True:
             # An agent with no step ready stays so until a message comes (none is handled
             # here): only those that stepped are asked again.
-            ready = [n for n in ready if n.est is not None and n.est.steps_ready() > 0]
+            ready = [n for n in ready if n.rt is not None and n.rt.steps_ready() > 0]
             if not ready:
                 return
             for node in ready:
                 node.before_step()
             start = time.thread_time_ns()
-            stepped = advance_together([n.est for n in ready if n.est is not None])
+            stepped = advance_together([n.rt for n in ready if n.rt is not None])
             spent = time.thread_time_ns() - start
             self.cpu_steps += spent
             self.cpu_flush -= spent   # counted as steps, not publishing

@@ -102,6 +102,12 @@ class AgentSpec:
     rate_tau: float | None = None
 
 
+def _psd(v: Array, blocks: int) -> bool:
+    """The first ``blocks`` packed symmetric 3x3 blocks of ``v`` are positive semi-definite."""
+    lam = np.linalg.eigvalsh(so3.sym_unpack(v[:6 * blocks].reshape(blocks, 6)))
+    return bool(np.all(lam >= -1e-9 * max(float(np.abs(lam).max()), 1e-300)))
+
+
 class Peer:
     """What the agent keeps of one edge's other end: its channels' values (and its
     measurements of this agent) by name, the newest stamp of each channel it was heard on
@@ -237,6 +243,7 @@ class AgentRuntime:
         self.waits: Counter[str] = Counter()
         self.incomplete: Counter[str] = Counter()
         self.awaited: str | None = None           # what the latest wait was for
+        self.awaited_peer: str | None = None      # and from whom (None: the own sensors)
         self.carried = 0                          # late values carried to the step's instant
         self.unpaired = 0                         # values a moving fleet could not pair
         self.odometry_missing_steps = 0           # steps without the odometry expected
@@ -460,6 +467,8 @@ class AgentRuntime:
             none_yet = c.owner_only and not v.any()
             if problem is None and c.unit and not none_yet:
                 problem = unit_problem(v, lim.unit_tolerance)
+            if problem is None and c.psd_blocks and not _psd(v, c.psd_blocks):
+                problem = 'not_covariance'
             if problem is not None:
                 return problem
         if not in_time:
@@ -556,7 +565,9 @@ class AgentRuntime:
 
     def _awaiting(self, t: float, round_: int) -> str | None:
         """What round ``round_`` of the step at ``t`` still waits for, or None when every
-        input is here or known not to come (module docstring)."""
+        input is here or known not to come (module docstring); :attr:`awaited_peer`: from
+        whom."""
+        self.awaited_peer = None
         h = self.h
         own_late = self.gyro.end - t > self.limits.sensor_timeout
         behind = self.gyro.end - t > self.limits.link_wait
@@ -590,6 +601,7 @@ class AgentRuntime:
             if p.name in stale:
                 continue
             odo = p.odometry
+            self.awaited_peer = p.name
             if (round_ == 1 and odo is not None and not odo.covers(t, t + h)
                     and odo.end >= t - self.limits.neighbour_timeout):
                 return 'odometry'
@@ -602,6 +614,7 @@ class AgentRuntime:
                     hist = p.values.get(c.name)
                     if hist is None or (hist.at(t)[0] is None and not hist.at(t)[1]):
                         return c.name
+        self.awaited_peer = None
         return None
 
     def _awaiting_exchange(self, t: float) -> str | None:
@@ -629,11 +642,13 @@ class AgentRuntime:
             if not heard:
                 if self.t0 < alive:
                     continue   # silent since t0: not waited for
+                self.awaited_peer = p.name
                 return p.name
             stamps = heard.values()
             if max(stamps) < alive:
                 continue   # silent: not waited for
             if min(stamps) <= due or not required <= heard.keys():
+                self.awaited_peer = p.name
                 return p.name
         return None
 

@@ -18,7 +18,8 @@ from typing import Literal
 from ..estimators.base import Channel, Estimator
 from .agent import AgentSpec, PeerSpec
 
-ODOMETRY = 'odometry'   # the kind of an odometry subscription (its topic is the wire's)
+ODOMETRY = 'odometry'   # the kind of an odometry subscription
+ODOM_TOPIC = 'odom'     # its topic (REP-105's name)
 
 
 @dataclass(frozen=True)
@@ -60,10 +61,10 @@ def subscriptions(method: type[Estimator], spec: AgentSpec) -> list[Subscription
         out += [Subscription(peer.name, peer.agent_id, topic, 'channels', names)
                 for topic, names in topics.items()]
         if method.peer_odometry == 'links':
-            out.append(Subscription(peer.name, peer.agent_id, ODOMETRY, ODOMETRY))
+            out.append(Subscription(peer.name, peer.agent_id, ODOM_TOPIC, ODOMETRY))
     if (method.peer_odometry == 'anchor' and spec.anchor is not None
             and spec.anchor[1] != spec.agent_id):
-        out.append(Subscription(spec.anchor[0], spec.anchor[1], ODOMETRY, ODOMETRY))
+        out.append(Subscription(spec.anchor[0], spec.anchor[1], ODOM_TOPIC, ODOMETRY))
     return out
 
 

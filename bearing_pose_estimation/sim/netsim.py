@@ -49,7 +49,7 @@ from ..studies.results import PoseErrors, Recording, pose_errors
 from ..runtime.agent import AgentRuntime, AgentSpec
 from ..runtime.buffers import TIME_EVENTS, Limits
 from ..runtime.faults import FaultyLink, LinkFaults
-from ..runtime.table import ODOMETRY, Subscription, subscriptions
+from ..runtime.table import ODOM_TOPIC, subscriptions
 from ..runtime.together import advance_together
 from ..scenario.model import Scenario
 from ..scenario.runtimes import agent_specs, exchange_of, runtime_for
@@ -397,7 +397,7 @@ class _Network:
                 if not self.stopped(name, now):
                     self.tally.count([self.agents[name].add_odometry(world.t, v, w,
                                                                      now=world.t)], 0)
-                    self.send(name, ODOMETRY, now, ('odometry', i + 1, world.t, v, w))
+                    self.send(name, ODOM_TOPIC, now, ('odometry', i + 1, world.t, v, w))
         for sensor in self.point_sensors:
             every = (world.bearing_every if sensor is Sensor.BEARINGS
                      else world.sensor_every.get(sensor.value))
