@@ -26,14 +26,14 @@ from typing import TypeVar
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from bearing_pose_estimation.cli import launch  # noqa: E402
-from bearing_pose_estimation.estimators.agent import TimedAgent  # noqa: E402
+from bearing_pose_estimation.runtime.agent import AgentRuntime  # noqa: E402
 from bearing_pose_estimation.ros.estimator_group import CPU_SPLIT_ENV  # noqa: E402
 from bearing_pose_estimation.ros.step_batch import read_cpu_split  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 from bearing_pose_estimation.sim import netsim  # noqa: E402
 from fleet_scale import run_config  # noqa: E402  (this folder: the same paced run)
 
-T = TypeVar('T', bound=TimedAgent)
+T = TypeVar('T', bound=AgentRuntime)
 
 
 def dds_split(scenario_file: Path, per_process: int, duration: float,
@@ -58,7 +58,7 @@ def dds_split(scenario_file: Path, per_process: int, duration: float,
 
 
 def netsim_steps(scenario_file: Path, duration: float) -> tuple[float, int, float]:
-    """netsim's step calls (:func:`estimators.agent.advance_together`): CPU [s], agent-steps,
+    """netsim's step calls (:func:`runtime.together.advance_together`): CPU [s], agent-steps,
     and the whole run's CPU [s] (with its world and exchanges)."""
     spent, steps = [0], [0]
     original = netsim.advance_together

@@ -1,7 +1,7 @@
 """Fault matrix: what each fault and bad input costs on the paper's 8-agent scenario.
 
 Runs the distributed estimators without DDS (bearing_pose_estimation.sim.netsim: the same
-AgentEstimator as the node, fed like the simulator node feeds it) with one fault per row of
+agent runtime as the node, fed like the simulator node feeds it) with one fault per row of
 ``netsim.fault_cases()`` (the list test/test_robustness.py tests), and compares with the
 fault-free run at the same instants. Deterministic; prints a Markdown table.
 

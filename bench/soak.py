@@ -22,7 +22,7 @@ import numpy as np
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from bearing_pose_estimation.cli import launch  # noqa: E402
-from bearing_pose_estimation.ros.estimator_node import INCOMPLETE_LOG  # noqa: E402
+from bearing_pose_estimation.runtime.health import INCOMPLETE_LOG  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 from bearing_pose_estimation.studies.summary import read_metrics_csv  # noqa: E402
 

@@ -8,16 +8,15 @@ monitor, the simulator) with the same nodes' names, topics, message types, QoS, 
 rates, but nothing else:
 
 - each agent process creates the publishers and subscriptions that the estimator node of that
-  agent creates (``ros/estimator_node.py``'s ``__init__``, from the package's own wiring:
-  ``ros.wiring.link_subscriptions`` for link methods, each neighbour's channel topics
-  ``msg_defs.CHANNELS`` for the others, the sensor topics the method uses, a leader's
+  agent creates (``ros/estimator_node.py``'s ``__init__``, from the one table of
+  subscriptions, ``runtime.table.subscriptions``, the own sensor topics the method reads, a leader's
   ``known_pose`` remapped to ``ground_truth`` as the launcher does, and ``/clock`` as rclpy's
   time source subscribes to it under ``use_sim_time``, once per process with ``--per-process``:
   ``ros.estimator_group.share_clock``). Every subscription is raw
   (``raw=True``) with a callback that only counts. It publishes, on a wall-clock timer, the
   messages the node publishes at the instants the node publishes them: ``pose``, ``estimate``
-  and the channels with a topic of their own on the publish grid (link methods: also when a
-  channel riding on the pose is due, the channels when due, ``Estimator.due``), a
+  and the channels with a topic of their own on the publish grid ('exact' channels: when the
+  method reads them, ``Estimator.due``; the pose also when a channel riding on it is), a
   two-round method's round-2 channels every step, ``/diagnostics`` every second;
 - the simulator process publishes what the simulator node publishes (per agent ``imu``,
   ``bearings``, ``ground_truth`` and the sensors the scenario simulates, each at its rate,
@@ -117,15 +116,13 @@ from fleet_scale import run_config, simulator_stats  # noqa: E402
 
 from bearing_pose_estimation import msg_defs as wire  # noqa: E402
 from bearing_pose_estimation.cli import launch  # noqa: E402
-from bearing_pose_estimation.estimators.agent import AgentEstimator  # noqa: E402
 from bearing_pose_estimation.estimators.base import Sensor  # noqa: E402
-from bearing_pose_estimation.estimators.link_agent import (LinkAgentEstimator,  # noqa: E402
-                                                           agent_for)
-from bearing_pose_estimation.estimators.two_round_agent import TwoRoundAgent  # noqa: E402
+from bearing_pose_estimation.runtime.table import (ODOMETRY, optional_first,  # noqa: E402
+                                                   subscriptions)
 from bearing_pose_estimation.ros.estimator_group import parse_args as group_args  # noqa: E402
 from bearing_pose_estimation.ros.monitor_node import watched  # noqa: E402
 from bearing_pose_estimation.ros.node_main import run_node  # noqa: E402
-from bearing_pose_estimation.ros.wiring import link_subscriptions, optional_first  # noqa: E402
+from bearing_pose_estimation.scenario.runtimes import agent_specs, runtime_for  # noqa: E402
 from bearing_pose_estimation.scenario import (Scenario, check_scenario,  # noqa: E402
                                               load_scenario, read_scenario_data)
 from bearing_pose_estimation.sim.world import World  # noqa: E402
@@ -218,100 +215,83 @@ def _diagnostics(agent: str, fleet: str) -> bytes:
 
 def agent_plan(s: Scenario, name: str, world: World) -> ProcessPlan:
     """What the estimator node of ``name`` subscribes to and publishes (its ``__init__``,
-    ``_publish``, ``_publish_links``, ``_two_rounds``), with one message of each."""
-    method = s.estimator()
-    template = agent_for(s, name)
-    links = isinstance(template, LinkAgentEstimator)
+    ``_publish``, ``_send_reply``), with one message of each."""
+    method = type(s.estimator())
+    spec = agent_specs(s)[s.index[name]]
+    rt = runtime_for(s, spec)
     own = lambda topic: wire.topic(name, topic)  # noqa: E731
-    wires = {c.name: wire.channel(c.name) for c in optional_first(method.sends)}
+    chans = {c.name: c for c in method.sends}
     qos_in = wire.SENSOR_QOS
-    qos_est = wire.ESTIMATE_RECORD_QOS if method.rounds == 2 else wire.ESTIMATE_QOS
+    qos_est = wire.ESTIMATE_RECORD_QOS if method.rounds() == 2 else wire.ESTIMATE_QOS
     frame = wire.estimate_frame(method.frame.value, s.name, s.anchor, s.world_frame)
-    # Publishers, in the node's order: estimate, the channels with a topic of their own,
-    # pose (methods with a covariance), /diagnostics.
-    own_topic = [n for n, w in wires.items() if w.encode is not None]
+    sent = [c for c in optional_first(method.sends) if c.sensor is None]
+    topics = {t: cs for t, cs in wire.by_topic(sent).items() if t != wire.POSE}
     # Subscriptions, in the node's order.
     subs = [Sub(own(wire.IMU), wire.Imu, qos_in)]
-    if method.uses(Sensor.BEARINGS):
-        subs.append(Sub(own(wire.BEARINGS), wire.PointCloud2, qos_in))
-    if method.uses(Sensor.BEARING_RATES) and getattr(template, 'rate_tau', None) is None:
-        subs.append(Sub(own(wire.BEARING_RATES), wire.PointCloud2, qos_in))
-    if method.uses(Sensor.RELATIVE_POSITIONS):
-        subs.append(Sub(own(wire.RELATIVE_POSITIONS), wire.PointCloud2, qos_in))
+    for sensor in method.measures:
+        if not (sensor is Sensor.BEARING_RATES and spec.rate_tau is not None):
+            subs.append(Sub(own(sensor.value), wire.PointCloud2, qos_in))
     if method.uses(Sensor.ODOMETRY):
         subs.append(Sub(own(wire.ODOM), wire.Odometry, qos_in))
-    if template.leader:   # known_pose, remapped to ground_truth by the launcher
+    if spec.leader:   # known_pose, remapped to ground_truth by the launcher
         subs.append(Sub(own(wire.GROUND_TRUTH), wire.PoseStamped, qos_in))
-    if links:
-        for nt in link_subscriptions(template):
-            if not nt.channels:
-                subs.append(Sub(wire.topic(nt.agent, wire.ODOM), wire.Odometry, qos_in))
-                continue
-            w = wires[nt.channels[0]]
-            sensor = any(c.sensor for c in method.sends if c.name in nt.channels)
-            subs.append(Sub(wire.topic(nt.agent, w.topic), w.type,
-                            qos_in if sensor else qos_est))
-    else:
-        subs += [Sub(wire.topic(nb.name, topic), wires[names[0]].type, qos_est)
-                 for nb in template.neighbours
-                 for topic, names in wire.channel_topics(wires).items()]
+    for sub in subscriptions(method, spec):
+        msg_type = (wire.Odometry if sub.kind == ODOMETRY else wire.PointCloud2
+                    if sub.kind == 'points' else wire.channel_type(chans[sub.channels[0]]))
+        subs.append(Sub(wire.topic(sub.source, sub.topic), msg_type,
+                        qos_est if sub.kind == 'channels' else qos_in))
     subs.append(Sub(wire.CLOCK, ClockMsg, CLOCK_SUB_QOS))   # use_sim_time: the time source
     # One message of each, from the agent's own values at t = 0.
-    if isinstance(template, AgentEstimator):   # world bearings for the agents it sees
-        j, b = world.bearings(s.index[name])
-        template.add_bearings(0.0, j + 1, b)
-    outbox = template.outbox()
+    for sensor in method.measures:   # per-edge values for the agents it measures
+        if sensor is Sensor.BEARINGS:
+            j, b = world.bearings(s.index[name])
+        elif sensor.value in world.sensor_every:
+            j, b = world.sensed(sensor.value, s.index[name])
+        else:
+            continue
+        rt.add_points(sensor, 0.0, j + 1, b)
+    values: dict[str, Any] = dict(rt.outbox())
+    for c in method.sends:   # a second round: one value per robot it goes to
+        if c.round == 2:
+            values[c.name] = rt._addressed(c, np.tile(np.ones(c.shape) / np.sqrt(
+                np.prod(c.shape)), (len(rt.peers),) + (1,) * len(c.shape)))
     t = 0.0
-    R, p = template.R0, template.p0
-    P = getattr(template.x, 'P', None)
-    values: dict[str, Any] = dict(outbox)
-    if isinstance(template, TwoRoundAgent):   # pending_reply: one value per robot it senses
-        for c in method.sends:
-            if c.round == 2:
-                values[c.name] = {lk.agent_id: np.ones(c.shape) / np.sqrt(np.prod(c.shape))
-                                  for lk in template.links if lk.senses}
     data = {}
-    for n in own_topic:
-        encode = wires[n].encode
-        if n in values and encode is not None:
-            data[n] = _ser(encode(t, values[n], wires[n].frame_of(name, frame, s.world_frame)))
-    estimate = _ser(wire.encode_pose(t, frame, R, p))
-    pose = (_ser(wire.encode_pose_covariance(t, frame, R, p, P[0][:6, :6]))
-            if 'pose_cov' in wires and P is not None else None)
+    for topic, cs in topics.items():
+        content = {c.name: values[c.name] for c in cs
+                   if c.name in values and not (isinstance(values[c.name], dict)
+                                                and not values[c.name])}
+        if content:
+            data[topic] = wire.encode_channels(t, wire.channel_frame(
+                cs[0], name, frame, s.world_frame), cs, content)
+    P = rt.covariance()
+    estimate = wire.cdr.encode_pose_raw(t, frame, rt.R0, rt.p0)
+    pose = wire.cdr.encode_pose_covariance_raw(t, frame, rt.R0, rt.p0,
+                                               np.zeros((6, 6)) if P is None else P)
     # When the node publishes each, over a cycle of steps.
     h, every = s.step, max(1, int(round(1.0 / (s.step * s.publish_rate))))
     cycle = every * max(1, int(round(s.frequency)))
-    when: dict[str, set[int]] = {n: set() for n in ['estimate', 'pose', *own_topic]}
-    rides = {n for n, w in wires.items() if w.topic == wire.POSE}
-    second_round = {c.name: c.round == 2 for c in method.sends}
+    when: dict[str, set[int]] = {n: set() for n in ['estimate', *topics]}
+    estimator = s.estimator()
+
+    def sends(c: Any, k: int) -> bool:
+        return (estimator.due(c.name, k * h, h) if c.pairing == 'exact' else k % every == 0)
     for k in range(cycle):
-        if method.rounds == 2:   # round 2, every step, for the robots it senses
-            for n in own_topic:
-                if second_round[n] and values.get(n):
-                    when[n].add(k)
-        if links:
-            due = {n for n in wires if method.due(n, k * h, h)}
-            send_estimate = k % every == 0 or bool(due & rides)
-            channels_now = bool(due & set(own_topic))
-        else:
-            send_estimate = channels_now = k % every == 0
-        if send_estimate:
+        if k % every == 0 or any(sends(c, k) for c in sent if c.topic == wire.POSE):
             when['estimate'].add(k)
-            when['pose'].add(k)
-        if channels_now:
-            for n in own_topic:
-                if n in outbox and (not isinstance(outbox[n], dict) or outbox[n]):
-                    when[n].add(k)
+        for topic, cs in topics.items():
+            if any(c.round == 2 or sends(c, k) for c in cs):
+                when[topic].add(k)
     cycle = _period(cycle, when.values())
     when = {n: {k for k in steps if k < cycle} for n, steps in when.items()}
     pubs = [Pub(own(wire.ESTIMATE), wire.PoseStamped, wire.ESTIMATE_PUB_QOS, estimate,
                 frozenset(when['estimate']))]
-    pubs += [Pub(own(wires[n].topic), wires[n].type, qos_est, data.get(n, b''),
-                 frozenset(when[n]) if n in data else frozenset()) for n in own_topic]
-    if any(w.topic == wire.POSE for w in wires.values()):
+    pubs += [Pub(own(topic), wire.channel_type(cs[0]), qos_est, data.get(topic, b''),
+                 frozenset(when[topic]) if topic in data else frozenset())
+             for topic, cs in topics.items()]
+    if any(c.topic == wire.POSE for c in sent):
         pubs.append(Pub(own(wire.POSE), wire.PoseWithCovarianceStamped,
-                        wire.ESTIMATE_PUB_QOS, pose or b'',
-                        frozenset(when['pose']) if pose else frozenset()))
+                        wire.ESTIMATE_PUB_QOS, pose, frozenset(when['estimate'])))
     pubs.append(Pub(wire.DIAGNOSTICS, DiagnosticArray, DIAGNOSTICS_QOS,
                     _diagnostics(name, ''), period_s=DIAGNOSTICS_PERIOD_S))
     return ProcessPlan(name, 'estimator', f'/{name}', h, cycle, tuple(pubs), tuple(subs))

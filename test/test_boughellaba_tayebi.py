@@ -28,7 +28,7 @@ def _R_tilde(sim: BatchSimulator) -> np.ndarray:
 def _measure(sim: BatchSimulator) -> tuple[np.ndarray, np.ndarray]:
     """Own bearings b^i_ij and the neighbours' d_ij = R̂_j b^j_ij the next step uses."""
     inputs = sim.inputs()
-    return inputs.bearings, -inputs.received['world_bearing']
+    return inputs.edge['bearings'], -inputs.edge['world_bearing']
 
 
 def _b_world(sim: BatchSimulator) -> np.ndarray:

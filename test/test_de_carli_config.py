@@ -13,7 +13,8 @@ import yaml
 import pytest
 
 from bearing_pose_estimation.core.motion import YawSplines
-from bearing_pose_estimation.estimators.base import communication_links
+from bearing_pose_estimation.estimators.base import edge_table
+from bearing_pose_estimation.estimators.de_carli import DeCarli
 from bearing_pose_estimation.scenario import load_scenario, parse_scenario
 from bearing_pose_estimation.scenario.parse import read_scenario_data
 from bearing_pose_estimation.sim.batch import BatchSimulator
@@ -69,7 +70,7 @@ def test_the_derived_values_are_rebuilt(scenario):
     z0 = np.array(d['initial_estimates']['z_hat']) @ [1.0, 1j]
     np.testing.assert_allclose(sim.x.z_hat, z0, rtol=0, atol=1e-15)
     sim.step()   # the pairs and the relative estimates start at the first step
-    links = sim.links
+    links = {'agent': sim.table.agent, 'other': sim.table.other, **sim.table.flags}
     pairs = np.array(d['initial_estimates']['z_psi_hat']) @ [1.0, 1j]
     for m, (a, b) in enumerate(d['communication_pairs']):
         ends = {a, b}
@@ -97,7 +98,8 @@ def test_the_relative_position_estimates_start_at_the_first_measurement(scenario
 
 def test_the_communication_graph_is_the_json_s_pairs():
     tail, head = np.array(JSON['sensing_edges']).T
-    links = communication_links(tail, head, JSON['n_robots'])
+    table = edge_table(DeCarli, JSON['n_robots'], tail, head, np.ones(len(tail)))
+    links = {'agent': table.agent, 'other': table.other, **table.flags}
     pairs = {tuple(sorted(p)) for p in zip(links['agent'].tolist(), links['other'].tolist())}
     assert sorted(pairs) == [tuple(p) for p in JSON['communication_pairs']]
     owned = {(int(a), int(b)) for a, b, o in zip(links['agent'], links['other'], links['owns'])

@@ -22,6 +22,7 @@ import pytest
 from scipy.stats import chi2
 
 from bearing_pose_estimation.core.motion import rot_z, yaw_of
+from bearing_pose_estimation.estimators import base
 from bearing_pose_estimation.estimators import de_carli_covariance as cov
 from bearing_pose_estimation.estimators.de_carli import as_complex, unit
 from bearing_pose_estimation.scenario import load_scenario
@@ -60,8 +61,8 @@ def _pair_state(x, a, s):
 def test_the_pair_maps_are_the_step_s_own(moving):
     sim = moving
     x, inputs = sim.x, sim.inputs()
-    L, ag, sl = inputs.links, inputs.edges.agent, inputs.edges.slot
-    owned = L.owns & x.ready_pair[ag, sl] & x.ready_out[ag, sl]
+    ag, sl = inputs.edges.agent, inputs.edges.slot
+    owned = inputs.edges.flag('owns') & x.ready_pair[ag, sl] & x.ready_out[ag, sl]
     pairs, _, (M, N), two_way = sim.estimator.pair_maps(
         x, sim.h, inputs, owned, unit(x.z_pair[ag, sl]))
     eps = 1e-6
@@ -91,11 +92,11 @@ def test_the_pair_maps_are_the_step_s_own(moving):
                                        atol=1e-6)
 
         def meas(_, in2, d):      # ν, the owner's own measurement of the other robot
-            in2.links.relative_positions[e, 0] += d
+            in2.edge['relative_positions'][e, 0] += d
         np.testing.assert_allclose(diff(meas)[:4], N[row][:4, 0], atol=1e-6)
 
         def odometry(_, in2, d):  # η_x, the other robot's odometry (z at the truth: 1e-3)
-            in2.links.other_displacement[e, 1] += d
+            in2.edge[base.PEER_DISPLACEMENT][e, 1] += d
         np.testing.assert_allclose(diff(odometry)[:4], N[row][:4, 7], atol=2e-3)
     assert checked == {True, False}     # the paper's graph has both kinds
 
@@ -107,9 +108,8 @@ def test_the_robot_maps_are_the_step_s_own():
     out = _step(sim, x, inputs)
     edges = inputs.edges
     ag, sl = edges.agent, edges.slot
-    L = inputs.links
     active = (x.excitation[ag, sl] >= est.gains.pe_threshold) & np.where(
-        L.owns, x.ready_pair[ag, sl], np.hypot(*inputs.received['relyaw'].T) > 0.5)
+        edges.flag('owns'), x.ready_pair[ag, sl], np.hypot(*inputs.edge['relyaw'].T) > 0.5)
     z_mid = out.z_hat * np.exp(-1j * yaw_of(inputs.delta_R))   # before the step's rotation
     maps = est.robot_maps(x, h, inputs, active, z_mid)
     F = maps.C @ maps.F
@@ -128,7 +128,7 @@ def test_the_robot_maps_are_the_step_s_own():
         return (out[0] - out[1]) / (2 * eps)
 
     i = 4                    # it senses three robots, nobody senses it
-    k = int(np.flatnonzero((ag == 1) & L.sensed_by)[0])   # robot_1, sensed by its neighbour
+    k = int(np.flatnonzero((ag == 1) & edges.flag('sensed_by'))[0])   # robot_1, sensed by its neighbour
     for c in range(4):
         def own(x2, _, d, c=c):
             if c < 3:
@@ -140,17 +140,17 @@ def test_the_robot_maps_are_the_step_s_own():
 
         def nbr(_, in2, d, c=c):
             if c < 3:
-                in2.received['p_hat'][k, c] += d
+                in2.edge['p_hat'][k, c] += d
             else:
-                z = as_complex(in2.received['z_hat'][k]) * np.exp(1j * d)
-                in2.received['z_hat'][k] = [z.real, z.imag]
+                z = as_complex(in2.edge['z_hat'][k]) * np.exp(1j * d)
+                in2.edge['z_hat'][k] = [z.real, z.imag]
         np.testing.assert_allclose(diff(nbr)[ag[k]], G[k][:, c], atol=1e-4)
 
 
 def test_both_ends_of_a_pair_hold_the_same_covariance(moving):
     x = moving.x
     ag, sl = moving.edges.agent, moving.edges.slot
-    reverse = moving.links['reverse']
+    reverse = moving.table.reverse
     P = x.P_pair[ag, sl]
     assert np.all(np.einsum('kii->k', P) > 0.0)        # every link runs its pair
     np.testing.assert_allclose(P, P[reverse], rtol=1e-9, atol=1e-15)
@@ -194,10 +194,11 @@ def test_roll_and_pitch_are_exact_and_silence_only_grows(moving):
     # Every neighbour silent: no correction, the covariance takes the odometry and gyro
     # noise on top of what it had (dead reckoning shears position against yaw, so the
     # volume and the yaw variance grow); with them, it shrinks.
-    silent = dataclasses.replace(inputs.links, fresh=np.zeros(len(sim.edges.agent), bool))
+    gone = np.zeros(len(sim.edges.agent), bool)
+    silent = dataclasses.replace(inputs, mask={'z_hat': gone, 'p_hat': gone})
     pose = cov.POSE[:, None], cov.POSE
     before = x.P[(slice(None),) + pose]
-    alone = _step(sim, x, dataclasses.replace(inputs, links=silent)).P[(slice(None),) + pose]
+    alone = _step(sim, x, silent).P[(slice(None),) + pose]
     together = _step(sim, x, inputs).P[(slice(None),) + pose]
     assert np.all(np.linalg.det(alone) > np.linalg.det(before))
     assert np.all(alone[:, 3, 3] > before[:, 3, 3])

@@ -325,7 +325,8 @@ def test_a_hovering_robot_s_pairs_are_warned_about_left_out_and_reported():
     assert warned == {'robot_4-robot_7', 'robot_6-robot_7'}
     sim = BatchSimulator(scenario)
     rec = sim.run(5.0)
-    x, links = sim.x, sim.links
+    x, t = sim.x, sim.table
+    links = {'agent': t.agent, 'other': t.other, **t.flags}
     excited = {(int(a), int(b)) for a, b, e in zip(links['agent'], links['other'],
                                                   x.excitation[links['agent'],
                                                                sim.edges.slot])

@@ -22,8 +22,9 @@ import yaml
 
 from bearing_pose_estimation import estimators
 from bearing_pose_estimation.core import so3
-from bearing_pose_estimation.estimators.base import (AnchorInputs, Edges, LinkInputs, State, StepInputs,
-                                                     gain_fields, parse_gains)
+from bearing_pose_estimation.estimators import base
+from bearing_pose_estimation.estimators.base import (Edges, Sensor, State, StepInputs, gain_fields,
+                                                     parse_gains)
 from bearing_pose_estimation.scenario import (ScenarioError, check_scenario, initial_estimates,
                                               parse_scenario)
 from bearing_pose_estimation.sim.batch import BatchSimulator
@@ -100,7 +101,7 @@ def _one_agent_step_equals_the_batch_row(sim: BatchSimulator) -> None:
     batch, diag = sim.estimator.step(sim.x, sim.h, inputs)
     assert set(diag) >= {'innovation'} and diag['innovation'].shape[0] == sim.n
     for i in sim.follower_idx:
-        one, one_diag = sim.estimator.step(sim.x.rows([i]), sim.h, inputs.agent(int(i)))
+        one, one_diag = sim.estimator.step(sim.x.rows([i]), sim.h, inputs.agent_inputs(int(i)))
         _assert_states_close(one, batch.rows([i]), atol=1e-13)
         np.testing.assert_allclose(one_diag['innovation'][0], diag['innovation'][i], atol=1e-13)
 
@@ -115,7 +116,7 @@ def check_declared_messages_and_state(method: str) -> None:
     bearings = np.tile([0.0, 0.0, 1.0], (len(sender), 1))
     sent = est.outbox(x, sender, bearings)
     assert set(sent) == {c.name for c in est.sends if c.round == 1}
-    if est.rounds == 2:   # round 2 from what round 1 delivered, one row per edge
+    if est.rounds() == 2:   # round 2 from what round 1 delivered, one row per edge
         sent.update(est.reply(x, sim.h, sim.inputs()))
         assert set(sent) == {c.name for c in est.sends}
     for c in est.sends:
@@ -134,7 +135,17 @@ def check_finite_inputs_give_finite_outputs(method: str) -> None:
     for trial in range(60):
         n_edges = int(rng.integers(0, 3 * n))
         agent = np.sort(rng.integers(0, n, n_edges)).astype(np.intp)
-        edges = Edges(agent=agent, k=rng.uniform(0.1, 5.0, n_edges), n_agents=n)
+        cls = type(est)
+        flags = {'senses': np.ones(n_edges, bool), 'sensed_by': np.ones(n_edges, bool)}
+        if cls.links == 'communication':   # both ends, the other end's odometry
+            senses = rng.uniform(size=n_edges) < 0.7
+            sensed_by = ~senses | (rng.uniform(size=n_edges) < 0.3)
+            flags = {'senses': senses, 'sensed_by': sensed_by,
+                     'owns': senses & (rng.uniform(size=n_edges) < 0.6)}
+            if cls.roles.anchor:   # random ranged links
+                flags.update(ranges=rng.uniform(size=n_edges) < 0.2,
+                             ranged_by=rng.uniform(size=n_edges) < 0.2)
+        edges = Edges(agent=agent, k=rng.uniform(0.1, 5.0, n_edges), n_agents=n, flags=flags)
         scale = 10.0 ** rng.integers(-3, 7)
         x = est.initial_state(so3.exp(rng.normal(size=(n, 3)) * 3.0),
                               rng.normal(size=(n, 3)) * scale)
@@ -146,7 +157,8 @@ def check_finite_inputs_give_finite_outputs(method: str) -> None:
         bearings /= np.linalg.norm(bearings, axis=1, keepdims=True)
         if trial % 3 == 0 and n_edges:
             bearings[:] = bearings[0]  # every bearing parallel
-        received = {}
+        edge = {s.value: bearings if s is Sensor.BEARINGS
+                else rng.normal(size=(n_edges, 3)) * scale for s in cls.measures}
         for c in est.sends:
             v = rng.normal(size=(n_edges,) + c.shape) * scale
             if c.unit:
@@ -155,35 +167,30 @@ def check_finite_inputs_give_finite_outputs(method: str) -> None:
                     v[:] = v[0]
             elif trial % 3 == 2 and c.per == 'agent' and c.shape == (3,):
                 v = np.take(x.p_hat, agent, axis=0)  # neighbours where the agent thinks it is
-            received[c.name] = v
+            if c.sensor is not None and c.on is not None:
+                v = np.where(flags[c.on][:, None], v, 0.0)
+            if trial % 3 == 1 and c.per == 'agent' and c.shape == (2,):
+                v[:] = 0.0   # a vanishing yaw estimate
+            edge[c.name] = v
+        if cls.peer_odometry == 'links':
+            edge[base.PEER_DELTA_R] = so3.exp(rng.normal(size=(n_edges, 3)) * 0.1)
+            edge[base.PEER_DISPLACEMENT] = rng.normal(size=(n_edges, 3)) * scale
         delta_R = so3.exp(rng.normal(size=(n, 3)) * (0.0 if trial % 4 == 0 else 0.1))
-        links = None
-        if est.links == 'communication':   # both ends, the other end's odometry
-            senses = rng.uniform(size=n_edges) < 0.7
-            sensed_by = ~senses | (rng.uniform(size=n_edges) < 0.3)
-            links = LinkInputs(senses=senses, sensed_by=sensed_by,
-                               owns=senses & (rng.uniform(size=n_edges) < 0.6),
-                               relative_positions=rng.normal(size=(n_edges, 3)) * scale,
-                               other_delta_R=so3.exp(rng.normal(size=(n_edges, 3)) * 0.1),
-                               other_displacement=rng.normal(size=(n_edges, 3)) * scale)
-            if 'meas' in received:
-                received['meas'] = np.where(sensed_by[:, None], received['meas'], 0.0)
-            if trial % 3 == 1 and 'z_hat' in received:
-                received['z_hat'][:] = 0.0   # a vanishing yaw estimate
-        anchor = None
-        if est.roles.anchor:   # a random anchor, random ranged links, its random motion
-            ranges = rng.uniform(size=n_edges) < 0.2
-            anchor = AnchorInputs(is_anchor=np.arange(n) == rng.integers(0, n),
-                                  delta_R=np.repeat(so3.exp(rng.normal(size=(1, 3)) * 0.1), n, 0),
-                                  displacement=np.repeat(rng.normal(size=(1, 3)) * scale, n, 0),
-                                  ranges=ranges, ranged_by=rng.uniform(size=n_edges) < 0.2,
-                                  pinned=bool(trial % 2))
-        inputs = StepInputs(delta_R=delta_R, edges=edges, bearings=bearings, received=received,
-                            links=links, displacement=rng.normal(size=(n, 3)) * scale,
-                            t=float(rng.integers(0, 8)) * 0.005, anchor=anchor,
-                            bearing_rates=rng.normal(size=(n_edges, 3)) * scale)
+        agent_values = {base.DELTA_R: delta_R,
+                        base.DISPLACEMENT: rng.normal(size=(n, 3)) * scale}
+        if cls.roles.anchor:   # a random anchor and its random motion
+            is_anchor = np.arange(n) == rng.integers(0, n)
+            agent_values.update({
+                base.ANCHOR_DELTA_R: np.repeat(so3.exp(rng.normal(size=(1, 3)) * 0.1), n, 0),
+                base.ANCHOR_DISPLACEMENT: np.repeat(rng.normal(size=(1, 3)) * scale, n, 0),
+                base.IS_ANCHOR: is_anchor, base.PINNED: is_anchor & bool(trial % 2)})
+        # A node's inputs: some missing (masked), for a method that takes partial edges.
+        mask = ({key: rng.uniform(size=n_edges) < 0.8 for key in edge}
+                if cls.partial_edges and trial % 2 else {})
+        inputs = StepInputs(edges=edges, agent=agent_values, edge=edge, mask=mask,
+                            t=float(rng.integers(0, 8)) * 0.005)
         h = 10.0 ** rng.integers(-4, 0)
-        if est.rounds == 2:
+        if est.rounds() == 2:
             assert all(np.all(np.isfinite(v)) for v in est.reply(x, h, inputs).values()), trial
         out, diag = est.step(x, h, inputs)
         assert out.is_finite(), (trial, n_edges)

@@ -12,6 +12,7 @@ from rclpy.serialization import serialize_message
 
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.core import so3
+from bearing_pose_estimation.estimators.base import Sensor
 from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.ros.estimator_node import EstimatorNode
 from bearing_pose_estimation.ros.node_main import parameter_overrides
@@ -35,9 +36,9 @@ EXPLICIT = dict(agent_id=5, neighbours=['agent_1', 'agent_4'], neighbour_ids=[1,
 def test_explicit_parameters_build_the_estimator(context):
     node = _node(context, **EXPLICIT)
     try:
-        est = node.est
+        est = node.rt
         assert node.agent == 'agent_5' and est.agent_id == 5 and not est.leader
-        assert [(n.name, n.agent_id, n.k) for n in est.neighbours] == [
+        assert [(n.name, n.agent_id, n.k) for n in est.peers] == [
             ('agent_1', 1, 2.0), ('agent_4', 4, 1.0)]
         assert est.gains.k_R == 1.5 and est.gains.k_p == 1.0 and est.h == pytest.approx(0.005)
         np.testing.assert_allclose(est.R_hat[0], so3.axis_angle([0, 0, 1], 0.5), atol=1e-12)
@@ -86,7 +87,7 @@ def test_a_neighbours_pose_gives_its_position_even_with_a_bad_covariance(context
     node = _node(context, raw_messages=raw, **EXPLICIT)
     try:
         node.on_imu(wire.encode_imu(0.0, 'agent_5', np.zeros(3)))   # creates the estimator
-        nb = node.est.neighbours[0]
+        nb = node.rt.peers[0]
         on_pose = next(s for s in node.subscriptions if s.topic_name == '/agent_1/pose').callback
 
         def send(t, frame, p, P):
@@ -95,18 +96,18 @@ def test_a_neighbours_pose_gives_its_position_even_with_a_bad_covariance(context
 
         good = np.diag([0.1, 0.1, 0.1, 0.01, 0.01, 0.01])
         send(0.0, 'world', [1.0, 2.0, 3.0], good)
-        np.testing.assert_array_equal(nb.values['p_hat'], [1.0, 2.0, 3.0])
-        np.testing.assert_array_equal(nb.values['pose_cov'], good)
+        np.testing.assert_array_equal(nb.latest('p_hat'), [1.0, 2.0, 3.0])
+        np.testing.assert_array_equal(nb.latest('pose_cov'), good)
         bad = good.copy()
         bad[0, 1] = 5.0                                  # not symmetric
         send(0.01, 'world', [1.5, 2.0, 3.0], bad)
         assert node.rejected['malformed'] == 1
-        np.testing.assert_array_equal(nb.values['p_hat'], [1.5, 2.0, 3.0])
-        assert nb.stamps == {'p_hat': 0.01, 'pose_cov': 0.0}
-        np.testing.assert_array_equal(nb.values['pose_cov'], good)   # kept, not replaced
+        np.testing.assert_array_equal(nb.latest('p_hat'), [1.5, 2.0, 3.0])
+        assert {n: v.newest_stamp for n, v in nb.values.items()} == {'p_hat': 0.01, 'pose_cov': 0.0}
+        np.testing.assert_array_equal(nb.latest('pose_cov'), good)   # kept, not replaced
         send(0.02, 'agent_1/odom', [9.0, 9.0, 9.0], good)
         assert node.rejected['wrong_frame'] == 1 and node.rejected['malformed'] == 1
-        np.testing.assert_array_equal(nb.values['p_hat'], [1.5, 2.0, 3.0])
+        np.testing.assert_array_equal(nb.latest('p_hat'), [1.5, 2.0, 3.0])
     finally:
         node.destroy_node()
 
@@ -138,10 +139,10 @@ def test_integers_are_accepted_where_numbers_are_expected(context):
             'initial_position': [1, 2, 3], 'neighbour_timeout': 1}
     node = _node(context, **ints)
     try:
-        assert node.est.h == pytest.approx(0.005) and node.est.gains == CascadeGains(2.0, 1.0)
-        assert [n.k for n in node.est.neighbours] == [2.0, 1.0]
-        assert node.est.limits.neighbour_timeout == 1.0
-        np.testing.assert_array_equal(node.est.p_hat[0], [1.0, 2.0, 3.0])
+        assert node.rt.h == pytest.approx(0.005) and node.rt.gains == CascadeGains(2.0, 1.0)
+        assert [n.k for n in node.rt.peers] == [2.0, 1.0]
+        assert node.rt.limits.neighbour_timeout == 1.0
+        np.testing.assert_array_equal(node.rt.p_hat[0], [1.0, 2.0, 3.0])
         for name in ('frequency', 'neighbour_gains', 'initial_position'):
             param = node.get_parameter(name)
             assert param.type_ in (Parameter.Type.DOUBLE, Parameter.Type.DOUBLE_ARRAY), name
@@ -170,8 +171,8 @@ def test_tran_anderson_ahn_in_explicit_mode(context):
     base = {k: v for k, v in EXPLICIT.items() if k != 'k_R'}
     node = _node(context, **base, method='tran_anderson_ahn', k_omega=3, k_c=0.5)
     try:
-        assert node.est.gains == TranGains(k_omega=3.0, k_p=1.0, k_c=0.5)
-        assert [n.k for n in node.est.neighbours] == [2.0, 1.0]
+        assert node.rt.gains == TranGains(k_omega=3.0, k_p=1.0, k_c=0.5)
+        assert [n.k for n in node.rt.peers] == [2.0, 1.0]
     finally:
         node.destroy_node()
     with pytest.raises(ScenarioError, match='parameter k_R is a boughellaba_tayebi gain, but the '
@@ -202,7 +203,7 @@ def test_a_leader_with_an_empty_neighbour_list(context):
         Parameter('agent_id', value=1), Parameter('leader', value=True),
         Parameter('neighbours', Parameter.Type.NOT_SET)])
     try:
-        assert node.est.leader and node.est.neighbours == []
+        assert node.rt.leader and node.rt.peers == []
         assert '/agent_1/known_pose' in {s.topic_name for s in node.subscriptions}
     finally:
         node.destroy_node()
@@ -231,15 +232,15 @@ def test_messages_as_bytes_or_as_objects_give_the_same_estimate(context, raw):
         for k in range(3):
             msg = wire.encode_imu(0.005 * k, 'agent_5', np.array([0.0, 0.0, 0.1 * k]))
             node.on_imu(serialize_message(msg) if raw else msg)
-        assert node.est.gyro.end == pytest.approx(0.01)
-        np.testing.assert_allclose(so3.log(node.est.gyro.increment(0.0, 0.01)),
+        assert node.rt.gyro.end == pytest.approx(0.01)
+        np.testing.assert_allclose(so3.log(node.rt.gyro.increment(0.0, 0.01)),
                                    [0.0, 0.0, 0.005 * 0.1 + 0.005 * 0.2], atol=1e-12)
         elsewhere = wire.encode_imu(0.015, 'agent_4', np.zeros(3))   # another body's frame
         node.on_imu(serialize_message(elsewhere) if raw else elsewhere)
         assert node.rejected['wrong_frame'] == 1
         if raw:
             node.on_imu(serialize_message(msg)[:-5])               # truncated
-            node.on_bearings(b'\x00\x01\x00\x00garbage')
+            node.on_points(Sensor.BEARINGS, b'\x00\x01\x00\x00garbage')
             assert node.rejected['malformed'] == 2
     finally:
         node.destroy_node()
@@ -379,9 +380,9 @@ def test_the_readme_explicit_parameter_file_is_valid(context, repo_root, tmp_pat
     node = EstimatorNode(namespace='/agent_4', context=context,
                          cli_args=['--ros-args', '--params-file', str(path)])
     try:
-        assert node.est is None and node.start_time < 0  # starts at the first gyro sample
-        assert node.template.agent_id == 4 and node.gains == TranGains(2.0, 1.0, 0.5)
-        assert [(n.name, n.agent_id, n.k) for n in node.template.neighbours] == [
+        assert node.rt is None and node.start_time < 0  # starts at the first gyro sample
+        assert node.s.spec.agent_id == 4 and node.s.gains == TranGains(2.0, 1.0, 0.5)
+        assert [(n.name, n.agent_id, n.k) for n in node.s.spec.peers] == [
             ('agent_1', 1, 1.0), ('agent_2', 2, 2.0)]
     finally:
         node.destroy_node()
@@ -417,12 +418,12 @@ def test_gains_and_limits_are_set_live_and_validated(context, repo_root, tmp_pat
     with the reason, and nothing changes."""
     node = _node(context, scenario_file=str(repo_root / 'config' / 'paper_8_agents.yaml'))
     try:
-        est = node.est
+        est = node.rt
         ok = node.set_parameters([Parameter('k_R', value=2.0),
                                   Parameter('sensor_timeout', value=0.2)])
         assert [r.successful for r in ok] == [True, True]
         assert est.gains.k_R == 2.0 and est.gains.k_p == 1.0
-        assert est.limits.sensor_timeout == 0.2 and node.template.limits.sensor_timeout == 0.2
+        assert est.limits.sensor_timeout == 0.2 and node.s.limits.sensor_timeout == 0.2
         assert node.get_parameter('k_R').value == 2.0
         refused = node.set_parameters_atomically([Parameter('k_R', value=3.0),
                                                   Parameter('k_p', value=0.0)])
@@ -431,7 +432,7 @@ def test_gains_and_limits_are_set_live_and_validated(context, repo_root, tmp_pat
         frozen = node.set_parameters([Parameter('frequency', value=50.0)])[0]
         assert not frozen.successful and 'read-only' in frozen.reason
         assert est.gains.k_R == 2.0 and node.get_parameter('k_R').value == 2.0
-        assert node.h == pytest.approx(0.01)
+        assert node.s.step == pytest.approx(0.01)
     finally:
         node.destroy_node()
     data = yaml.safe_load((repo_root / 'config' / 'de_carli_8_quadrotors.yaml').read_text())
@@ -442,7 +443,7 @@ def test_gains_and_limits_are_set_live_and_validated(context, repo_root, tmp_pat
         assert node.set_parameters([Parameter('k_z', value=20.0)])[0].successful
         diverging = node.set_parameters([Parameter('k_p', value=1e4)])[0]
         assert not diverging.successful and 'k_p' in diverging.reason, diverging.reason
-        assert node.est.gains.k_p == 1.0 and node.est.gains.k_z == 20.0
+        assert node.rt.gains.k_p == 1.0 and node.rt.gains.k_z == 20.0
     finally:
         node.destroy_node()
 
@@ -465,12 +466,12 @@ def test_a_stalled_agent_takes_messages_the_executor_was_not_told_of(context):
         for t in (0.005, 0.01):
             pub.publish(wire.encode_imu(t, 'agent_1', np.array([0.0, 0.0, 0.2])))
         node.on_watch()   # notes (k, gyro end): nothing taken yet
-        assert node.est.gyro.end == 0.0 and not node.events['taken_while_stalled']
+        assert node.rt.gyro.end == 0.0 and not node.events['taken_while_stalled']
         while node.events['taken_while_stalled'] < 2 and time.monotonic() < deadline:
             node.on_watch()
             time.sleep(0.01)
         assert node.events['taken_while_stalled'] == 2
-        assert node.est.gyro.end == pytest.approx(0.01) and node.est.k == 1
+        assert node.rt.gyro.end == pytest.approx(0.01) and node.rt.k == 1
     finally:
         sender.destroy_node()
         node.destroy_node()

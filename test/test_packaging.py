@@ -117,7 +117,7 @@ def test_the_math_core_imports_no_rclpy():
 
     core = [m.name for m in pkgutil.walk_packages(pkg.__path__, f'{PKG}.')
             if not m.name.startswith((f'{PKG}.ros', f'{PKG}.msg_defs'))]
-    assert {f'{PKG}.core.so3', f'{PKG}.estimators.agent', f'{PKG}.sim.batch',
+    assert {f'{PKG}.core.so3', f'{PKG}.runtime.agent', f'{PKG}.sim.batch',
             f'{PKG}.cli.main'} <= set(core)
     code = ('import sys; ' + '; '.join(f'import {m}' for m in core)
             + "; print(sorted(m for m in sys.modules if m.split('.')[0] == 'rclpy'))")

@@ -1,11 +1,15 @@
 """The estimators and their registry, keyed by the scenario's ``method:``.
 
 Adding a method is adding one module here, a subclass of :class:`base.Estimator`, and one line
-in :data:`_BUILT_IN`; nothing outside this folder names a method. Tests register their own
-with :func:`register` (and remove them with :func:`unregister`).
+in :data:`_BUILT_IN`; nothing outside this folder names a method. A method outside the package
+needs no line anywhere: a scenario names it by its import path, ``method: my_module:MyMethod``
+(the module on the Python path of every process that runs it), and :func:`get` imports and
+registers it. Tests register their own with :func:`register` (and remove them with
+:func:`unregister`).
 """
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 from ..core.errors import ScenarioError
@@ -48,11 +52,30 @@ def get(method: str) -> type[Estimator]:
     Raises:
         ScenarioError: unknown method, naming the known ones.
     """
+    if method not in _REGISTRY and ':' in method:
+        return _imported(method)
     try:
         return _REGISTRY[method]
     except KeyError:
         raise ScenarioError(f'unknown method {method!r}. Fix: use one of: '
+                            f'{", ".join(_REGISTRY)}, or a method\'s import path '
+                            '(module:Class)') from None
+
+
+def _imported(path: str) -> type[Estimator]:
+    """The method class at ``module:Class``, imported and registered under ``path``."""
+    module, _, name = path.partition(':')
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as exc:
+        raise ScenarioError(f'method {path!r}: cannot import it ({exc}). Fix: put {module} on '
+                            'the Python path (PYTHONPATH) of every process, or use one of: '
                             f'{", ".join(_REGISTRY)}') from None
+    if not (isinstance(cls, type) and issubclass(cls, Estimator)):
+        raise ScenarioError(f'method {path!r}: {name} is not an Estimator subclass. Fix: name '
+                            'the class of the method')
+    _REGISTRY[path] = cls
+    return cls
 
 
 def build(method: str, gains: Any) -> Estimator:

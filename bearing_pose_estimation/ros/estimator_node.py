@@ -202,7 +202,8 @@ class EstimatorNode(Node):
         for s in subscriptions(self.method, self.s.spec):
             topic = wire.topic(s.source, s.topic, self.fleet)
             if s.kind == ODOMETRY:
-                sub(wire.Odometry, topic, partial(self._link, self.on_peer_odometry, s), qos)
+                sub(wire.Odometry, topic, partial(self._link, self.on_peer_odometry, s), qos,
+                    wait=self.s.expects_odometry)
             elif s.kind == 'points':
                 sub(wire.PointCloud2, topic, partial(self._link, self.on_peer_points, s), qos)
             else:

@@ -126,7 +126,9 @@ class SimulatorNode(Node):
                                          wire.topic(a, wire.SENSOR_TOPICS[name], self.fleet),
                                          wire.SIM_PUB_QOS) for a in self.names]
             for name in self.world.sensor_every}
-        self.sensors_read = {name for name in self.pub_sensors if method.uses(Sensor(name))}
+        # The sensors each agent's own estimator reads (the others' readers: link_subs).
+        self.sensors_read = {name for name in self.pub_sensors if Sensor(name) in method.measures
+                             or (name == 'odometry' and method.uses(Sensor.ODOMETRY))}
         self.pub_clock = (self.create_publisher(ClockMsg,
                                                 wire.fleet_topic(wire.CLOCK, self.fleet),
                                                 wire.CLOCK_QOS)
@@ -180,6 +182,7 @@ class SimulatorNode(Node):
     def _unmatched(self) -> list[str]:
         """Topics whose expected peers are not matched yet."""
         s, missing = self.scenario, []
+        followers = {a.name for a in s.followers}   # the monitor reads their estimates
 
         def short(pub: Any, readers: int) -> None:
             # Matched by this writer, not only seen in the graph: a volatile writer sends
@@ -190,7 +193,7 @@ class SimulatorNode(Node):
                 missing.append(pub.topic_name)
 
         for k, name in enumerate(self.names):
-            monitored = 1 if self.wait_for_monitor and name not in s.leaders else 0
+            monitored = 1 if self.wait_for_monitor and name in followers else 0
             short(self.pub_imu[k], 1)
             short(self.pub_bearings[k], 1 if self.uses_bearings else 0)
             for sensor, pubs in self.pub_sensors.items():

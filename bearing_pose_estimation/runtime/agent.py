@@ -113,7 +113,8 @@ class Peer:
     measurements of this agent) by name, the newest stamp of each channel it was heard on
     (with or without a value for this agent), and its odometry."""
 
-    __slots__ = ('name', 'agent_id', 'k', 'slot', 'flags', 'values', 'heard', 'odometry')
+    __slots__ = ('name', 'agent_id', 'k', 'slot', 'flags', 'values', 'heard', 'odometry',
+                 'last')
 
     def __init__(self, spec: PeerSpec, slot: int, odometry: OdometryBuffer | None) -> None:
         self.name, self.agent_id, self.k, self.slot = spec.name, spec.agent_id, spec.k, slot
@@ -121,13 +122,13 @@ class Peer:
         self.values: dict[str, Stamped] = {}
         self.heard: dict[str, float] = {}
         self.odometry = odometry
+        self.last = -math.inf   # the newest stamp of a value or measurement it sent
 
     def newest(self) -> float:
         """The newest stamp of anything it sent (channels, measurements, odometry)."""
-        stamps = [v.newest_stamp for v in self.values.values()]
         if self.odometry is not None and not self.odometry.empty:
-            stamps.append(self.odometry.end)
-        return max(stamps, default=-math.inf)
+            return max(self.last, self.odometry.end)
+        return self.last
 
     def latest(self, name: str) -> Array | None:
         hist = self.values.get(name)
@@ -221,9 +222,18 @@ class AgentRuntime:
         self.peers = [Peer(p, e, OdometryBuffer(t0, gyro_horizon) if gyro_odometry else None)
                       for e, p in enumerate(spec.peers)]
         self._by_id = {p.agent_id: p for p in self.peers}
-        self._flag_arrays = {name: np.array([p.flags.get(name, False) for p in self.peers],
-                                            dtype=bool)
-                             for name in sorted({f for p in self.peers for f in p.flags})}
+        # The neighbours it reads anything from (the others are never stale).
+        self._read_peers = [p for p in self.peers if p.odometry is not None or any(
+            self.expects(p, c) for c in self.channels.values())]
+        self._required = [c.name for c in cls.sends if not c.optional]
+        self._optional = [c.name for c in cls.sends if c.optional]
+        flags = {name: np.array([p.flags.get(name, False) for p in self.peers], dtype=bool)
+                 for name in sorted({f for p in self.peers for f in p.flags})}
+        # Its edges, one per peer: the same object every step (a method may cache what it
+        # derives from it).
+        self._edges = Edges(agent=np.zeros(len(self.peers), dtype=np.intp),
+                            k=np.array([p.k for p in self.peers], dtype=float), n_agents=1,
+                            slot=np.arange(len(self.peers), dtype=np.intp), flags=flags)
         self.is_anchor = spec.anchor is not None and spec.anchor[1] == spec.agent_id
         self.anchor_odometry = (OdometryBuffer(t0, gyro_horizon)
                                 if cls.peer_odometry == 'anchor' and not self.is_anchor
@@ -297,6 +307,7 @@ class AgentRuntime:
             for peer in self.peers:
                 peer.values.clear()
                 peer.heard.clear()
+                peer.last = -math.inf
                 if peer.odometry is not None:
                     peer.odometry.reset(self.t0)
             if self.anchor_odometry is not None:
@@ -485,6 +496,7 @@ class AgentRuntime:
             if not (self.channels[name].owner_only and not v.any()
                     and hist.at(stamp)[0] is not None):   # zeros undo no value
                 hist.add(float(stamp), v)
+        peer.last = max(peer.last, float(stamp))
         for name in heard:
             peer.heard[name] = max(peer.heard.get(name, -math.inf), float(stamp))
         return None
@@ -514,6 +526,7 @@ class AgentRuntime:
         if problem is not None:
             return problem
         hist.add(float(stamp), v.copy())
+        peer.last = max(peer.last, float(stamp))
         return None
 
     def add_peer_odometry(self, sender: int, stamp: float, v: Array,
@@ -550,12 +563,9 @@ class AgentRuntime:
         ``neighbour_timeout`` before ``t`` (counting from the start: one whose first values
         are on their way is not stale before that)."""
         limit = t - self.limits.neighbour_timeout
-        return [p.name for p in self.peers
-                if self._reads_from(p) and max(p.newest(), self.t0) < limit]
-
-    def _reads_from(self, peer: Peer) -> bool:
-        return peer.odometry is not None or any(self.expects(peer, c)
-                                                for c in self.channels.values())
+        if self.t0 >= limit:
+            return []
+        return [p.name for p in self._read_peers if p.newest() < limit]
 
     def _due(self, t: float, round_: int) -> list[Channel]:
         """The round's channels that the step at t waits for: not optional, read at t."""
@@ -579,7 +589,7 @@ class AgentRuntime:
         if self.leader:
             return None
         if round_ == 1:
-            if (self.anchor_odometry is not None and not behind
+            if (self.anchor_odometry is not None and not behind and self.requires_odometry
                     and not self.anchor_odometry.covers(t, t + h)
                     and self.anchor_odometry.end >= t - self.limits.neighbour_timeout):
                 return 'anchor_odometry'
@@ -602,7 +612,8 @@ class AgentRuntime:
                 continue
             odo = p.odometry
             self.awaited_peer = p.name
-            if (round_ == 1 and odo is not None and not odo.covers(t, t + h)
+            if (round_ == 1 and odo is not None and self.requires_odometry
+                    and not odo.covers(t, t + h)
                     and odo.end >= t - self.limits.neighbour_timeout):
                 return 'odometry'
             for c in sensors:
@@ -791,10 +802,7 @@ class AgentRuntime:
                 self.odometry_missing_steps += 1
         if cls.roles.anchor:
             self._anchor_motion(t, agent)
-        edges = Edges(agent=np.zeros(len(self.peers), dtype=np.intp),
-                      k=np.array([p.k for p in self.peers]), n_agents=1,
-                      slot=np.arange(len(self.peers), dtype=np.intp),
-                      flags=self._flag_arrays)
+        edges = self._edges
         if self.leader:
             return StepInputs(edges=edges, agent=agent, edge={}, t=t)
         edge: dict[str, Array] = {}
@@ -1025,7 +1033,7 @@ class AgentRuntime:
         """Each neighbour's 'instant' channels of its newest instant at or before ``t`` (a
         robot: its newest values) with the own measurement paired with them."""
         n = len(self.peers)
-        names = [c.name for c in self.channels.values() if not c.optional]
+        names = self._required
         sensors = list(self.own)
         values = {c.name: np.zeros((n,) + c.shape) for c in self.channels.values()}
         values.update({s.value: np.zeros((n, 3)) for s in sensors})
@@ -1035,16 +1043,16 @@ class AgentRuntime:
         for p in self.peers:
             if self._silent(p, names, t):
                 continue
-            latest = {name: v for name in self.channels if (v := p.latest(name)) is not None}
+            latest = {name: hist.samples[-1][1] for name, hist in p.values.items() if hist}
             t_s, sent = t, latest
             if not moving and self.exchange is not None:   # its values of its instant ≤ t
                 fixed = p.at_one_instant(names, not_after=t)
                 sent = dict(fixed[1]) if fixed is not None else latest
-                for c in self.channels.values():
-                    if c.optional and (hist := p.values.get(c.name)):
+                for name in self._optional:
+                    if hist := p.values.get(name):
                         newest = hist.newest(t)
                         if newest is not None:
-                            sent[c.name] = newest[1]
+                            sent[name] = newest[1]
             if moving:   # its values of one instant, paired with the own at that instant
                 own = self.own[sensors[0]].get(p.agent_id) if sensors else None
                 newest_own = own.newest_stamp if own else t
@@ -1067,10 +1075,11 @@ class AgentRuntime:
             here[p.slot] = True
             for s, v in zip(sensors, own_values):
                 values[s.value][p.slot] = v
-            for c in self.channels.values():
-                value = sent.get(c.name, latest.get(c.name))
-                values[c.name][p.slot] = (value if value is not None
-                                          else self.estimator.missing(c.name))
+            for name, column in values.items():
+                if name in self.channels:
+                    value = sent.get(name, latest.get(name))
+                    column[p.slot] = (value if value is not None
+                                      else self.estimator.missing(name))
             own_hist = self.own[sensors[0]].get(p.agent_id) if sensors else None
             first = p.values.get(names[0]) if names else None
             held[p.slot] = (own_hist.interval(self.h) if own_hist else 1.0,

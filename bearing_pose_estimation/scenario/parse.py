@@ -400,10 +400,14 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     top = _mapping(ctx, data, 'top level', _TOP_KEYS, {'name', 'agents'})
     name = _string(ctx, top['name'], 'name')
     method = top.get('method', estimators.DEFAULT_METHOD)
-    if method not in estimators.methods():
-        raise ctx.fail('method', f'unknown method {method!r}',
+    if not isinstance(method, str):
+        raise ctx.fail('method', f'expected a method\'s name, got {method!r}',
                        f'use one of: {", ".join(estimators.methods())}')
-    cls = estimators.get(method)
+    try:
+        cls = estimators.get(method)
+    except ScenarioError as exc:
+        raise ctx.fail('method', str(exc).split('. Fix: ')[0],
+                       str(exc).split('. Fix: ', 1)[1]) from None
     gain_names = {f.name for f in dataclasses.fields(cls.Gains)}
     raw_gains = _mapping(ctx, top.get('gains', {}), 'gains',
                          gain_names | ({EDGE_GAIN} if cls.edge_gains else set()))
