@@ -29,6 +29,7 @@ PUBLISHER = r'''
 import sys, time, rclpy
 from rclpy.node import Node
 from bearing_pose_estimation import msg_defs as wire
+from bearing_pose_estimation.msg_defs import cdr
 import numpy as np
 rate, count = float(sys.argv[1]), int(sys.argv[2])
 rclpy.init(); node = Node('latency_pub')
@@ -37,7 +38,7 @@ while pub.get_subscription_count() < 1:
     rclpy.spin_once(node, timeout_sec=0.05)
 R, p = np.eye(3), np.zeros(3)
 for k in range(count):
-    pub.publish(wire.encode_pose(time.time(), 'world', R, p))
+    pub.publish(cdr.encode_pose_raw(time.time(), 'world', R, p))
     time.sleep(1.0 / rate)
 time.sleep(0.5); node.destroy_node(); rclpy.shutdown()
 '''

@@ -27,17 +27,20 @@ import rclpy  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
-from sensor_msgs.msg import Imu  # noqa: E402
+from sensor_msgs.msg import Imu, PointCloud2  # noqa: E402
 
 from bearing_pose_estimation import msg_defs as wire  # noqa: E402
+from bearing_pose_estimation.msg_defs import cdr  # noqa: E402
 from bearing_pose_estimation.ros.executor import DrainingExecutor  # noqa: E402
 
 QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-# What the nodes exchange: gyro samples, bearing sets (3 bearings), estimates.
-SAMPLES = {'Imu': lambda: wire.encode_imu(0.0, 'agent_1', [0.1, 0.2, 0.3]),
-           'PointCloud2': lambda: wire.encode_vectors(0.0, 'agent_1/base_link',
-                                                      np.array([2, 3, 4]),
-                                                      [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]),
+# What the nodes exchange: gyro samples, bearing sets (3 bearings), estimates. Message objects:
+# the publisher changes each one's stamp.
+SAMPLES = {'Imu': lambda: wire.message(cdr.encode_imu_raw(0.0, 'agent_1', [0.1, 0.2, 0.3]),
+                                       Imu),
+           'PointCloud2': lambda: wire.message(cdr.encode_vectors_raw(
+               0.0, 'agent_1/base_link', np.array([2, 3, 4]),
+               [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]), PointCloud2),
            'PoseStamped': PoseStamped}
 
 

@@ -26,9 +26,10 @@ rates, but nothing else:
   agents it watches, the followers' ``estimate``, ``/clock``) and creates ``/monitor/ready``,
   so that every writer has the readers it has in a real run.
 
-Each message is built once, with msg_defs' encoders from the scenario's own values (the
-simulator's ``sim.world.World`` at one instant, each agent's ``outbox()``), serialised with
-``rclpy.serialization.serialize_message``, and the bytes are published (rclpy 7.1.6's
+Each message is built once as its serialised bytes, with msg_defs' codecs (``msg_defs.cdr``,
+the nodes' own) from the scenario's own values (the simulator's ``sim.world.World`` at one
+instant, each agent's ``outbox()``; ``/diagnostics`` with
+``rclpy.serialization.serialize_message``), and the bytes are published (rclpy 7.1.6's
 ``Publisher.publish`` takes bytes: ``publish_raw``). Every process is spun like a node
 (``ros.node_main.run_node``: the package's executor, ``DEFAULT_EXECUTOR``). Each process polls its own
 publishers' and subscriptions' match counts until every one has the peers the fleet gives
@@ -324,29 +325,30 @@ def simulator_plan(s: Scenario) -> ProcessPlan:
     for i, name in enumerate(names):   # the node creates imu, bearings, ground truth per agent
         j, b = w.bearings(i)
         pubs += [Pub(wire.topic(name, wire.IMU), wire.Imu, qos,
-                     _ser(wire.encode_imu(t, name, imu[i])), _steps(cycle, w.imu_every)),
+                     wire.cdr.encode_imu_raw(t, name, imu[i]), _steps(cycle, w.imu_every)),
                  Pub(wire.topic(name, wire.BEARINGS), wire.PointCloud2, qos,
-                     _ser(wire.encode_vectors(t, wire.body_frame(name), j + 1, b)),
+                     wire.cdr.encode_vectors_raw(t, wire.body_frame(name), j + 1, b),
                      _steps(cycle, w.bearing_every)),
                  Pub(wire.topic(name, wire.GROUND_TRUTH), wire.PoseStamped, qos,
-                     _ser(wire.encode_pose(t, s.world_frame, w.R[i], w.p[i])),
+                     wire.cdr.encode_pose_raw(t, s.world_frame, w.R[i], w.p[i]),
                      _steps(cycle, w.truth_every))]
     for sensor, every in w.sensor_every.items():
         spec = s.sensors.spec(sensor)
         for i, name in enumerate(names):
             if sensor == 'odometry':
                 assert odometry is not None
-                msg = wire.encode_odometry(t, name, odometry[0][i], odometry[1][i],
-                                           w.odom_R[i], w.odom_p[i], spec.std,
-                                           spec.angular_std)
+                msg = wire.cdr.encode_odometry_raw(t, name, odometry[0][i], odometry[1][i],
+                                                   w.odom_R[i], w.odom_p[i], spec.std,
+                                                   spec.angular_std)
             else:
                 j, values = w.sensed(sensor, i)
-                encode = wire.encode_scalars if sensor == 'ranges' else wire.encode_vectors
+                encode = (wire.cdr.encode_scalars_raw if sensor == 'ranges'
+                          else wire.cdr.encode_vectors_raw)
                 msg = encode(t, wire.body_frame(name), j + 1, values)
             pubs.append(Pub(wire.topic(name, wire.SENSOR_TOPICS[sensor]),
-                            wire.SENSOR_TYPES[sensor], qos, _ser(msg), _steps(cycle, every)))
+                            wire.SENSOR_TYPES[sensor], qos, msg, _steps(cycle, every)))
     pubs.append(Pub(wire.CLOCK, ClockMsg, wire.CLOCK_QOS,
-                    _ser(ClockMsg(clock=wire.to_stamp(t))), _steps(cycle, clock_every)))
+                    wire.cdr.encode_clock_raw(t), _steps(cycle, clock_every)))
     subs = [Sub(wire.topic(n, wire.ESTIMATE), wire.PoseStamped, wire.ESTIMATE_QOS)
             for n in names]
     subs.append(Sub(wire.MONITOR_READY, Empty, wire.LATCHED_QOS))

@@ -1,5 +1,8 @@
-"""Raw CDR: the serialised bytes of the package's standard messages, encoded and decoded with
-numpy, for raw subscriptions (``raw=True``) and pre-serialised publishing (issue 15).
+"""The codecs of the package's messages: values to a message's serialised bytes and back, with
+numpy on the CDR layout (issue 15: no rclpy message object is built, BENCHMARKS.md "Raw CDR").
+One codec per message type; publishers send the bytes as they are (``Publisher.publish``
+takes ``bytes``), raw subscriptions (``raw=True``) give them. Every decoder also takes an rclpy
+message object, serialised first (``msg_defs.raw``); ``msg_defs.message`` makes one of bytes.
 
 The bytes are what ``rclpy.serialization.serialize_message`` gives (rmw_fastrtps, Jazzy):
 plain CDR (XCDR1), little endian, after the 4-byte encapsulation header ``00 01 00 00``.
@@ -9,18 +12,20 @@ bytes differ from these only there). A string is a uint32 length counting its NU
 bytes, then the NUL. A ``std_msgs/Header`` is ``stamp.sec`` int32, ``stamp.nanosec`` uint32,
 then ``frame_id``. A sequence is a uint32 count, then its elements.
 
-Each encoder builds the bytes of the message msg_defs' own encoder of the same name builds
-(``encode_pose_raw`` <-> ``encode_pose``); each decoder returns what msg_defs' decoder returns
-for that message, and rejects what it rejects, raising :class:`WireError` (never another
-error) on malformed bytes as well: another encapsulation, a buffer that ends early or has more
-than 3 bytes after the message, a string past the end or without its NUL, a bool other than
-0 or 1, a PointCloud2 whose fields or data do not fit its points.
+Each encoder's bytes are ``serialize_message`` of the message it describes (but for the padding
+bytes, zero here); each decoder returns the values of a message and raises :class:`WireError`
+(never another error) on values it rejects (non-finite, a non-unit quaternion, a covariance
+that is none, an Odometry twist in another frame) and on malformed bytes: another
+encapsulation, a buffer that ends early or has more than 3 bytes after the message, a string
+past the end or without its NUL, a bool other than 0 or 1, a PointCloud2 whose fields or data
+do not fit its points (``test/test_cdr.py`` checks every codec against rclpy's own
+serialisation).
 """
 from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -29,10 +34,12 @@ from sensor_msgs.msg import PointField
 
 from bearing_pose_estimation.core import so3
 
-from . import WireError, body_frame, checked_covariance, odom_frame
+from . import WireError, body_frame, checked_covariance, odom_frame, raw
 
 Array = NDArray[np.float64]
 Buffer = bytes | bytearray | memoryview
+# What a decoder takes: a message's serialised bytes, or its rclpy message object.
+Data = Buffer | Any
 
 ENCAPSULATION = b'\x00\x01\x00\x00'   # CDR_LE (plain CDR, little endian), options 0
 # What else the first two bytes may say (RTPS 2.3, 10.5): named in the error.
@@ -60,7 +67,8 @@ _FORMATS: dict[int, np.dtype] = {
     PointField.INT32: np.dtype('<i4'), PointField.UINT32: np.dtype('<u4'),
     PointField.FLOAT32: np.dtype('<f4'), PointField.FLOAT64: np.dtype('<f8')}
 _DATATYPES = {dtype: datatype for datatype, dtype in _FORMATS.items()}
-# What a decoder accepts for a field it wants (as msg_defs): FLOAT32 for FLOAT64, widened.
+# What a decoder accepts for a field it wants: FLOAT32 for FLOAT64, widened (most detectors
+# and PCL publish FLOAT32 points; a unit bearing in float32 is unit to 1e-7).
 _ACCEPTED = {PointField.FLOAT64: (PointField.FLOAT64, PointField.FLOAT32)}
 _VECTOR_FIELDS = {'x': PointField.FLOAT64, 'y': PointField.FLOAT64, 'z': PointField.FLOAT64,
                   'agent_id': PointField.UINT32}
@@ -86,8 +94,9 @@ class RawHeader(NamedTuple):
         return self.sec * 1_000_000_000 + self.nanosec
 
 
-def _as_bytes(data: Buffer) -> bytes:
-    return data if isinstance(data, bytes) else bytes(data)
+def _as_bytes(data: Data) -> bytes:
+    """The bytes of ``data``: bytes-like, or a message object (serialised)."""
+    return data if isinstance(data, bytes) else raw(data)
 
 
 def _check_encapsulation(data: bytes, what: str) -> None:
@@ -150,7 +159,7 @@ def _header(data: bytes, what: str) -> tuple[int, int, str, int]:
     return sec, nanosec, frame_id, pos
 
 
-def read_header(data: Buffer) -> RawHeader:
+def read_header(data: Data) -> RawHeader:
     """The Header of any stamped message's bytes (every type here but Clock): stamp and
     ``frame_id``, e.g. to check the frame before decoding.
 
@@ -216,8 +225,8 @@ def _pose_values(R: Array, p: Array) -> Array:
 
 
 def _pose(data: bytes, pos: int) -> tuple[Array, Array]:
-    """``(R, p)`` of the Pose at ``pos``, checked as ``msg_defs.decode_pose`` (its norm is
-    summed in another order: the same to an ulp)."""
+    """``(R, p)`` of the Pose at ``pos``: finite, the quaternion of norm 1 to 1e-3
+    (normalised)."""
     values = _POSE.unpack_from(data, pos)
     if not _finite(values):
         raise WireError('non-finite pose')
@@ -229,13 +238,13 @@ def _pose(data: bytes, pos: int) -> tuple[Array, Array]:
 
 
 def encode_pose_raw(t: float, frame_id: str, R: Array, p: Array) -> bytes:
-    """geometry_msgs/PoseStamped: Header, 8-aligned, then 7 float64 (position, quaternion
-    x, y, z, w); ``msg_defs.encode_pose``'s message."""
+    """geometry_msgs/PoseStamped of the attitude ``R`` (body → ``frame_id``) and position
+    ``p``: Header, 8-aligned, then 7 float64 (position, quaternion x, y, z, w)."""
     return _with_doubles(t, frame_id, _pose_values(R, p))
 
 
-def decode_pose_raw(data: Buffer) -> tuple[float, Array, Array]:
-    """``(t, R, p)`` of a PoseStamped, as ``msg_defs.decode_pose``.
+def decode_pose_raw(data: Data) -> tuple[float, Array, Array]:
+    """``(t, R, p)`` of a PoseStamped; the quaternion is normalised.
 
     Raises:
         WireError: malformed bytes, non-finite values or a quaternion far from unit norm.
@@ -249,16 +258,16 @@ def decode_pose_raw(data: Buffer) -> tuple[float, Array, Array]:
 # ----------------------------------------------------------------------------- covariance
 def encode_pose_covariance_raw(t: float, frame_id: str, R: Array, p: Array,
                                P: Array) -> bytes:
-    """geometry_msgs/PoseWithCovarianceStamped: Header, 8-aligned, the Pose (7 float64), then
-    the 6x6 covariance (36 float64, row-major); ``msg_defs.encode_pose_covariance``'s
-    message."""
+    """geometry_msgs/PoseWithCovarianceStamped: the pose as :func:`encode_pose_raw` with its
+    6x6 covariance ``P`` (position [m], then rotation about the frame's axes [rad], row-major:
+    ROS's x, y, z, rot x, rot y, rot z); Header, 8-aligned, the Pose (7 float64), then the
+    36 float64."""
     values = np.concatenate([_pose_values(R, p), np.asarray(P, dtype=float).reshape(36)])
     return _with_doubles(t, frame_id, values)
 
 
-def decode_covariance_raw(data: Buffer) -> tuple[float, Array]:
-    """``(t, P)`` of a PoseWithCovarianceStamped, as ``msg_defs.decode_covariance`` (the pose
-    is not read).
+def decode_covariance_raw(data: Data) -> tuple[float, Array]:
+    """``(t, P)`` of a PoseWithCovarianceStamped (the pose is not read).
 
     Raises:
         WireError: malformed bytes, or a covariance that is not finite, symmetric and positive
@@ -270,7 +279,7 @@ def decode_covariance_raw(data: Buffer) -> tuple[float, Array]:
                                                offset=pos + 56).copy())
 
 
-def decode_pose_covariance_raw(data: Buffer) -> tuple[float, Array, Array, Array]:
+def decode_pose_covariance_raw(data: Data) -> tuple[float, Array, Array, Array]:
     """``(t, R, p, P)`` of a PoseWithCovarianceStamped: the pose checked as
     :func:`decode_pose_raw`, the covariance as :func:`decode_covariance_raw`.
 
@@ -290,7 +299,7 @@ def encode_vector3_raw(t: float, frame_id: str, v: Array) -> bytes:
     return _with_doubles(t, frame_id, np.asarray(v, dtype=float).reshape(3))
 
 
-def decode_vector3_raw(data: Buffer) -> tuple[float, Array]:
+def decode_vector3_raw(data: Data) -> tuple[float, Array]:
     """``(t, v)`` of a Vector3Stamped.
 
     Raises:
@@ -313,16 +322,17 @@ _IMU[[3, 4, 28]] = 1.0, -1.0, -1.0   # w = 1 (the default); no orientation, no a
 
 
 def encode_imu_raw(t: float, agent: str, omega: Array) -> bytes:
-    """sensor_msgs/Imu: ``msg_defs.encode_imu``'s message (frame ``<agent>/base_link``, the
-    rate in ``angular_velocity``, ``orientation_covariance[0]`` and
-    ``linear_acceleration_covariance[0]`` -1); layout: Header, 8-aligned, 37 float64."""
+    """sensor_msgs/Imu gyro sample: ``angular_velocity`` is the body rate averaged over the
+    interval ending at ``t`` (see ``sim.world``), frame ``<agent>/base_link``. No orientation,
+    no acceleration: their covariances' first elements are -1, as sensor_msgs/Imu specifies.
+    Layout: Header, 8-aligned, 37 float64."""
     values = _IMU.copy()
     values[13:16] = np.asarray(omega, dtype=float).reshape(3)
     return _with_doubles(t, body_frame(agent), values)
 
 
-def decode_imu_raw(data: Buffer) -> tuple[float, Array]:
-    """``(t, omega)`` of an Imu, as ``msg_defs.decode_imu``.
+def decode_imu_raw(data: Data) -> tuple[float, Array]:
+    """``(t, omega)`` of an Imu (its ``angular_velocity``).
 
     Raises:
         WireError: malformed bytes or a non-finite angular velocity.
@@ -346,8 +356,26 @@ _ODOMETRY[6] = 1.0   # orientation w
 def encode_odometry_raw(t: float, agent: str, v: Array, omega: Array,
                         R_odom: Array | None = None, p_odom: Array | None = None,
                         v_std: float = 0.0, omega_std: float = 0.0) -> bytes:
-    """nav_msgs/Odometry: ``msg_defs.encode_odometry``'s message, same arguments (frame
-    ``<agent>/odom``, twist in ``<agent>/base_link``, diagonal twist covariance)."""
+    """nav_msgs/Odometry sample: the body twist in ``child_frame_id`` = ``<agent>/base_link``
+    (REP-105), the dead-reckoned pose in ``header.frame_id`` = ``<agent>/odom``.
+
+    The sample stamped ``t`` = ``t_k`` is an interval average, like the Imu gyro samples: the
+    constant body twist ``(v_k, ω_k)`` that produces the true pose increment over
+    ``(t_{k-1}, t_k]``, i.e. the SE(3) logarithm of the relative pose
+    ``T_{k-1}⁻¹ T_k`` divided by ``h = t_k - t_{k-1}``. Its ``ω_k`` is the gyro sample of the
+    same interval. Integrating the samples piecewise constant, ``R_k = R_{k-1} exp(ω_k h)`` and
+    ``p_k = p_{k-1} + R_{k-1} J(ω_k h) v_k h`` (J: left Jacobian of SO(3)), is then exact from
+    stamp to stamp; holding a sampled instantaneous velocity over a step leaves an O(h) bias.
+
+    Args:
+        v: body-frame linear velocity [m/s] (``twist.twist.linear``).
+        omega: body rate [rad/s] (``twist.twist.angular``).
+        R_odom, p_odom: the dead-reckoned attitude (body → odom) and position [m] for RViz;
+            identity and zero when not given.
+        v_std, omega_std: standard deviations [m/s], [rad/s]; ``twist.covariance`` (row-major
+            6x6, x y z roll pitch yaw) is diagonal with ``v_std²`` and ``omega_std²``.
+            ``pose.covariance`` stays zero: the estimator does not read the pose.
+    """
     values = _ODOMETRY.copy()
     if p_odom is not None:
         values[0:3] = np.asarray(p_odom, dtype=float).reshape(3)
@@ -363,13 +391,13 @@ def encode_odometry_raw(t: float, agent: str, v: Array, omega: Array,
     return head + child + pad + values.tobytes()
 
 
-def decode_odometry_raw(data: Buffer,
+def decode_odometry_raw(data: Data,
                         child_frame: str | None = None) -> tuple[float, Array, Array]:
-    """``(t, v, omega)`` of an Odometry, as ``msg_defs.decode_odometry`` (the pose and the
-    covariances are not read).
+    """``(t, v, omega)`` of an Odometry (the pose and the covariances are not read).
 
     Args:
-        child_frame: when given, the frame the twist must be expressed in.
+        child_frame: when given, the frame the twist must be expressed in (the agent's
+            ``msg_defs.body_frame``): a twist in another frame would be misread.
 
     Raises:
         WireError: malformed bytes, a ``child_frame_id`` other than ``child_frame``, or a
@@ -397,8 +425,8 @@ def encode_clock_raw(t: float) -> bytes:
     return _CLOCK.pack(ENCAPSULATION, *_stamp(t))
 
 
-def decode_clock_raw(data: Buffer) -> float:
-    """The time [s] of a Clock, as ``msg_defs.from_stamp(msg.clock)``.
+def decode_clock_raw(data: Data) -> float:
+    """The time [s] of a Clock (``msg_defs.from_stamp(msg.clock)``).
 
     Raises:
         WireError: malformed bytes.
@@ -444,7 +472,7 @@ def _fields_bytes(dtype: np.dtype) -> bytes:
 def encode_cloud_raw(t: float, frame_id: str, points: np.ndarray) -> bytes:
     """A little-endian, dense, one-row PointCloud2 of the structured array ``points``: one
     PointField (count 1) per field of its dtype, in order, at its offset, ``point_step`` its
-    itemsize; msg_defs' ``_encode_cloud``'s message."""
+    itemsize."""
     if points.dtype.names is None:
         raise WireError(f'points must be a structured array, not {points.dtype}')
     n, step = len(points), points.dtype.itemsize
@@ -499,8 +527,9 @@ def _point_fields(data: bytes, pos: int) -> tuple[bytes, dict[str, tuple[int, in
 
 def _point_dtype(fields: Mapping[str, tuple[int, int, int]], want: Mapping[str, int],
                  point_step: int) -> np.dtype:
-    """The numpy view of the wanted fields of points of ``point_step`` bytes, checked as
-    msg_defs' ``_decode_cloud`` checks them."""
+    """The numpy view of the wanted fields of points of ``point_step`` bytes: each wanted
+    field present, of an accepted datatype, count 1, within the point and overlapping no
+    other wanted field."""
     for name, datatype in want.items():
         accepted = _ACCEPTED.get(datatype, (datatype,))
         if name not in fields or fields[name][1] not in accepted or fields[name][2] != 1:
@@ -523,10 +552,10 @@ def _point_dtype(fields: Mapping[str, tuple[int, int, int]], want: Mapping[str, 
                      'itemsize': point_step})
 
 
-def decode_cloud_raw(data: Buffer, want: Mapping[str, int]) -> tuple[float, np.ndarray]:
+def decode_cloud_raw(data: Data, want: Mapping[str, int]) -> tuple[float, np.ndarray]:
     """The stamp and the points of a PointCloud2 as a structured array (a read-only view of
     ``data``) of the fields ``want`` (``{name: PointField datatype}``), in any order and with
-    any padding, as msg_defs' ``_decode_cloud``: a FLOAT64 field may come as FLOAT32;
+    any padding (a user's detector, PCL): a FLOAT64 field may come as FLOAT32;
     ``row_step`` and ``is_dense`` are not read.
 
     Raises:
@@ -578,8 +607,9 @@ def _columns(points: np.ndarray, names: tuple[str, ...]) -> Array:
 
 def encode_vectors_raw(t: float, frame_id: str, ids: NDArray[np.integer],
                        vectors: Array) -> bytes:
-    """``msg_defs.encode_vectors``'s PointCloud2: x, y, z FLOAT64 at 0, 8, 16, agent_id UINT32
-    at 24, point_step 28."""
+    """Vectors tagged with agent ids (one point per observed agent: unit bearings, relative
+    positions [m], bearing rates [1/s]) as a PointCloud2: x, y, z FLOAT64 at 0, 8, 16,
+    agent_id UINT32 at 24, point_step 28; little endian, dense, one row."""
     vectors = np.asarray(vectors, dtype=float).reshape(-1, 3)
     points = np.empty(len(vectors), dtype=_VECTOR_DTYPE)
     points['x'], points['y'], points['z'] = vectors.T
@@ -587,9 +617,10 @@ def encode_vectors_raw(t: float, frame_id: str, ids: NDArray[np.integer],
     return encode_cloud_raw(t, frame_id, points)
 
 
-def decode_vectors_raw(data: Buffer) -> tuple[float, NDArray[np.uint32], Array]:
+def decode_vectors_raw(data: Data) -> tuple[float, NDArray[np.uint32], Array]:
     """``(t, ids, vectors)`` of a PointCloud2 with x, y, z (FLOAT64 or FLOAT32) and agent_id
-    (UINT32), as ``msg_defs.decode_vectors``; the values are not checked.
+    (UINT32), in any order and with any padding. The values are not checked (finite, unit
+    norm): each receiver validates its points.
 
     Raises:
         WireError: as :func:`decode_cloud_raw`.
@@ -600,8 +631,8 @@ def decode_vectors_raw(data: Buffer) -> tuple[float, NDArray[np.uint32], Array]:
 
 def encode_scalars_raw(t: float, frame_id: str, ids: NDArray[np.integer], values: Array,
                        field: str = 'range') -> bytes:
-    """``msg_defs.encode_scalars``'s PointCloud2: ``field`` FLOAT64 at 0, agent_id UINT32 at 8,
-    point_step 12."""
+    """Scalars tagged with agent ids (e.g. ranges [m]) as a PointCloud2: ``field`` FLOAT64 at
+    0, agent_id UINT32 at 8, point_step 12; little endian, dense, one row."""
     values = np.asarray(values, dtype=float).reshape(-1)
     points = np.empty(len(values), dtype=_packed({field: PointField.FLOAT64,
                                                   'agent_id': PointField.UINT32}))
@@ -610,10 +641,10 @@ def encode_scalars_raw(t: float, frame_id: str, ids: NDArray[np.integer], values
     return encode_cloud_raw(t, frame_id, points)
 
 
-def decode_scalars_raw(data: Buffer,
+def decode_scalars_raw(data: Data,
                        field: str = 'range') -> tuple[float, NDArray[np.uint32], Array]:
-    """``(t, ids, values)`` of a PointCloud2 with ``field`` (FLOAT64 or FLOAT32) and agent_id,
-    as ``msg_defs.decode_scalars``; the values are not checked.
+    """``(t, ids, values)`` of a PointCloud2 with ``field`` (FLOAT64 or FLOAT32) and agent_id
+    (UINT32), in any order and with any padding; the values are not checked.
 
     Raises:
         WireError: as :func:`decode_cloud_raw`.
@@ -636,23 +667,22 @@ def encode_points_raw(t: float, frame_id: str, ids: NDArray[np.integer], values:
     return encode_cloud_raw(t, frame_id, points)
 
 
-def decode_points_raw(data: Buffer, fields: tuple[str, ...]
+def decode_points_raw(data: Data, fields: tuple[str, ...]
                       ) -> tuple[float, NDArray[np.uint32], Array]:
     """``(t, ids, values)`` of :func:`encode_points_raw`'s cloud (any field order, padding, or
-    FLOAT32), ``values`` ``(n, len(fields))``; checked finite.
+    FLOAT32), ``values`` ``(n, len(fields))``. The values are not checked, as
+    :func:`decode_vectors_raw`'s: each listener checks its own point and counts a rejection by
+    its cause (``non_finite``, ...), and one listener's bad point costs the others nothing.
 
     Raises:
-        WireError: as :func:`decode_cloud_raw`, or a non-finite value.
+        WireError: as :func:`decode_cloud_raw`.
     """
     t, points = decode_cloud_raw(data, {**{f: PointField.FLOAT64 for f in fields},
                                         'agent_id': PointField.UINT32})
-    values = _columns(points, fields)
-    if not np.isfinite(values).all():
-        raise WireError('non-finite point values')
-    return t, points['agent_id'].astype(np.uint32), values
+    return t, points['agent_id'].astype(np.uint32), _columns(points, fields)
 
 
-def decode_position_raw(data: Buffer) -> tuple[float, Array]:
+def decode_position_raw(data: Data) -> tuple[float, Array]:
     """The stamp and position of a PoseWithCovarianceStamped (its covariance is read on its
     own, :func:`decode_covariance_raw`)."""
     data = _as_bytes(data)

@@ -102,8 +102,8 @@ class Fleet:
         if agent.name in self.silent:
             return
         for r, topics in self.topics.items():
-            for topic, names in topics.items():
-                content = {n: reply[n] for n in names if r > 1 and n in reply}
+            for topic, names in topics.items() if r > 1 else ():
+                content = {n: reply[n] for n in names if n in reply}
                 if content:
                     self._send(agent, topic, content)
 

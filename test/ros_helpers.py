@@ -21,6 +21,7 @@ from rclpy.node import Node
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.core import so3
 from bearing_pose_estimation import msg_defs as wire
+from bearing_pose_estimation.msg_defs import cdr
 
 
 class Observer:
@@ -90,12 +91,12 @@ def paired_errors(obs: Observer, agent: str, since: float = -1.0
                   ) -> list[tuple[float, float, float]]:
     """(t, attitude error [rad], position error [m]) of ``agent`` at the stamps where its
     recorded estimate and ground truth pair up; every estimate must be finite."""
-    truth = {wire.stamp_ns(m.header.stamp): wire.decode_pose(m)
+    truth = {wire.stamp_ns(m.header.stamp): cdr.decode_pose_raw(m)
              for m in obs.messages[f'/{agent}/ground_truth']}
     out = []
     for m in obs.messages[f'/{agent}/estimate']:
         ns = wire.stamp_ns(m.header.stamp)
-        t, R_hat, p_hat = wire.decode_pose(m)
+        t, R_hat, p_hat = cdr.decode_pose_raw(m)
         assert np.all(np.isfinite(R_hat)) and np.all(np.isfinite(p_hat))
         if ns in truth and t > since:
             _, R, p = truth[ns]

@@ -20,7 +20,7 @@ import pytest
 
 from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.core import so3
-from bearing_pose_estimation.estimators.base import Edges, StepInputs
+from bearing_pose_estimation.estimators.base import DELTA_R, DISPLACEMENT, HELD, Edges, StepInputs
 from bearing_pose_estimation.estimators.boughellaba_tayebi import CascadeGains, cascade_step
 from bearing_pose_estimation.estimators.covariance import cascade_jacobians, tran_jacobians
 from bearing_pose_estimation.estimators.tran_anderson_ahn import (TranGains, TwoNeighbourPairs,
@@ -170,12 +170,19 @@ def test_held_samples_count_as_long_as_they_serve():
     from bearing_pose_estimation.sim import netsim
     s = load_scenario(ROOT / 'config' / 'paper_noisy.yaml')
     net = netsim._Network(s, netsim.LinkFaults(), (), netsim.Garbage(), netsim.Limits())
+    agent = net.agents['agent_3']
+    begin, steps = agent.begin_step, []
+
+    def begin_step():   # the inputs of each of its steps, as its runtime gathered them
+        prepared = begin()
+        steps.append(prepared.inputs)
+        return prepared
+    agent.begin_step = begin_step
     net.start()
     for tick in range(1, 500):
         net.tick(tick * net.world.dt)
-    agent = net.agents['agent_3']
-    inputs = agent.step_inputs(agent.t, np.eye(3)[None], [])
-    np.testing.assert_allclose(inputs.held, 2.0)
+    assert len(steps) == 49 and len(steps[-1].edges) == len(agent.peers) == 2
+    np.testing.assert_allclose(steps[-1].edge[HELD], 2.0)
     with ProcessPoolExecutor(2) as pool:
         runs = np.array(list(pool.map(_nees, range(2), [True] * 2)))
     mean = runs.mean(axis=(0, 1))
@@ -202,10 +209,10 @@ def test_leaders_are_exact_and_an_agent_alone_only_grows():
     x = est.initial_state(np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 3)))
     x = est.with_known_pose(x, np.array([0]), np.eye(3)[None], np.zeros((1, 3)))
     assert not x.P[0].any() and x.P[1].any()
-    alone = StepInputs(delta_R=np.tile(np.eye(3), (2, 1, 1)),
-                       edges=Edges(agent=np.zeros(0, np.intp), k=np.zeros(0), n_agents=2),
-                       bearings=np.zeros((0, 3)),
-                       received={c.name: np.zeros((0,) + c.shape) for c in est.sends})
+    alone = StepInputs(edges=Edges(agent=np.zeros(0, np.intp), k=np.zeros(0), n_agents=2),
+                       agent={DELTA_R: np.tile(np.eye(3), (2, 1, 1))},
+                       edge={'bearings': np.zeros((0, 3)),
+                             **{c.name: np.zeros((0,) + c.shape) for c in est.sends}})
     P0 = x.P[1].copy()
     for _ in range(100):
         x, _ = est.step(x, H, alone)
@@ -218,7 +225,8 @@ def test_leaders_are_exact_and_an_agent_alone_only_grows():
     moving = type(est)(dataclasses.replace(est.gains, odometry_noise_density=0.05))
     y = moving.initial_state(np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 3)))
     y.P[:, 3:, 3:] = 0.0
-    step = dataclasses.replace(alone, displacement=np.tile([H * 1.0, 0.0, 0.0], (2, 1)))
+    step = dataclasses.replace(alone, agent={**alone.agent,
+                                             DISPLACEMENT: np.tile([H * 1.0, 0.0, 0.0], (2, 1))})
     for _ in range(100):
         y, _ = moving.step(y, H, step)
     odometry = 100 * H * 0.05 ** 2
@@ -233,12 +241,12 @@ def test_collinear_bearings_leave_the_position_along_them_unknown():
     assert method.gains == est
     x = method.initial_state(np.eye(3)[None], np.zeros((1, 3)))
     line = np.array([1.0, 0.0, 0.0])
-    inputs = StepInputs(delta_R=np.eye(3)[None],
-                        edges=Edges(agent=np.zeros(2, np.intp), k=np.ones(2), n_agents=1),
-                        bearings=np.array([line, -line]),
-                        received={'world_bearing': np.array([-line, line]),
-                                  'p_hat': np.array([2 * line, -3 * line]),
-                                  'pose_cov': np.zeros((2, 6, 6))})
+    inputs = StepInputs(edges=Edges(agent=np.zeros(2, np.intp), k=np.ones(2), n_agents=1),
+                        agent={DELTA_R: np.eye(3)[None]},
+                        edge={'bearings': np.array([line, -line]),
+                              'world_bearing': np.array([-line, line]),
+                              'p_hat': np.array([2 * line, -3 * line]),
+                              'pose_cov': np.zeros((2, 6, 6))})
     for _ in range(500):
         x, _ = method.step(x, H, inputs)
     P = x.P[0]
@@ -248,12 +256,16 @@ def test_collinear_bearings_leave_the_position_along_them_unknown():
 
 
 def test_the_covariance_round_trips_on_the_wire_and_a_broken_one_is_rejected():
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    from bearing_pose_estimation.msg_defs import cdr
     rng = np.random.default_rng(2)
     A = rng.normal(size=(6, 6))
     P = A @ A.T
     R = so3.exp([0.1, 0.2, 0.3])
-    msg = wire.encode_pose_covariance(1.25, 'map', R, np.array([1.0, 2.0, 3.0]), P)
-    t, back = wire.decode_covariance(msg)
+    data = cdr.encode_pose_covariance_raw(1.25, 'map', R, np.array([1.0, 2.0, 3.0]), P)
+    t, back = cdr.decode_covariance_raw(data)
+    msg = wire.message(data, PoseWithCovarianceStamped)
     assert t == 1.25 and msg.header.frame_id == 'map'
     np.testing.assert_array_equal(back, P)
     np.testing.assert_allclose(so3.from_quat([msg.pose.pose.orientation.x,
@@ -266,4 +278,4 @@ def test_the_covariance_round_trips_on_the_wire_and_a_broken_one_is_rejected():
                 np.where(np.eye(6) > 0, np.nan, P)):
         msg.pose.covariance = bad.reshape(36).tolist()
         with pytest.raises(wire.WireError, match='covariance'):
-            wire.decode_covariance(msg)
+            cdr.decode_covariance_raw(wire.raw(msg))

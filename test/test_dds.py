@@ -20,7 +20,7 @@ import yaml
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.core import so3
 from bearing_pose_estimation import msg_defs as wire
-from bearing_pose_estimation.msg_defs import rviz
+from bearing_pose_estimation.msg_defs import cdr, rviz
 from bearing_pose_estimation.cli.main import main
 from bearing_pose_estimation.ros.estimator_group import CPU_SPLIT_ENV
 from bearing_pose_estimation.ros.step_batch import read_cpu_split
@@ -151,7 +151,7 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
 
     bearings = m['/agent_3/bearings']
     assert {x.header.frame_id for x in bearings} == {'agent_3/base_link'}
-    t, ids, vectors = wire.decode_vectors(bearings[-1])
+    t, ids, vectors = cdr.decode_vectors_raw(bearings[-1])
     assert sorted(ids.tolist()) == [1, 2]
     np.testing.assert_allclose(np.linalg.norm(vectors, axis=1), 1.0, atol=1e-12)
 
@@ -173,9 +173,9 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
     paired = [x for x in poses if wire.from_stamp(x.header.stamp) in by_stamp][-5:]
     assert len(paired) == 5
     for msg in paired:
-        t, P = wire.decode_covariance(msg)
+        t, P = cdr.decode_covariance_raw(msg)
         assert np.all(np.linalg.eigvalsh(P) > 0.0)
-        np.testing.assert_array_equal(wire.decode_pose(by_stamp[t])[2],
+        np.testing.assert_array_equal(cdr.decode_pose_raw(by_stamp[t])[2],
                                       [msg.pose.pose.position.x, msg.pose.pose.position.y,
                                        msg.pose.pose.position.z])
         assert np.trace(P[:3, :3]) < 0.5 * 3 * 2.0 ** 2 and np.trace(P[3:, 3:]) < 0.5 * 3
@@ -190,7 +190,7 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
     checked = 0
     for msg in m['/agent_1/world_bearings']:
         assert msg.header.frame_id == 'map'
-        t, ids, vectors = wire.decode_vectors(msg)
+        t, ids, vectors = cdr.decode_vectors_raw(msg)
         if t > 0.0:
             row = dict(zip(ids.tolist(), vectors))
             assert sorted(row) == [3]  # a leader senses only its listeners
@@ -207,7 +207,7 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
     odom_stamps = np.array([wire.from_stamp(x.header.stamp) for x in odom])
     np.testing.assert_allclose(np.round(odom_stamps / 0.01) * 0.01, odom_stamps, atol=1e-9)
     for msg in odom[-20:]:
-        t, v, _ = wire.decode_odometry(msg, 'agent_3/base_link')
+        t, v, _ = cdr.decode_odometry_raw(msg, 'agent_3/base_link')
         speed = np.hypot(0.2, 0.3 * np.sin(t - 0.005))
         assert np.linalg.norm(v) == pytest.approx(speed, abs=1e-4), t
     clock = [wire.from_stamp(c.clock) for c in m['/clock']]

@@ -19,6 +19,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 
 from bearing_pose_estimation import msg_defs as wire
+from bearing_pose_estimation.msg_defs import cdr
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.scenario.parse import read_scenario_data
@@ -81,7 +82,8 @@ def test_the_fleet_reproduces_the_batch_simulator(run):
     every step waits for all its inputs, so the fleet computes what the batch simulator does,
     down to rounding and the wire's float64 quaternion (1e-12 rad). A step that goes on
     without a value (an owner's relative yaw that was never sent, a reader matched after the
-    first values: each cost 5 % at t = 0.2 s) breaks it, and its count says which."""
+    first values: each cost 5 % at t = 0.2 s; a neighbour taken as silent before its first
+    values arrive: 7e-4 from t = 0.1 s) breaks it, and its count says which."""
     scenario_file, out, messages = run
     dds = read_metrics_csv(out / 'metrics.csv')
     rec = BatchSimulator(load_scenario(scenario_file)).run(DURATION, record_every=0.1)
@@ -91,9 +93,11 @@ def test_the_fleet_reproduces_the_batch_simulator(run):
     final = {s.name: {kv.key: kv.value for kv in s.values}
              for m in messages['/diagnostics'] for s in m.status if s.name.endswith('/estimator')}
     assert len(final) == 8
-    for name, values in final.items():
+    for name, values in final.items():   # every step had every input of its instant
         assert values.get('event_impatient_steps', '0') == '0', name
-        assert values['carried'] == '0', name
+        assert values['carried'] == '0' and values['incomplete_steps'] == '0', name
+        assert values.get('odometry_missing_steps', '0') == '0', name
+        assert not [k for k in values if k.startswith(('missing_', 'rejected_'))], values
     np.testing.assert_allclose(pos_d, pos_b, rtol=1e-6)
     np.testing.assert_allclose(att_d, att_b, rtol=1e-6, atol=1e-12)
     assert pos_d[-1] < 0.1 * pos_d[0] and att_d[-1] < 1e-6
@@ -112,7 +116,7 @@ def test_yaw_estimates_travel_as_complex_numbers_in_the_estimation_frame(run):
     assert pairs and {m.header.frame_id for m in pairs} == {'robot_0/base_link'}
     # robot_0 (id 1) owns only the two-way pair with robot_1 (id 2, the lower id owns it):
     # robots 3 and 4 sense robot_0 and own theirs. One unit complex number, for robot_1.
-    _, ids, values = wire.decode_vectors(pairs[-1])
+    _, ids, values = cdr.decode_vectors_raw(pairs[-1])
     assert ids.tolist() == [2]
     assert abs(np.hypot(values[0, 0], values[0, 1]) - 1.0) < 1e-12 and values[0, 2] == 0.0
 
@@ -122,7 +126,7 @@ def test_the_pose_carries_the_batch_simulator_s_covariance(run):
     frame = wire.estimation_frame(load_scenario(scenario_file).name)
     poses = messages['/robot_0/pose']
     assert poses and {m.header.frame_id for m in poses} == {frame}
-    t, P = wire.decode_covariance(poses[-1])
+    t, P = cdr.decode_covariance_raw(poses[-1])
     sim = BatchSimulator(load_scenario(scenario_file))
     while sim.t < t - 1e-9:
         sim.step()

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import yaml
 from rclpy.parameter import Parameter
-from rclpy.serialization import serialize_message
 
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.core import so3
 from bearing_pose_estimation.estimators.base import Sensor
 from bearing_pose_estimation import msg_defs as wire
+from bearing_pose_estimation.msg_defs import cdr
 from bearing_pose_estimation.ros.estimator_node import EstimatorNode
 from bearing_pose_estimation.ros.node_main import parameter_overrides
 from bearing_pose_estimation.estimators.boughellaba_tayebi import CascadeGains
@@ -86,13 +86,13 @@ def test_a_neighbours_pose_gives_its_position_even_with_a_bad_covariance(context
     frame is rejected whole, once."""
     node = _node(context, raw_messages=raw, **EXPLICIT)
     try:
-        node.on_imu(wire.encode_imu(0.0, 'agent_5', np.zeros(3)))   # creates the estimator
+        node.on_imu(cdr.encode_imu_raw(0.0, 'agent_5', np.zeros(3)))   # creates the estimator
         nb = node.rt.peers[0]
         on_pose = next(s for s in node.subscriptions if s.topic_name == '/agent_1/pose').callback
 
         def send(t, frame, p, P):
-            msg = wire.encode_pose_covariance(t, frame, np.eye(3), p, P)
-            on_pose(serialize_message(msg) if raw else msg)
+            data = cdr.encode_pose_covariance_raw(t, frame, np.eye(3), p, P)
+            on_pose(data if raw else wire.message(data, wire.PoseWithCovarianceStamped))
 
         good = np.diag([0.1, 0.1, 0.1, 0.01, 0.01, 0.01])
         send(0.0, 'world', [1.0, 2.0, 3.0], good)
@@ -230,16 +230,16 @@ def test_messages_as_bytes_or_as_objects_give_the_same_estimate(context, raw):
     try:
         assert node.subscriptions and all(s.raw == raw for s in node.subscriptions)
         for k in range(3):
-            msg = wire.encode_imu(0.005 * k, 'agent_5', np.array([0.0, 0.0, 0.1 * k]))
-            node.on_imu(serialize_message(msg) if raw else msg)
+            data = cdr.encode_imu_raw(0.005 * k, 'agent_5', np.array([0.0, 0.0, 0.1 * k]))
+            node.on_imu(data if raw else wire.message(data, wire.Imu))
         assert node.rt.gyro.end == pytest.approx(0.01)
         np.testing.assert_allclose(so3.log(node.rt.gyro.increment(0.0, 0.01)),
                                    [0.0, 0.0, 0.005 * 0.1 + 0.005 * 0.2], atol=1e-12)
-        elsewhere = wire.encode_imu(0.015, 'agent_4', np.zeros(3))   # another body's frame
-        node.on_imu(serialize_message(elsewhere) if raw else elsewhere)
+        elsewhere = cdr.encode_imu_raw(0.015, 'agent_4', np.zeros(3))   # another body's frame
+        node.on_imu(elsewhere if raw else wire.message(elsewhere, wire.Imu))
         assert node.rejected['wrong_frame'] == 1
         if raw:
-            node.on_imu(serialize_message(msg)[:-5])               # truncated
+            node.on_imu(data[:-5])                                  # truncated
             node.on_points(Sensor.BEARINGS, b'\x00\x01\x00\x00garbage')
             assert node.rejected['malformed'] == 2
     finally:
@@ -464,7 +464,7 @@ def test_a_stalled_agent_takes_messages_the_executor_was_not_told_of(context):
         while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
             time.sleep(0.01)
         for t in (0.005, 0.01):
-            pub.publish(wire.encode_imu(t, 'agent_1', np.array([0.0, 0.0, 0.2])))
+            pub.publish(cdr.encode_imu_raw(t, 'agent_1', np.array([0.0, 0.0, 0.2])))
         node.on_watch()   # notes (k, gyro end): nothing taken yet
         assert node.rt.gyro.end == 0.0 and not node.events['taken_while_stalled']
         while node.events['taken_while_stalled'] < 2 and time.monotonic() < deadline:

@@ -14,6 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation import msg_defs as wire
+from bearing_pose_estimation.msg_defs import cdr
 from bearing_pose_estimation.scenario import load_scenario, parse_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
 
@@ -115,20 +116,21 @@ def test_bad_input_is_rejected_counted_and_reported(fleet):
 
     def garbage() -> list:
         t = _latest_t(obs, '/agent_4/ground_truth')
-        broken = wire.encode_vectors(t, 'agent_3/base_link', [1], [[0, 0, 1.0]])
+        broken = wire.message(cdr.encode_vectors_raw(t, 'agent_3/base_link', [1],
+                                                     [[0, 0, 1.0]]), wire.PointCloud2)
         broken.fields = broken.fields[:2]  # no z, no agent_id
-        return [
-            (imu, wire.encode_imu(t + 0.0001, 'agent_3', [np.nan, 0, 0])),
-            (imu, wire.encode_imu(t + 0.0002, 'agent_3', [1e6, 0, 0])),
-            (imu, wire.encode_imu(t + 500.0, 'agent_3', [0.1, 0, 0])),
-            (imu, wire.encode_imu(t + 0.0003, 'agent_9', [0.1, 0, 0])),
-            (bearings, wire.encode_vectors(t, 'agent_3/base_link', [1, 2],
-                                           [[0, 0, 2.0], [0, 0, 0]])),
-            (bearings, wire.encode_vectors(t, 'agent_3/base_link', [42], [[0, 0, 1.0]])),
-            (bearings, wire.encode_vectors(t, 'camera', [1], [[0, 0, 1.0]])),
+        return [   # bytes (cdr's), or a message object
+            (imu, cdr.encode_imu_raw(t + 0.0001, 'agent_3', [np.nan, 0, 0])),
+            (imu, cdr.encode_imu_raw(t + 0.0002, 'agent_3', [1e6, 0, 0])),
+            (imu, cdr.encode_imu_raw(t + 500.0, 'agent_3', [0.1, 0, 0])),
+            (imu, cdr.encode_imu_raw(t + 0.0003, 'agent_9', [0.1, 0, 0])),
+            (bearings, cdr.encode_vectors_raw(t, 'agent_3/base_link', [1, 2],
+                                              [[0, 0, 2.0], [0, 0, 0]])),
+            (bearings, cdr.encode_vectors_raw(t, 'agent_3/base_link', [42], [[0, 0, 1.0]])),
+            (bearings, cdr.encode_vectors_raw(t, 'camera', [1], [[0, 0, 1.0]])),
             (bearings, broken),
-            (nbr, wire.encode_vectors(t, 'world', [3], [[np.inf, 0, 0]])),
-            (nbr, wire.encode_vectors(t, 'agent_1/base_link', [3], [[0, 0, 1.0]]))]
+            (nbr, cdr.encode_vectors_raw(t, 'world', [3], [[np.inf, 0, 0]])),
+            (nbr, cdr.encode_vectors_raw(t, 'agent_1/base_link', [3], [[0, 0, 1.0]]))]
 
     def reported() -> bool:
         d = _diagnostics(obs, 'agent_3')

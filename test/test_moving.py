@@ -4,7 +4,6 @@ solutions."""
 from __future__ import annotations
 
 import dataclasses
-from collections import deque
 
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ from bearing_pose_estimation.core import so3
 from bearing_pose_estimation.core.odometry import OdometryBuffer
 from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.scenario.model import SensorSpec
+from bearing_pose_estimation.scenario.runtimes import agent_specs, runtime_for
 from bearing_pose_estimation.sim.batch import BatchSimulator
 from bearing_pose_estimation.sim.truth import Truth
 from bearing_pose_estimation.sim.world import World
@@ -21,6 +21,11 @@ from conftest import REPO_ROOT
 
 MOVING = REPO_ROOT / 'config' / 'paper_8_agents_moving.yaml'
 A = np.arange(1, 9, dtype=float)[:, None]   # the paper's agent numbers
+
+
+def _runtime(scenario, name: str):
+    """Agent ``name``'s runtime as the scenario defines it (a robot's: no fixed exchange)."""
+    return runtime_for(scenario, agent_specs(scenario)[scenario.index[name]])
 
 
 def _v(t: float) -> np.ndarray:
@@ -259,9 +264,7 @@ def test_the_node_logic_pairs_late_messages_with_the_own_past():
 
 
 def test_bad_odometry_is_rejected_with_a_cause_and_live_odometry_paces_the_steps():
-    from bearing_pose_estimation.estimators.agent import estimator_for
-
-    est = estimator_for(load_scenario(MOVING), 'agent_3')
+    est = _runtime(load_scenario(MOVING), 'agent_3')
     nan = np.array([np.nan, 0.0, 0.0])
     assert est.add_odometry(0.01, nan, np.zeros(3)) == 'non_finite'
     assert est.add_odometry(0.01, np.zeros(3), nan) == 'non_finite'
@@ -273,8 +276,8 @@ def test_bad_odometry_is_rejected_with_a_cause_and_live_odometry_paces_the_steps
     for k in range(1, 4):
         assert est.add_odometry(0.01 * k, np.array([0.3, 0.0, 0.0]), np.zeros(3)) is None
     assert est.add_odometry(0.02, np.zeros(3), np.zeros(3)) == 'out_of_order'
-    assert est.odometry_live() and est.steps_ready() == 3
-    est.advance()
+    assert est.odometry_live() and est.steps_ready() == 1
+    assert est.advance() == 3 and est.t == pytest.approx(0.03)
     assert est.last.odometry and est.odometry_missing_steps == 0
     assert np.all(np.isfinite(est.p_hat))
 
@@ -283,12 +286,16 @@ def test_neighbour_values_are_paired_at_one_instant():
     """j's channels travel in separate messages: a step pairs the newest instant at which all
     of them (and our own bearing) exist, never values of two instants; with none yet, the
     edge sits the step out."""
-    from bearing_pose_estimation.estimators.agent import NeighbourState
+    from bearing_pose_estimation.runtime.agent import Peer, PeerSpec
+    from bearing_pose_estimation.runtime.buffers import Stamped
 
-    nb = NeighbourState('agent_1', 1, 1.0)
+    nb = Peer(PeerSpec('agent_1', 1, 1.0), 0, None)
     a, b, c = (np.full(3, x) for x in (1.0, 2.0, 3.0))
-    nb.history = {'p_hat': deque([(0.02, a), (0.04, b), (0.06, c)]),
-                  'world_bearing': deque([(0.02, -a), (0.04, -b)])}
+    for name, samples in (('p_hat', [(0.02, a), (0.04, b), (0.06, c)]),
+                          ('world_bearing', [(0.02, -a), (0.04, -b)])):
+        nb.values[name] = Stamped()
+        for stamp, value in samples:
+            nb.values[name].add(stamp, value)
     t_s, values = nb.at_one_instant(['p_hat', 'world_bearing'], not_after=1.0)
     assert t_s == 0.04 and values['p_hat'] is b and values['world_bearing'] is not None
     assert nb.at_one_instant(['p_hat', 'world_bearing'], not_after=0.03)[0] == 0.02
@@ -299,17 +306,16 @@ def test_a_leaders_known_pose_waits_for_the_odometry_that_carries_it():
     """A known pose stamped ahead of the odometry cannot be carried back to the step time
     yet: it is applied once odometry covers the way, and the leader's estimate is then its
     true pose (here: constant body velocity, so p(t) = p(t_k) + R (t - t_k) v)."""
-    from bearing_pose_estimation.estimators.agent import estimator_for
-
     s = load_scenario(MOVING)
-    est = estimator_for(s, 'agent_1')
+    est = _runtime(s, 'agent_1')
+    assert est.leader
     v = np.array([0.3, 0.0, 0.0])
     for k in range(1, 9):
         est.add_gyro(0.005 * k, np.zeros(3))
     for k in range(1, 3):
         est.add_odometry(0.01 * k, v, np.zeros(3))
     R, p = np.eye(3), np.array([1.0, 2.0, 3.0])
-    assert est.set_known_pose(0.04, R, p) is None     # 20 ms ahead of the odometry
+    assert est.add_known_pose(0.04, R, p) is None     # 20 ms ahead of the odometry
     est.advance()                                     # steps 0 -> 0.02: pose not applied
     assert est._known_poses
     for k in range(3, 5):

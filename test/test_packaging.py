@@ -160,6 +160,7 @@ def test_colcon_built_estimator_talks_dds(colcon_install, tmp_path):
     import numpy as np
 
     from bearing_pose_estimation import msg_defs as wire
+    from bearing_pose_estimation.msg_defs import cdr
     from bearing_pose_estimation.ros.wiring import listener_counts
     from bearing_pose_estimation.scenario import load_scenario
     from ros_helpers import observer
@@ -181,9 +182,10 @@ def test_colcon_built_estimator_talks_dds(colcon_install, tmp_path):
                                               wire.SIM_PUB_QOS),
                     obs.node.create_publisher(wire.PoseStamped, '/agent_1/known_pose',
                                               wire.SIM_PUB_QOS)]
-            types = {wire.ESTIMATE: wire.PoseStamped, wire.WORLD_BEARINGS: wire.PointCloud2,
-                     wire.POSE: wire.PoseWithCovarianceStamped}
-            for (agent, topic), n in listener_counts(load_scenario(scenario)).items():
+            s = load_scenario(scenario)   # the topics of its method's channels, their types
+            types = {wire.ESTIMATE: wire.PoseStamped,
+                     **{c.topic: wire.channel_type(c) for c in s.estimator().sends}}
+            for (agent, topic), n in listener_counts(s).items():
                 for _ in range(n if agent == 'agent_1' else 0):   # agent_1's listeners
                     obs.node.create_subscription(types[topic], wire.topic(agent, topic),
                                                  lambda _: None, wire.ESTIMATE_QOS)
@@ -192,7 +194,7 @@ def test_colcon_built_estimator_talks_dds(colcon_install, tmp_path):
             assert got, 'no estimate from the installed estimator'
         msg = obs.messages['/agent_1/estimate'][0]
         assert msg.header.frame_id == 'world'
-        t, R, p = wire.decode_pose(msg)
+        t, R, p = cdr.decode_pose_raw(msg)
         assert t == 0.0
         np.testing.assert_allclose(p, [0.0, 0.0, 0.0])
         np.testing.assert_allclose(R, np.eye(3), atol=1e-12)

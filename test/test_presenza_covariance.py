@@ -25,6 +25,7 @@ from scipy.stats import chi2
 
 from bearing_pose_estimation.core import so3
 from bearing_pose_estimation.estimators import presenza_covariance as cov
+from bearing_pose_estimation.estimators.base import ANCHOR_DELTA_R
 from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
 
@@ -93,7 +94,7 @@ def test_the_own_maps_are_the_step_s_own(at_truth, monkeypatch):
     rec = _Recorder(monkeypatch, 'own_linearisation')
     _fleet_step(sim, sim.x)
     F = rec.out.F
-    dR_a = sim.inputs().anchor.delta_R[0]
+    dR_a = sim.inputs().agent[ANCHOR_DELTA_R][0]
     for i in SENSING + FREE:
         for c in range(6):
             def perturb(d, c=c, i=i):
@@ -120,19 +121,19 @@ def test_the_bearing_and_neighbour_maps_are_the_step_s_own(at_truth, monkeypatch
     _fleet_step(sim, sim.x)
     V, Gn = maps.out
     inputs = sim.inputs()
-    dR_a = inputs.anchor.delta_R[0]
+    dR_a = inputs.agent[ANCHOR_DELTA_R][0]
     agent = inputs.edges.agent
     used = maps.args[2]
     checked = 0
     for e in np.flatnonzero(used):
         i = agent[e]
-        beta = inputs.bearings[e]
+        beta = inputs.edge['bearings'][e]
         tangent = np.linalg.svd(np.eye(3) - np.outer(beta, beta))[0][:, :2]
         for k in range(2):
             def bearing(d, e=e, k=k):
                 def edit(inp):
                     inp = copy.deepcopy(inp)
-                    inp.bearings[e] = so3.exp(d * np.cross(beta, tangent[:, k])) @ beta
+                    inp.edge['bearings'][e] = so3.exp(d * np.cross(beta, tangent[:, k])) @ beta
                     return inp
                 return edit
             got = (_errors(_fleet_step(sim, sim.x, bearing(EPS)),
@@ -143,7 +144,7 @@ def test_the_bearing_and_neighbour_maps_are_the_step_s_own(at_truth, monkeypatch
             def neighbour(d, e=e, c=c):
                 def edit(inp):
                     inp = copy.deepcopy(inp)
-                    inp.received['q_hat'][e, c] += d
+                    inp.edge['q_hat'][e, c] += d
                     return inp
                 return edit
             got = (_errors(_fleet_step(sim, sim.x, neighbour(EPS)),
@@ -168,9 +169,9 @@ def test_the_velocity_maps_are_the_reply_s_own(at_truth, monkeypatch):
     agent, other = inputs.edges.agent, sim.edge_nbr
     # Every robot's anchor-frame velocity (1) from the step's average velocities, as (10).
     u = inputs.displacement / h
-    u_a, omega_a = u[0], so3.log_small(inputs.anchor.delta_R)[0] / h
+    u_a, omega_a = u[0], so3.log_small(inputs.agent[ANCHOR_DELTA_R])[0] / h
     upsilon = np.einsum('nab,nb->na', x.R_hat, u) - u_a - np.cross(omega_a, x.p_hat)
-    links = [e for e in np.flatnonzero(inputs.links.senses) if other[e] in FREE]
+    links = [e for e in np.flatnonzero(inputs.edges.flags['senses']) if other[e] in FREE]
     assert len(links) == 6
 
     def n_prime(x2, inp):
@@ -199,11 +200,11 @@ def test_the_velocity_maps_are_the_reply_s_own(at_truth, monkeypatch):
             want = of_q[e][:, c] if c < 3 else (
                 of_phi[e] + true_relative(-so3.hat(b)))[:, c - 3]
             np.testing.assert_allclose(got, want, atol=1e-5 * max(1.0, np.abs(want).max()))
-        beta = inputs.bearings[e]
+        beta = inputs.edge['bearings'][e]
         for t in np.linalg.svd(np.eye(3) - np.outer(beta, beta))[0][:, :2].T:
             def bearing(d, t=t, e=e):
                 inp = copy.deepcopy(inputs)
-                inp.bearings[e] = beta + d * t
+                inp.edge['bearings'][e] = beta + d * t
                 return inp
             got = (n_prime(x, bearing(EPS))[e] - n_prime(x, bearing(-EPS))[e]) / (2 * EPS)
             want = (of_nu[e] + true_relative(v.R_hat[e])) @ t
@@ -220,10 +221,10 @@ def test_the_angle_terms_covariance_is_the_gradient_s_jacobian(at_truth):
     x.P[:] = 0.0
     x.P[:, :3, :3] = np.eye(3)
     inp = copy.deepcopy(inputs)
-    inp.received['pose_cov'][:] = 0.0
+    inp.edge['pose_cov'][:] = 0.0
     sent = est.reply(x, h, inp)
     agent, other = inputs.edges.agent, sim.edge_nbr
-    for e in np.flatnonzero(inputs.links.senses):
+    for e in np.flatnonzero(inputs.edges.flags['senses']):
         j = agent[e]
         J = np.zeros((3, 3))
         for c in range(3):

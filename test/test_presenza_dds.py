@@ -19,6 +19,8 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 
 from bearing_pose_estimation import msg_defs as wire
+from bearing_pose_estimation.estimators import presenza
+from bearing_pose_estimation.msg_defs import cdr
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
@@ -128,7 +130,7 @@ def test_the_pose_carries_the_batch_simulator_s_covariance(run):
     for robot in ('robot_2', 'robot_4'):
         poses = messages[f'/{robot}/pose']
         assert poses and {m.header.frame_id for m in poses} == {'robot_1/base_link'}
-        t, P = wire.decode_covariance(poses[-1])
+        t, P = cdr.decode_covariance_raw(poses[-1])
         sim = BatchSimulator(load_scenario(scenario_file))
         while sim.t < t - 1e-9:
             sim.step()
@@ -146,9 +148,12 @@ def test_the_second_round_travels_in_the_anchor_frame_one_point_per_listener(run
         msgs = messages[topic]
         assert msgs and {m.header.frame_id for m in msgs} == {frame}
     # Robot 1 senses robots 2..5: one point for each, every step (stamps 1/30 s apart).
-    _, ids, g = wire.decode_vectors(messages['/robot_1/angle_gradient'][-1])
+    _, ids, g = cdr.decode_vectors_raw(messages['/robot_1/angle_gradient'][-1])
     assert sorted(ids.tolist()) == [2, 3, 4, 5] and np.all(np.isfinite(g))
-    _, blocks = wire.channel('angle_hessian').decode(messages['/robot_1/angle_hessian'][-1])
+    _, values, problems = wire.decode_channels(messages['/robot_1/angle_hessian'][-1],
+                                               [presenza.HESSIAN])
+    assert not problems
+    blocks = values[presenza.HESSIAN.name]
     assert sorted(blocks) == [2, 3, 4, 5]
     for packed in blocks.values():   # a Gauss-Newton block: positive semi-definite
         xx, yy, zz, xy, xz, yz = packed

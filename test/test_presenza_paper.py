@@ -124,13 +124,16 @@ def test_what_the_nodes_cannot_run_is_refused_with_the_reason_and_the_fix():
     """Case 2's closed loop (u = Q̂ᵀ v) needs the estimates inside the truth, which a simulator
     node (or netsim's world) cannot have. Case 1 runs over DDS (test_presenza_dds.py) and in
     netsim (test_presenza_faults.py)."""
-    from bearing_pose_estimation.estimators.link_agent import agent_for
     from bearing_pose_estimation.scenario import ScenarioError
+    from bearing_pose_estimation.scenario.runtimes import agent_specs, runtime_for
     from bearing_pose_estimation.sim.netsim import simulate_network
+
+    def agent_for(s, name):
+        return runtime_for(s, agent_specs(s)[s.index[name]])
 
     s1 = load_scenario(ROOT / 'config' / 'presenza_case1.yaml')
     assert s1.not_distributable() is None
-    agent_for(s1, 'robot_2')
+    assert agent_for(s1, 'robot_2').rounds == 2
     s2 = load_scenario(ROOT / 'config' / 'presenza_case2.yaml')
     for run in (lambda: agent_for(s2, 'robot_2'), lambda: simulate_network(s2, 0.1)):
         with pytest.raises(ScenarioError, match=r'anchor_estimate.*Fix: run it with'):

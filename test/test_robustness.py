@@ -1,4 +1,4 @@
-"""Robustness of one agent's estimator (no ROS): every bad input is rejected with a named cause
+"""Robustness of one agent's runtime (no ROS): every bad input is rejected with a named cause
 and never reaches the estimate; the time rules; stale neighbours; and every row of the fault
 matrix (netsim.fault_cases, the list bench/fault_matrix.py measures) on the whole network."""
 import multiprocessing
@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from bearing_pose_estimation.core import so3
-from bearing_pose_estimation.estimators.agent import Limits, estimator_for
+from bearing_pose_estimation.estimators.base import Sensor
+from bearing_pose_estimation.runtime.buffers import Limits
+from bearing_pose_estimation.scenario.runtimes import agent_specs, runtime_for
 from bearing_pose_estimation.sim.netsim import (Outage, convergence_cost, fault_cases,
                                             reconvergence_time, run_case)
 from bearing_pose_estimation.scenario import load_scenario
@@ -28,23 +30,23 @@ def _msg(p_hat, world_bearings) -> dict:
 
 
 def _fed(name='agent_6', seconds=1.0):
-    """agent_6's estimator fed with consistent data for ``seconds``."""
+    """agent_6's runtime fed with consistent data for ``seconds``."""
     world = World(SCENARIO)
-    est = estimator_for(SCENARIO, name)
     i = SCENARIO.index[name]
-    nbr_ids = [nb.agent_id for nb in est.neighbours]
+    est = runtime_for(SCENARIO, agent_specs(SCENARIO)[i])
+    nbr_ids = [p.agent_id for p in est.peers]
     while world.t < seconds - 1e-9:
         world.step()
         if world.due(world.imu_every):
             assert est.add_gyro(world.t, world.imu()[i]) is None
         if world.due(world.bearing_every):
             j, b = world.bearings(i)
-            assert est.add_bearings(world.t, j + 1, b) == []
+            assert est.add_points(Sensor.BEARINGS, world.t, j + 1, b) == []
             for jid in nbr_ids:  # neighbours' messages: exact world bearings, true p̂
                 jj = jid - 1
                 d = world.p[i] - world.p[jj]
-                assert est.add_neighbour(jid, world.t, _msg(world.p[jj],
-                                         {est.agent_id: d / np.linalg.norm(d)})) is None
+                assert est.add_message(jid, world.t, _msg(world.p[jj],
+                                       {est.agent_id: d / np.linalg.norm(d)})) is None
         est.advance()
     return world, est
 
@@ -67,12 +69,13 @@ def test_bad_bearings_are_rejected_point_by_point():
     t = est.gyro.end + 0.001
     ids = np.array([2, 4, 5, 1, 6, 99])
     b = np.array([[1.0, 0, 0], [np.nan, 0, 0], [0, 0, 0], [0, 2.0, 0], [0, 0, 1.0], [1.0, 0, 0]])
-    causes = est.add_bearings(t, ids, b)
+    causes = est.add_points(Sensor.BEARINGS, t, ids, b)
     assert sorted(causes) == sorted(['non_finite', 'zero_vector', 'not_unit', 'unknown_id',
                                      'unknown_id'])  # 6 is itself, 99 does not exist
-    assert est.add_bearings(t, np.array([2]), np.array([[0, 1.0, 0]])) == ['out_of_order']
-    assert est.add_bearings(t + 10.0, np.array([2]), np.array([[0, 1.0, 0]])) == ['future_stamp']
-    assert est.add_bearings(-5.0, np.array([2]), np.array([[0, 1.0, 0]])) == ['stale']
+    one = (np.array([2]), np.array([[0, 1.0, 0]]))
+    assert est.add_points(Sensor.BEARINGS, t, *one) == ['out_of_order']
+    assert est.add_points(Sensor.BEARINGS, t + 10.0, *one) == ['future_stamp']
+    assert est.add_points(Sensor.BEARINGS, -5.0, *one) == ['stale']
 
 
 def test_bad_neighbour_messages_are_rejected():
@@ -80,14 +83,15 @@ def test_bad_neighbour_messages_are_rejected():
     t = est.gyro.end
     me = est.agent_id
     ok = {me: np.array([0.0, 0.0, 1.0])}
-    assert est.add_neighbour(7, t, _msg(np.zeros(3), ok)) == 'unknown_id'  # not a neighbour of 6
-    assert est.add_neighbour(2, t, _msg(np.zeros(3), {9: np.ones(3)})) == 'not_seen'
-    assert est.add_neighbour(2, t, _msg(np.array([np.nan, 0, 0]), ok)) == 'non_finite'
-    assert est.add_neighbour(2, t, _msg(np.zeros(3), {me: np.zeros(3)})) == 'zero_vector'
-    assert est.add_neighbour(2, t, _msg(np.zeros(3), {me: np.array([0, 0, 3.0])})) == 'not_unit'
-    assert est.add_neighbour(2, t + 10.0, _msg(np.zeros(3), ok)) == 'future_stamp'
-    assert est.add_neighbour(2, t - 0.1, _msg(np.zeros(3), ok)) == 'out_of_order'
-    assert est.set_known_pose(t, np.full((3, 3), np.nan), np.zeros(3)) == 'non_finite'
+    assert est.add_message(7, t, _msg(np.zeros(3), ok)) == 'unknown_id'  # not a neighbour of 6
+    # Its world bearings (their own topic) with none for this agent: nothing to use.
+    assert est.add_message(2, t, {'world_bearing': {9: np.ones(3)}}) == 'not_seen'
+    assert est.add_message(2, t, _msg(np.array([np.nan, 0, 0]), ok)) == 'non_finite'
+    assert est.add_message(2, t, _msg(np.zeros(3), {me: np.zeros(3)})) == 'zero_vector'
+    assert est.add_message(2, t, _msg(np.zeros(3), {me: np.array([0, 0, 3.0])})) == 'not_unit'
+    assert est.add_message(2, t + 10.0, _msg(np.zeros(3), ok)) == 'future_stamp'
+    assert est.add_message(2, t - 0.1, _msg(np.zeros(3), ok)) == 'out_of_order'
+    assert est.add_known_pose(t, np.full((3, 3), np.nan), np.zeros(3)) == 'non_finite'
 
 
 def test_garbage_never_reaches_the_estimate():
@@ -103,9 +107,10 @@ def test_garbage_never_reaches_the_estimate():
             est.add_gyro(world.t, world.imu()[i])
         bad = rng.choice(junk, size=3)
         est.add_gyro(world.t + rng.uniform(-2, 2), bad)
-        est.add_bearings(world.t + rng.uniform(-2, 2), rng.integers(0, 12, 3), rng.choice(junk, (3, 3)))
-        est.add_neighbour(int(rng.integers(1, 9)), world.t + rng.uniform(-2, 2),
-                          _msg(rng.choice(junk, 3), {6: rng.choice(junk, 3)}))
+        est.add_points(Sensor.BEARINGS, world.t + rng.uniform(-2, 2), rng.integers(0, 12, 3),
+                       rng.choice(junk, (3, 3)))
+        est.add_message(int(rng.integers(1, 9)), world.t + rng.uniform(-2, 2),
+                        _msg(rng.choice(junk, 3), {6: rng.choice(junk, 3)}))
         est.advance()
         assert np.all(np.isfinite(est.R_hat)) and np.all(np.isfinite(est.p_hat))
     assert so3.orthonormality_error(est.R_hat[0]) < 1e-12
@@ -119,7 +124,7 @@ def test_clock_jump_back_restarts_from_the_initial_estimate():
     np.testing.assert_array_equal(est.R_hat[0], est.R0)
     np.testing.assert_array_equal(est.p_hat[0], est.p0)
     assert est.t == pytest.approx(0.01)  # next grid instant: the step grid stays aligned
-    assert all(not nb.stamps for nb in est.neighbours)
+    assert all(not p.values and not p.heard for p in est.peers)
 
 
 def test_gyro_gap_restarts_time_and_keeps_the_estimate():
@@ -145,14 +150,14 @@ def test_silent_neighbour_goes_stale_and_comes_back():
             est.add_gyro(world.t, world.imu()[i])
         if world.due(world.bearing_every):
             j, b = world.bearings(i)
-            est.add_bearings(world.t, j + 1, b)
+            est.add_points(Sensor.BEARINGS, world.t, j + 1, b)
             for jid in (4, 5):
                 d = world.p[i] - world.p[jid - 1]
-                est.add_neighbour(jid, world.t, _msg(world.p[jid - 1], {6: d / np.linalg.norm(d)}))
+                est.add_message(jid, world.t, _msg(world.p[jid - 1], {6: d / np.linalg.norm(d)}))
         est.advance()
     assert est.last.stale == ('agent_2',) and est.last.edges_used == 2
     d = world.p[i] - world.p[1]
-    est.add_neighbour(2, world.t, _msg(world.p[1], {6: d / np.linalg.norm(d)}))
+    est.add_message(2, world.t, _msg(world.p[1], {6: d / np.linalg.norm(d)}))
     world.step()
     est.add_gyro(world.t, world.imu()[i]) if world.due(world.imu_every) else None
     while est.steps_ready() == 0:
@@ -222,7 +227,8 @@ def test_fault_matrix_row(key, matrix_runs):
     assert rec.t[-1] == pytest.approx(MATRIX_DURATION)
     assert run.non_finite_estimates == 0 and run.non_finite_steps == 0
     assert np.all(np.isfinite(rec.att_err)) and np.all(np.isfinite(rec.pos_err))
-    assert run.inputs.garbage_accepted == 0
+    if not key.startswith('garbage'):   # (the garbage rows: test_every_garbage_input_...)
+        assert run.inputs.garbage_accepted == 0
     assert run.inputs.rejected == run.inputs.garbage_rejected
     assert dict(run.inputs.events) == exp.events
     if key.startswith('garbage'):  # every channel and kind of garbage was really sent
@@ -241,6 +247,12 @@ def test_fault_matrix_row(key, matrix_runs):
     assert convergence_cost(rec, ref.recording) <= exp.cost
     att, pos = rec.mean_errors()
     assert att[-1] < 0.2 * att[0] and pos[-1] < 0.5 * pos[0]  # converging at the end
+
+
+@pytest.mark.parametrize('key', ['garbage', 'garbage_replacing'])
+def test_every_garbage_input_is_rejected(key, matrix_runs):
+    """Every corrupted input is rejected: none of the garbage rows' gets in."""
+    assert matrix_runs[key].inputs.garbage_accepted == 0
 
 
 def _recording(t, att, pos):

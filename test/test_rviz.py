@@ -9,9 +9,8 @@ import pytest
 from rclpy.parameter import Parameter
 from visualization_msgs.msg import Marker
 
-from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.core import so3
-from bearing_pose_estimation.msg_defs import rviz
+from bearing_pose_estimation.msg_defs import cdr, rviz
 from bearing_pose_estimation.ros.estimator_node import EstimatorNode
 from bearing_pose_estimation.ros.markers_node import MarkersNode
 from bearing_pose_estimation.scenario import load_scenario
@@ -56,12 +55,12 @@ def test_the_markers_node_draws_what_the_fleet_publishes(context, repo_root):
         s = load_scenario(paper)
         for a in s.agents:
             node._on_pose(node.estimates, a.name,
-                          wire.encode_pose(1.0, 'world', np.eye(3), a.position + 0.1))
+                          cdr.encode_pose_raw(1.0, 'world', np.eye(3), a.position + 0.1))
         sensed = [nb.name for nb in s.agents[2].neighbours]
         b = np.array([(s.agents[s.index[n]].position - s.agents[2].position) for n in sensed])
         b /= np.linalg.norm(b, axis=1, keepdims=True)
         ids = np.array([s.agent_id(n) for n in sensed], dtype=np.uint32)
-        node._on_bearings('agent_3', wire.encode_vectors(1.0, 'agent_3/base_link', ids, b))
+        node._on_bearings('agent_3', cdr.encode_vectors_raw(1.0, 'agent_3/base_link', ids, b))
         msg = node.markers()
         rays = next(m for m in msg.markers if m.ns == 'bearings')
         assert len(rays.points) == 2 * len(sensed)
@@ -96,20 +95,20 @@ def test_the_estimate_goes_on_tf_when_tf2_ros_is_installed(context, repo_root, t
     node = EstimatorNode(namespace='/agent_5', context=context,
                          parameter_overrides=[Parameter('scenario_file', value=paper)])
     try:
-        node._publish(world=False, force=True)
+        node._publish(grid=True, force=True)
         (tf,) = tf_standin
         assert (tf.header.frame_id, tf.child_frame_id) == ('world', 'agent_5/base_link')
         r, p = tf.transform.rotation, tf.transform.translation
-        np.testing.assert_allclose([p.x, p.y, p.z], node.est.p_hat[0], atol=1e-12)
+        np.testing.assert_allclose([p.x, p.y, p.z], node.rt.p_hat[0], atol=1e-12)
         np.testing.assert_allclose(so3.from_quat(np.array([r.x, r.y, r.z, r.w])),
-                                   node.est.R_hat[0], atol=1e-12)
+                                   node.rt.R_hat[0], atol=1e-12)
     finally:
         node.destroy_node()
     node = EstimatorNode(namespace='/agent_5', context=context,
                          parameter_overrides=[Parameter('scenario_file', value=paper),
                                               Parameter('publish_tf', value=False)])
     try:
-        node._publish(world=False, force=True)
+        node._publish(grid=True, force=True)
         assert node.tf is None and len(tf_standin) == 1
     finally:
         node.destroy_node()

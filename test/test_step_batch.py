@@ -8,19 +8,19 @@ from collections import deque
 
 import pytest
 
-from bearing_pose_estimation.estimators.agent import AgentEstimator
+from bearing_pose_estimation.runtime.agent import AgentRuntime
 from bearing_pose_estimation.ros import step_batch
 from bearing_pose_estimation.ros.step_batch import StepBatch
 
 H = 0.01
 
 
-class Agent(AgentEstimator):
-    """Only what StepBatch reads: the state time, the steps ready, what a step waits for."""
+class Agent(AgentRuntime):
+    """Only what StepBatch reads: the state time, the steps ready, whom a step waits for."""
 
-    def __init__(self, t: float = 1.0) -> None:   # no AgentEstimator.__init__: no estimator
+    def __init__(self, t: float = 1.0) -> None:   # no AgentRuntime.__init__: no estimator
         self.k, self.t0, self.h = 0, t, H
-        self.ready, self.own, self.awaited = 0, False, None
+        self.ready, self.own, self.awaited_peer = 0, False, None
 
     def steps_ready(self) -> int:
         return self.ready
@@ -31,7 +31,7 @@ class Agent(AgentEstimator):
 
 class Node:
     def __init__(self, batch: StepBatch, name: str) -> None:
-        self.agent, self.est, self.batch = name, Agent(), batch
+        self.agent, self.rt, self.batch = name, Agent(), batch
         self.log: list[str] = []
         batch.join(self)   # type: ignore[arg-type]
 
@@ -78,15 +78,15 @@ def _fleet(names: str) -> tuple[StepBatch, dict[str, Node], Executor]:
     batch = StepBatch()
     nodes = {n: Node(batch, n) for n in names}
     for node in nodes.values():
-        node.est.name = node.agent
+        node.rt.name = node.agent
     return batch, nodes, Executor()
 
 
 def _sample(batch: StepBatch, node: Node):
     """A message that completes ``node``'s next step, through a counted callback."""
     def arrive(_msg: object) -> None:
-        node.est.ready += 1
-        node.est.own = True
+        node.rt.ready += 1
+        node.rt.own = True
         batch.request(node)   # type: ignore[arg-type]
     callback = batch.counted(arrive)
     return lambda: callback(None)
@@ -120,8 +120,8 @@ def test_no_wait_for_an_agent_that_waits_for_a_step_of_this_process(rounds):
     """b waits for a's estimate of this instant: it comes after a's step, so waiting for it
     before the step would only delay a."""
     batch, nodes, ex = _fleet('ab')
-    b = nodes['b'].est
-    b.own, b.awaited = True, 'a'
+    b = nodes['b'].rt
+    b.own, b.awaited_peer = True, 'a'
     ex.arriving.append(_sample(batch, nodes['b']))
     _sample(batch, nodes['a'])()
     batch.settle(ex)                  # type: ignore[arg-type]
@@ -164,7 +164,7 @@ def test_the_cpu_split_puts_each_part_where_it_was_spent(monkeypatch):
 
     def arrive(_msg: object) -> None:
         _burn(0.01)
-        node.est.ready += 1
+        node.rt.ready += 1
         batch.request(node)   # type: ignore[arg-type]
     ex = Executor()
     ex.queue.append(lambda: batch.counted(arrive)(None))

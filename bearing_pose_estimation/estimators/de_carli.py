@@ -238,7 +238,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
     sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.ODOMETRY,
                                                      Sensor.RELATIVE_POSITIONS})
     sends: ClassVar[tuple[Channel, ...]] = (
-        Z_HAT, P_HAT, MEAS, RELYAW, replace(POSE_COV, pairing='exact', bound=MAX_VALUE))
+        Z_HAT, P_HAT, MEAS, RELYAW, replace(POSE_COV, pairing='exact', bound=MAX_VALUE ** 2))
     frame: ClassVar[EstimateFrame] = EstimateFrame.COMMON_YAW_TRANSLATION
     edge_gains: ClassVar[bool] = False
     links: ClassVar[Literal['sensing', 'communication']] = 'communication'

@@ -178,7 +178,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                                                       Sensor.RELATIVE_POSITIONS})
     sends: ClassVar[tuple[Channel, ...]] = (
         Q_HAT, Q_RANGED, GRADIENT, HESSIAN, ANCHOR_BEARING, VELOCITY_TERM,
-        replace(POSE_COV, on='senses', pairing='exact', bound=MAX_VALUE), cov.TERM_COV)
+        replace(POSE_COV, on='senses', pairing='exact', bound=MAX_VALUE ** 2), cov.TERM_COV)
     frame: ClassVar[EstimateFrame] = EstimateFrame.ANCHOR_BODY
     edge_gains: ClassVar[bool] = False
     links = 'communication'
@@ -354,7 +354,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         g = self.gains
         senses, sensed_by, sensing = self._structure(x, inputs)
         edges, r = inputs.edges, inputs.edge
-        is_anchor = inputs.agent[IS_ANCHOR]
+        is_anchor: Mask = inputs.agent[IS_ANCHOR].astype(bool)
         ranged_by = edges.flag('ranged_by') & inputs.here('q_ranged')
         agent = edges.agent
         n = x.p_hat.shape[0]
@@ -411,7 +411,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         if reorthonormalize:
             R_new = so3.reorthonormalize(R_new)
         gamma_next = np.einsum('nab,nb->na', dR_a_T, gamma)
-        hold = inputs.agent[PINNED]
+        hold: Mask = inputs.agent[PINNED].astype(bool)
         if hold.any():
             p_new[hold], R_new[hold] = 0.0, eye
         # The covariance, linearised at the estimate before the step (presenza_covariance.py).

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
 
@@ -278,7 +278,7 @@ class EstimatorNode(Node):
         ns = self.get_clock().now().nanoseconds
         return ns * 1e-9 if ns > 0 else None
 
-    def _counted(self, causes: list[str | None], what: str) -> None:
+    def _counted(self, causes: Sequence[str | None], what: str) -> None:
         for cause, n in Counter(c for c in causes if c is not None).items():
             if cause in TIME_EVENTS:
                 self.events[cause] += n

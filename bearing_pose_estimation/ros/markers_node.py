@@ -17,7 +17,7 @@ import numpy as np
 from rclpy.node import Node
 
 from .. import msg_defs as wire
-from ..msg_defs import rviz
+from ..msg_defs import cdr, rviz
 from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
 
 
@@ -39,29 +39,31 @@ class MarkersNode(Node):
         self.truth: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self.bearings: dict[str, tuple[list[str], np.ndarray]] = {}
         self.t = 0.0
-        for name in self.names:
+        for name in self.names:   # the messages as their serialised bytes (msg_defs/cdr.py)
             self.create_subscription(wire.PoseStamped, wire.topic(name, wire.ESTIMATE, fleet),
                                      partial(self._on_pose, self.estimates, name),
-                                     wire.ESTIMATE_QOS)
+                                     wire.ESTIMATE_QOS, raw=True)
             self.create_subscription(wire.PoseStamped, wire.topic(name, wire.GROUND_TRUTH, fleet),
-                                     partial(self._on_pose, self.truth, name), wire.SIM_PUB_QOS)
+                                     partial(self._on_pose, self.truth, name), wire.SIM_PUB_QOS,
+                                     raw=True)
             self.create_subscription(wire.PointCloud2, wire.topic(name, wire.BEARINGS, fleet),
-                                     partial(self._on_bearings, name), wire.SENSOR_QOS)
+                                     partial(self._on_bearings, name), wire.SENSOR_QOS,
+                                     raw=True)
         # Relative: /visualization_marker_array, or /<fleet>/visualization_marker_array.
         self.pub = self.create_publisher(rviz.MarkerArray, rviz.MARKERS.lstrip('/'), 1)
         self.timer = self.create_timer(1.0 / rate, self.publish_markers)
 
-    def _on_pose(self, table: dict, name: str, msg: wire.PoseStamped) -> None:
+    def _on_pose(self, table: dict, name: str, msg: bytes) -> None:
         try:
-            t, R, p = wire.decode_pose(msg)
+            t, R, p = cdr.decode_pose_raw(msg)
         except wire.WireError:
             return   # the estimators and the monitor count bad poses; nothing to draw
         table[name] = (R, p)
         self.t = max(self.t, t)
 
-    def _on_bearings(self, name: str, msg: wire.PointCloud2) -> None:
+    def _on_bearings(self, name: str, msg: bytes) -> None:
         try:
-            _, ids, b = wire.decode_vectors(msg)
+            _, ids, b = cdr.decode_vectors_raw(msg)
         except wire.WireError:
             return
         known = [(self.by_id[i], row) for i, row in zip(ids.tolist(), b) if i in self.by_id]

@@ -6,7 +6,8 @@ frame) and ``/<agent>/ground_truth``, plus ``/clock``, from :class:`sim.world.Wo
 ``relative_positions``, ``bearing_rates``, ``ranges``), each at its own rate. It is the only
 clock publisher; every other node runs with ``use_sim_time``. Within one instant the gyro
 sample goes out first (it completes the step that ends there), then the other sensors (the
-next step uses them).
+next step uses them). Every message is built as its serialised bytes (:mod:`msg_defs.cdr`)
+and published as such; the estimates are taken as bytes too.
 
 Start: it waits until every estimator and the monitor are matched (subscriptions to its
 topics, and the estimators' own topics to each other) and every estimator has announced its
@@ -83,10 +84,6 @@ class SimulatorNode(Node):
                                0.0, 1e6)
         # False: another node owns /clock (a bag replay, Gazebo); the stamps stay sim time.
         self.publish_clock = p('publish_clock', True, 'publish /clock (the simulated time)')
-        # Messages built as their serialised bytes (msg_defs/cdr.py), not rclpy objects.
-        raw = p('raw_messages', True, 'publish and take messages as serialised bytes '
-                '(msg_defs/cdr.py); false: as rclpy message objects')
-        self.codec = _RawCodec() if raw else _TypedCodec()
 
         if s.formation is not None and s.formation.mode == 'paper':
             raise ScenarioError(f'{s.source}: formation_control.mode: paper (the controller uses '
@@ -138,7 +135,7 @@ class SimulatorNode(Node):
         for k, name in enumerate(self.names):
             self.create_subscription(wire.PoseStamped,
                                      wire.topic(name, wire.ESTIMATE, self.fleet),
-                                     partial(self._on_estimate, k), wire.ESTIMATE_QOS, raw=raw)
+                                     partial(self._on_estimate, k), wire.ESTIMATE_QOS, raw=True)
 
         self.monitor_ready = False
         if self.wait_for_monitor:
@@ -170,10 +167,9 @@ class SimulatorNode(Node):
     def _on_monitor_ready(self, _msg: Empty) -> None:
         self.monitor_ready = True
 
-    def _on_estimate(self, k: int, msg: wire.PoseStamped | bytes) -> None:
+    def _on_estimate(self, k: int, msg: bytes) -> None:
         try:
-            t = (cdr.read_header(msg).t if isinstance(msg, bytes)
-                 else wire.from_stamp(msg.header.stamp))
+            t = cdr.read_header(msg).t
         except wire.WireError:
             return   # the estimator's own message: its stamp is what counts here
         self.progress[k] = max(self.progress[k], t)
@@ -293,62 +289,37 @@ class SimulatorNode(Node):
         w, t = self.world, self.world.t
         if w.due(w.imu_every) and w.tick > 0:  # a sample covers the period ending now
             for i, omega in enumerate(w.imu()):
-                self.pub_imu[i].publish(self.codec.imu(t, self.names[i], omega))
+                self.pub_imu[i].publish(cdr.encode_imu_raw(t, self.names[i], omega))
         if w.due(w.bearing_every):
             for i, name in enumerate(self.names):
                 j, b = w.bearings(i)
                 self.pub_bearings[i].publish(
-                    self.codec.vectors(t, wire.body_frame(name), j + 1, b))
+                    cdr.encode_vectors_raw(t, wire.body_frame(name), j + 1, b))
         for sensor, pubs in self.pub_sensors.items():
             if w.due(w.sensor_every[sensor]) and (sensor != 'odometry' or w.tick > 0):
                 self._publish_sensor(sensor, pubs, t)
         if w.due(w.truth_every):
             for i, pub in enumerate(self.pub_truth):
-                pub.publish(self.codec.pose(t, self.scenario.world_frame, w.R[i], w.p[i]))
+                pub.publish(cdr.encode_pose_raw(t, self.scenario.world_frame, w.R[i], w.p[i]))
         if clock and self.pub_clock is not None:
-            self.pub_clock.publish(self.codec.clock(t))
-
+            self.pub_clock.publish(cdr.encode_clock_raw(t))
 
     def _publish_sensor(self, sensor: str, pubs: list, t: float) -> None:
         w, spec = self.world, self.scenario.sensors.spec(sensor)
         if sensor == 'odometry':  # interval averages over the period ending now
             v, omega = w.odometry()
             for i, name in enumerate(self.names):
-                pubs[i].publish(self.codec.odometry(t, name, v[i], omega[i], w.odom_R[i],
-                                                    w.odom_p[i], spec.std, spec.angular_std))
+                pubs[i].publish(cdr.encode_odometry_raw(t, name, v[i], omega[i], w.odom_R[i],
+                                                        w.odom_p[i], spec.std,
+                                                        spec.angular_std))
             return
         for i, name in enumerate(self.names):
             j, values = w.sensed(sensor, i)
             if sensor == 'ranges':
-                msg = self.codec.scalars(t, wire.body_frame(name), j + 1, values)
+                msg = cdr.encode_scalars_raw(t, wire.body_frame(name), j + 1, values)
             else:
-                msg = self.codec.vectors(t, wire.body_frame(name), j + 1, values)
+                msg = cdr.encode_vectors_raw(t, wire.body_frame(name), j + 1, values)
             pubs[i].publish(msg)
-
-
-class _TypedCodec:
-    """The simulator's messages as rclpy objects (msg_defs)."""
-
-    imu = staticmethod(wire.encode_imu)
-    vectors = staticmethod(wire.encode_vectors)
-    scalars = staticmethod(wire.encode_scalars)
-    pose = staticmethod(wire.encode_pose)
-    odometry = staticmethod(wire.encode_odometry)
-
-    @staticmethod
-    def clock(t: float) -> ClockMsg:
-        return ClockMsg(clock=wire.to_stamp(t))
-
-
-class _RawCodec:
-    """The same messages as their serialised bytes (msg_defs/cdr.py)."""
-
-    imu = staticmethod(cdr.encode_imu_raw)
-    vectors = staticmethod(cdr.encode_vectors_raw)
-    scalars = staticmethod(cdr.encode_scalars_raw)
-    pose = staticmethod(cdr.encode_pose_raw)
-    odometry = staticmethod(cdr.encode_odometry_raw)
-    clock = staticmethod(cdr.encode_clock_raw)
 
 
 def main(args: list[str] | None = None) -> None:

@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter, deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -225,8 +225,8 @@ class AgentRuntime:
         # The neighbours it reads anything from (the others are never stale).
         self._read_peers = [p for p in self.peers if p.odometry is not None or any(
             self.expects(p, c) for c in self.channels.values())]
-        self._required = [c.name for c in cls.sends if not c.optional]
-        self._optional = [c.name for c in cls.sends if c.optional]
+        self._required_names = [c.name for c in cls.sends if not c.optional]
+        self._optional_names = [c.name for c in cls.sends if c.optional]
         flags = {name: np.array([p.flags.get(name, False) for p in self.peers], dtype=bool)
                  for name in sorted({f for p in self.peers for f in p.flags})}
         # Its edges, one per peer: the same object every step (a method may cache what it
@@ -475,7 +475,7 @@ class AgentRuntime:
             c = self.channels[name]
             problem = bounded_problem(v, c.bound)
             # The owner's zeros: no value of the pair yet (the step takes them as such).
-            none_yet = c.owner_only and not v.any()
+            none_yet = c.owner_only and not peer.flags.get('owns', False) and not v.any()
             if problem is None and c.unit and not none_yet:
                 problem = unit_problem(v, lim.unit_tolerance)
             if problem is None and c.psd_blocks and not _psd(v, c.psd_blocks):
@@ -655,10 +655,9 @@ class AgentRuntime:
                     continue   # silent since t0: not waited for
                 self.awaited_peer = p.name
                 return p.name
-            stamps = heard.values()
-            if max(stamps) < alive:
+            if max(heard.values()) < alive:
                 continue   # silent: not waited for
-            if min(stamps) <= due or not required <= heard.keys():
+            if min(heard.values()) <= due or not required <= heard.keys():
                 self.awaited_peer = p.name
                 return p.name
         return None
@@ -785,12 +784,12 @@ class AgentRuntime:
         here, counting what is missing."""
         rounds = self.rounds if rounds is None else rounds
         if rounds == self.rounds and self.rounds > 1 and self._round1 is not None:
-            inputs = self._round1   # round 1 as replied to, with the later rounds added
-            edge, mask = dict(inputs.edge), dict(inputs.mask)
+            first = self._round1   # round 1 as replied to, with the later rounds added
+            later, later_mask = dict(first.edge), dict(first.mask)
             for r in range(2, rounds + 1):
-                self._exact_channels(t, r, edge, mask)
-            return StepInputs(edges=inputs.edges, agent=inputs.agent, edge=edge, mask=mask,
-                              t=t)
+                self._exact_channels(t, r, later, later_mask)
+            return StepInputs(edges=first.edges, agent=first.agent, edge=later,
+                              mask=later_mask, t=t)
         h = self.h
         delta_R = self.gyro.increment(t, t + h)[None]
         agent: dict[str, Array] = {DELTA_R: delta_R}
@@ -899,7 +898,7 @@ class AgentRuntime:
                 self.missing[PEER_ODOMETRY] += 1
         edge[PEER_DELTA_R], edge[PEER_DISPLACEMENT], mask[PEER_ODOMETRY] = rot, disp, here
 
-    def _peer_rotation(self, peer: Peer):  # type: ignore[no-untyped-def]
+    def _peer_rotation(self, peer: Peer) -> Callable[[float, float], Array]:
         """``rotate(s, t) = R(t)ᵀ R(s)`` of a sender's measurement: its odometry's, or none
         (a method that does not read it: the value is taken as it is)."""
         odo = peer.odometry
@@ -1031,29 +1030,28 @@ class AgentRuntime:
     def _instant_channels(self, t: float, moving: bool, edge: dict[str, Array],
                           mask: dict[str, NDArray[np.bool_]]) -> None:
         """Each neighbour's 'instant' channels of its newest instant at or before ``t`` (a
-        robot: its newest values) with the own measurement paired with them."""
-        n = len(self.peers)
-        names = self._required
+        robot: its newest values) with the own measurement paired with them; a neighbour
+        without them all sits the step out (masked)."""
+        names = self._required_names
         sensors = list(self.own)
-        values = {c.name: np.zeros((n,) + c.shape) for c in self.channels.values()}
-        values.update({s.value: np.zeros((n, 3)) for s in sensors})
-        here = np.zeros(n, dtype=bool)
-        p_own, held = np.zeros((n, 3)), np.ones((n, 2))
         until = self._until(t + self.h)
+        exchange = self.exchange is not None
+        rows: list[tuple[Peer, list[Array], dict[str, Array], float]] = []
         for p in self.peers:
             if self._silent(p, names, t):
                 continue
             latest = {name: hist.samples[-1][1] for name, hist in p.values.items() if hist}
             t_s, sent = t, latest
-            if not moving and self.exchange is not None:   # its values of its instant ≤ t
+            if not moving and exchange:   # its values of its instant ≤ t
                 fixed = p.at_one_instant(names, not_after=t)
-                sent = dict(fixed[1]) if fixed is not None else latest
-                for name in self._optional:
-                    if hist := p.values.get(name):
-                        newest = hist.newest(t)
-                        if newest is not None:
-                            sent[name] = newest[1]
-            if moving:   # its values of one instant, paired with the own at that instant
+                if fixed is not None:
+                    sent = {**latest, **fixed[1]}
+                    for name in self._optional_names:
+                        if hist := p.values.get(name):
+                            newest = hist.newest(t)
+                            if newest is not None:
+                                sent[name] = newest[1]
+            elif moving:   # its values of one instant, paired with the own at that instant
                 own = self.own[sensors[0]].get(p.agent_id) if sensors else None
                 newest_own = own.newest_stamp if own else t
                 same = p.at_one_instant(names, not_after=min(t, newest_own))
@@ -1061,39 +1059,51 @@ class AgentRuntime:
                     self.unpaired += 1
                     if p.at_one_instant(names, not_after=math.inf) is not None:
                         continue   # this step without it: exact, unlike values of two instants
-                    stamps = [p.values[name].newest_stamp for name in latest]
-                    t_s = max(stamps, default=t)
+                    t_s = max((p.values[name].newest_stamp for name in latest), default=t)
                 else:
                     t_s, sent = same[0], {**latest, **same[1]}
                 t_s = min(t_s, t)
-            if any(name not in sent for name in names):
+            measured = [self.body_measurement(s, p.agent_id, t, at=t_s if moving else None,
+                                              until=until) for s in sensors]
+            if any(v is None for v in measured):
                 continue
-            own_values = [self.body_measurement(s, p.agent_id, t, at=t_s if moving else None,
-                                                until=until) for s in sensors]
-            if any(v is None for v in own_values):
-                continue
-            here[p.slot] = True
-            for s, v in zip(sensors, own_values):
-                values[s.value][p.slot] = v
-            for name, column in values.items():
-                if name in self.channels:
-                    value = sent.get(name, latest.get(name))
-                    column[p.slot] = (value if value is not None
-                                      else self.estimator.missing(name))
-            own_hist = self.own[sensors[0]].get(p.agent_id) if sensors else None
-            first = p.values.get(names[0]) if names else None
-            held[p.slot] = (own_hist.interval(self.h) if own_hist else 1.0,
-                            first.interval(self.h) if first else 1.0)
-            back = self.moved_back(t, t_s) if t_s < t else None
-            if back is None and t_s < t:
-                self.unpaired += 1
-            p_own[p.slot] = self.x.p_hat[0] if back is None else back
-        edge.update(values)
-        for key in list(values):
-            mask[key] = here
-        edge[HELD] = held
+            rows.append((p, measured, sent, t_s))   # type: ignore[arg-type]
+        n = len(self.peers)
+        used = [p.slot for p, _, _, _ in rows]
+        for k, s in enumerate(sensors):
+            edge[s.value] = self._column([m[k] for _, m, _, _ in rows], used, (3,))
+        for c in self.channels.values():
+            edge[c.name] = self._column([sent[c.name] if c.name in sent
+                                         else self.estimator.missing(c.name)
+                                         for _, _, sent, _ in rows], used, c.shape)
+        first = names[0] if names else None
+        edge[HELD] = self._column([np.array([
+            self.own[sensors[0]][p.agent_id].interval(self.h) if sensors else 1.0,
+            p.values[first].interval(self.h) if first else 1.0]) for p, _, _, _ in rows],
+            used, (2,), fill=1.0)
         if moving:
-            edge[P_OWN] = p_own
+            backs = []
+            for _, _, _, t_s in rows:
+                back = self.moved_back(t, t_s) if t_s < t else None
+                if back is None and t_s < t:
+                    self.unpaired += 1
+                backs.append(self.x.p_hat[0] if back is None else back)
+            edge[P_OWN] = self._column(backs, used, (3,))
+        if len(rows) < n:   # (every neighbour there: nothing to mask)
+            here = np.zeros(n, dtype=bool)
+            here[used] = True
+            for key in [s.value for s in sensors] + list(self.channels):
+                mask[key] = here
+
+    def _column(self, values: list[Array], rows: list[int], shape: tuple[int, ...],
+                fill: float = 0.0) -> Array:
+        """``values`` of the edges ``rows`` as one ``(E, *shape)`` array, ``fill`` elsewhere."""
+        if len(rows) == len(self.peers):
+            return np.array(values, dtype=float).reshape((len(rows),) + shape)
+        out = np.full((len(self.peers),) + shape, fill)
+        if rows:
+            out[rows] = values
+        return out
 
     def _silent(self, peer: Peer, names: Sequence[str], t: float) -> bool:
         """A neighbour that never sent a required channel, or whose newest value of one is
@@ -1115,7 +1125,8 @@ class AgentRuntime:
         or, given ``at``, the one measured at ``at`` (moving): interpolated between the two
         samples around it (rotated to t, then a normalised linear interpolation), the newest
         held after it. ``until``: no sample measured after it."""
-        hist = self.own.get(sensor, {}).get(agent_id)
+        by_target = self.own.get(sensor)
+        hist = by_target.get(agent_id) if by_target is not None else None
         if not hist:
             return None
         timeout = self.limits.sensor_timeout

@@ -18,7 +18,7 @@ from typing import Literal
 from ..estimators.base import Channel, Estimator
 from .agent import AgentSpec, PeerSpec
 
-ODOMETRY = 'odometry'   # the kind of an odometry subscription
+ODOMETRY: Literal['odometry'] = 'odometry'   # the kind of an odometry subscription
 ODOM_TOPIC = 'odom'     # its topic (REP-105's name)
 
 

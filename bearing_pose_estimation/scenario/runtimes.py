@@ -2,6 +2,8 @@
 its edges, role and initial estimate, and a simulation's exchange."""
 from __future__ import annotations
 
+import numpy as np
+
 from ..core.errors import ScenarioError
 from ..runtime.agent import AgentRuntime, AgentSpec
 from ..runtime.buffers import Exchange, Limits
@@ -20,7 +22,7 @@ def agent_specs(scenario: Scenario) -> list[AgentSpec]:
         raise ScenarioError(f'{scenario.source}: {problem}')
     R0, p0 = initial_estimates(scenario)
     tail, head = scenario.sensing_edges()
-    k = [nb.k for a in scenario.agents for nb in a.neighbours]
+    k = np.array([nb.k for a in scenario.agents for nb in a.neighbours], dtype=float)
     spec = scenario.sensors.bearing_rates
     index = scenario.index
     return fleet_specs(type(scenario.estimator()), [a.name for a in scenario.agents], tail, head,

@@ -39,6 +39,7 @@ from __future__ import annotations
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -226,13 +227,18 @@ class _Corruptor:
         return stamp, ids, b
 
     def neighbour(self, listener_id: int, msg: tuple) -> tuple | None:
-        kind = self._kind(self.NEIGHBOUR)
-        if kind is None:
-            return None
         sender, stamp, values = msg
-        values = dict(values)
         agent_channel = next((n for n in values if self.channels[n].per == 'agent'), None)
         edge_channel = next((n for n in values if self.channels[n].per == 'edge'), None)
+        # The kinds a receiver can tell on this message: a zero or stretched value only where
+        # it must be a unit vector, none for it only where the message has values per listener.
+        unit = edge_channel is not None and self.channels[edge_channel].unit
+        kind = self._kind(tuple(k for k in self.NEIGHBOUR
+                                if (unit or k not in ('zero', 'not_unit'))
+                                and (edge_channel is not None or k != 'none_for_me')))
+        if kind is None:
+            return None
+        values = dict(values)
         edge_shape = (self.channels[edge_channel].shape if edge_channel is not None
                       else (3,))
         per_edge = dict(values.get(edge_channel, {})) if edge_channel is not None else {}
@@ -339,7 +345,7 @@ class _Network:
             for sub in subscriptions(self.method, spec):
                 self.readers.setdefault((sub.source, sub.topic), []).append(name)
         self.subs = {name: subscriptions(self.method, spec) for name, spec in self.specs.items()}
-        self.topics = {}   # round -> topic -> the sender's channels on it
+        self.topics: dict[int, dict[str, list[str]]] = {}   # round -> topic -> channels
         for c in self.method.sends:
             if c.sensor is None:
                 self.topics.setdefault(c.round, {}).setdefault(c.topic, []).append(c.name)
@@ -431,7 +437,10 @@ class _Network:
         if self.offline(name, now):
             return
         for receiver in self.readers.get((name, topic), ()):
-            self.link.send(now, lambda at, r=receiver: self.receive(r, at, msg))
+            self.link.send(now, partial(self._arrive, receiver, msg))
+
+    def _arrive(self, to: str, msg: tuple, now: float) -> None:
+        self.receive(to, now, msg)
 
     def receive(self, to: str, now: float, msg: tuple) -> None:
         if self.offline(to, now) or self.stopped(to, now):
