@@ -119,8 +119,7 @@ from bearing_pose_estimation import msg_defs as wire  # noqa: E402
 from bearing_pose_estimation.cli import launch  # noqa: E402
 from bearing_pose_estimation.estimators.agent import AgentEstimator  # noqa: E402
 from bearing_pose_estimation.estimators.base import Sensor  # noqa: E402
-from bearing_pose_estimation.estimators.link_agent import (LinkAgentEstimator,  # noqa: E402
-                                                           agent_for)
+from bearing_pose_estimation.estimators.link_agent import LinkAgentEstimator  # noqa: E402
 from bearing_pose_estimation.estimators.two_round_agent import TwoRoundAgent  # noqa: E402
 from bearing_pose_estimation.ros.estimator_group import parse_args as group_args  # noqa: E402
 from bearing_pose_estimation.ros.monitor_node import watched  # noqa: E402
@@ -128,6 +127,7 @@ from bearing_pose_estimation.ros.node_main import run_node  # noqa: E402
 from bearing_pose_estimation.ros.wiring import link_subscriptions, optional_first  # noqa: E402
 from bearing_pose_estimation.scenario import (Scenario, check_scenario,  # noqa: E402
                                               load_scenario, read_scenario_data)
+from bearing_pose_estimation.scenario.agents import agent_for  # noqa: E402
 from bearing_pose_estimation.sim.world import World  # noqa: E402
 from bearing_pose_estimation.studies.compare import method_data  # noqa: E402
 

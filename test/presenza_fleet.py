@@ -9,7 +9,7 @@ from pathlib import Path
 
 import yaml
 
-from bearing_pose_estimation.estimators.link_agent import agent_for
+from bearing_pose_estimation.scenario.agents import agent_for
 from bearing_pose_estimation.estimators.two_round_agent import TwoRoundAgent
 from bearing_pose_estimation.scenario.model import Scenario, initial_estimates
 from bearing_pose_estimation.scenario.parse import load_scenario

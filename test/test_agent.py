@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bearing_pose_estimation.core import so3
-from bearing_pose_estimation.estimators.agent import estimator_for
+from bearing_pose_estimation.scenario.agents import estimator_for
 from bearing_pose_estimation.core.gyro import GyroBuffer
 from bearing_pose_estimation.sim.netsim import run_network
 from bearing_pose_estimation.scenario import load_scenario

@@ -71,11 +71,11 @@ class Toy(Estimator[ToyGains, State]):
             p_hat = p_hat + np.einsum('nab,nb->na', x.R_hat, inputs.displacement)
         return State(R_hat=R, p_hat=p_hat), {'innovation': sigma}
 
-    def check(self, scenario):
+    def check(self, fleet):
         report = CheckReport(spectra_of='none')
-        for a in scenario.followers:
-            if len(a.neighbours) < 2:
-                report.findings.append(Finding('error', a.name, 'neighbours',
+        for i in fleet.followers:
+            if len(fleet.neighbours[i]) < 2:
+                report.findings.append(Finding('error', fleet.names[i], 'neighbours',
                                                'the toy needs two neighbours', 'add one'))
         return report
 

@@ -13,7 +13,8 @@ from bearing_pose_estimation.scenario import parse_scenario
 from bearing_pose_estimation.scenario.parse import read_scenario_data
 from bearing_pose_estimation.sim.batch import BatchSimulator
 from bearing_pose_estimation.sim.world import World
-from bearing_pose_estimation.estimators.link_agent import LinkAgentEstimator, link_estimator_for
+from bearing_pose_estimation.estimators.link_agent import LinkAgentEstimator
+from bearing_pose_estimation.scenario.agents import link_estimator_for
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'de_carli_8_quadrotors.yaml'
 

@@ -259,7 +259,7 @@ def test_the_node_logic_pairs_late_messages_with_the_own_past():
 
 
 def test_bad_odometry_is_rejected_with_a_cause_and_live_odometry_paces_the_steps():
-    from bearing_pose_estimation.estimators.agent import estimator_for
+    from bearing_pose_estimation.scenario.agents import estimator_for
 
     est = estimator_for(load_scenario(MOVING), 'agent_3')
     nan = np.array([np.nan, 0.0, 0.0])
@@ -299,7 +299,7 @@ def test_a_leaders_known_pose_waits_for_the_odometry_that_carries_it():
     """A known pose stamped ahead of the odometry cannot be carried back to the step time
     yet: it is applied once odometry covers the way, and the leader's estimate is then its
     true pose (here: constant body velocity, so p(t) = p(t_k) + R (t - t_k) v)."""
-    from bearing_pose_estimation.estimators.agent import estimator_for
+    from bearing_pose_estimation.scenario.agents import estimator_for
 
     s = load_scenario(MOVING)
     est = estimator_for(s, 'agent_1')

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from bearing_pose_estimation.core import so3
-from bearing_pose_estimation.estimators.agent import Limits, estimator_for
+from bearing_pose_estimation.estimators.agent import Limits
+from bearing_pose_estimation.scenario.agents import estimator_for
 from bearing_pose_estimation.sim.netsim import (Outage, convergence_cost, fault_cases,
                                             reconvergence_time, run_case)
 from bearing_pose_estimation.scenario import load_scenario

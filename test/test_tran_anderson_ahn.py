@@ -253,7 +253,7 @@ def test_the_node_diagnostics_report_the_checks_K_i():
     """One function (Estimator.conditioning) gives `check`'s spectra and the node's
     /diagnostics: for a two-neighbour follower K_i includes k_c c cᵀ (the node's diagnostics
     once left it out), from the body-frame bearings the agent measures."""
-    from bearing_pose_estimation.estimators.agent import estimator_for
+    from bearing_pose_estimation.scenario.agents import estimator_for
     from bearing_pose_estimation.sim.world import World
 
     scenario = load_scenario(CUBE)

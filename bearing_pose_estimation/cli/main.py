@@ -108,7 +108,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     # Moving fleets also get their trajectories drawn (the recording holds them).
     plots = [] if args.no_plots else (PLOT_FILES + ([TRAJECTORY_PLOT] if scenario.moves else [])
                                       + [CASCADE_PLOT])
-    groups = scenario.estimator().agent_groups(scenario)
+    groups = scenario.estimator().agent_groups(scenario.fleet())
     roles = ([ROLES_CSV] + ([] if args.no_plots else [ROLES_PLOT])) if groups else []
     out = _out_dir(args.out or f'results/{scenario.name}', ['metrics.csv', 'summary.json']
                    + plots + roles, args.force)

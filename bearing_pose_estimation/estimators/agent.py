@@ -38,7 +38,7 @@ import math
 from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, TypeVar
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,9 +46,6 @@ from numpy.typing import NDArray
 from ..core.gyro import GyroBuffer
 from ..core.odometry import OdometryBuffer
 from .base import Channel, Edges, Estimator, Sensor, State, StepInputs
-
-if TYPE_CHECKING:
-    from ..scenario.model import Scenario
 
 Array = NDArray[np.float64]
 # Keep this many bearing samples per target: a bearing newer than the gyro data must wait.
@@ -871,20 +868,3 @@ def _same_fields(a: StepInputs, b: StepInputs) -> bool:
             and (None if a.anchor is None else a.anchor.pinned)
             == (None if b.anchor is None else b.anchor.pinned)
             and a.t == b.t and a.received.keys() == b.received.keys())
-
-
-def estimator_for(scenario: Scenario, name: str, limits: Limits = Limits(),
-                  initial: tuple[Array, Array] | None = None) -> AgentEstimator:
-    """The estimator of agent ``name`` as the scenario defines it (method and gains, neighbours
-    and their ids, initial estimate, rate; leader mode for leaders). ``initial``: the fleet's
-    ``initial_estimates(scenario)``, when the caller builds many estimators (it draws them
-    all, so computing it once per fleet saves O(N²) work)."""
-    from ..scenario.model import initial_estimates
-
-    i = scenario.index[name]
-    R0, p0 = initial if initial is not None else initial_estimates(scenario)
-    nbrs = [(n.name, scenario.agent_id(n.name), n.k) for n in scenario.agents[i].neighbours]
-    return AgentEstimator(scenario.estimator(), agent_id=scenario.agent_id(name),
-                          neighbours=nbrs, step=scenario.step, R0=R0[i], p0=p0[i],
-                          leader=name in scenario.leaders,
-                          known_ids=set(range(1, len(scenario.agents) + 1)), limits=limits)

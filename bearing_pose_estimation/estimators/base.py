@@ -39,7 +39,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import TYPE_CHECKING, Any, ClassVar, Generic, Literal, TypeVar
+from typing import Any, ClassVar, Generic, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,9 +47,7 @@ from scipy import sparse
 
 from ..core import so3
 from ..core.errors import ScenarioError
-
-if TYPE_CHECKING:
-    from ..scenario.model import Scenario
+from .fleet import Fleet
 
 Array = NDArray[np.float64]
 Index = NDArray[np.intp]
@@ -619,9 +617,10 @@ class Estimator(ABC, Generic[G, S]):
 
     # --- assumptions
     @abstractmethod
-    def check(self, scenario: Scenario) -> CheckReport:
-        """The method's graph assumptions on ``scenario``: errors for what breaks convergence,
-        warnings for what weakens it, each naming the agent, the field and the fix."""
+    def check(self, fleet: Fleet) -> CheckReport:
+        """The method's graph assumptions on ``fleet`` (``Scenario.fleet()``): errors for what
+        breaks convergence, warnings for what weakens it, each naming the agent, the field and
+        the fix."""
 
     def conditioning(self, bearings: Array, k: Array) -> Array | None:
         """The local matrix whose spectrum the method's convergence proof needs, from one
@@ -650,12 +649,12 @@ class Estimator(ABC, Generic[G, S]):
         anchor frame at t. None: the method cannot."""
         return None
 
-    def agent_groups(self, scenario: Scenario) -> dict[str, list[str]]:
+    def agent_groups(self, fleet: Fleet) -> dict[str, list[str]]:
         """The method's roles among the estimating robots, ``{role: names}``, for outputs
         that show them apart (Presenza et al.: sensing and free robots). Empty: none."""
         return {}
 
-    def fleet_margins(self, scenario: Scenario, R_hat: Array, p_hat: Array) -> dict[str, float]:
+    def fleet_margins(self, fleet: Fleet, R_hat: Array, p_hat: Array) -> dict[str, float]:
         """Margins of the method's assumptions evaluated on the whole fleet's estimates
         ``(N, 3, 3)``, ``(N, 3)`` (what the monitor, which sees every estimate, reports;
         Presenza et al.: angle rigidity). Empty: none."""
@@ -673,9 +672,9 @@ class Estimator(ABC, Generic[G, S]):
         end); None when the method has no such state."""
         return None
 
-    def check_motion(self, scenario: Scenario, times: Array,
+    def check_motion(self, fleet: Fleet, times: Array,
                      positions: Array) -> list[Finding]:
-        """The method's assumptions that the motion of a moving ``scenario`` breaks, from its
+        """The method's assumptions that the motion of a moving ``fleet`` breaks, from its
         sampled truth: ``times`` ``(K,)`` [s] from 0 to its duration and ``positions``
         ``(K, N, 3)`` [m] (agents in scenario order; ``positions[0]`` is where :meth:`check`
         looked). Each finding names the time; what :meth:`check` already reports at t = 0 is

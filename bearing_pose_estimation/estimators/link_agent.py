@@ -35,19 +35,14 @@ from __future__ import annotations
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core.errors import ScenarioError
 from ..core.odometry import OdometryBuffer
-from .agent import AgentEstimator, Limits, TimedAgent, _Prepared, estimator_for
+from .agent import AgentEstimator, Limits, TimedAgent, _Prepared
 from .agent import _finite_max_norm, _twist_problem, _vector_problem as _unit_problem
 from .base import Channel, Edges, Estimator, LinkInputs, State, StepInputs, owns_pair
-
-if TYPE_CHECKING:
-    from ..scenario.model import Scenario
 
 Array = NDArray[np.float64]
 # Samples of relative positions and channel values kept per source: enough for a step that
@@ -558,35 +553,3 @@ class LinkAgentEstimator(TimedAgent):
         return {lk.name: (float(total[0, e]) if e < total.shape[1] else 0.0,
                           bool(e < recent.shape[1] and recent[0, e] >= threshold))
                 for e, lk in enumerate(self.links)}
-
-
-def link_estimator_for(scenario: Scenario, name: str, limits: Limits = Limits(),
-                       initial: tuple[Array, Array] | None = None) -> LinkAgentEstimator:
-    """The estimator of robot ``name`` as the scenario defines it (its communication links in
-    the batch simulator's order)."""
-    from ..scenario.model import initial_estimates
-
-    i = scenario.index[name]
-    R0, p0 = initial if initial is not None else initial_estimates(scenario)
-    senses = {nb.name for nb in scenario.agents[i].neighbours}
-    sensed_by = set(scenario.listeners(name))
-    others = sorted(senses | sensed_by, key=scenario.index.__getitem__)
-    links = [(o, scenario.agent_id(o), o in senses, o in sensed_by) for o in others]
-    return LinkAgentEstimator(scenario.estimator(), agent_id=scenario.agent_id(name),
-                              links=links, step=scenario.step, R0=R0[i], p0=p0[i],
-                              known_ids=set(range(1, len(scenario.agents) + 1)), limits=limits)
-
-
-def agent_for(scenario: Scenario, name: str, limits: Limits = Limits(),
-              initial: tuple[Array, Array] | None = None) -> AgentEstimator | LinkAgentEstimator:
-    """The agent logic of ``name`` for the scenario's method: :class:`LinkAgentEstimator` for
-    ``links = 'communication'`` methods, :class:`agent.AgentEstimator` for the others."""
-    problem = scenario.not_distributable()
-    if problem:
-        raise ScenarioError(f'{scenario.source}: {problem}')
-    if scenario.estimator().rounds == 2:
-        from .two_round_agent import two_round_agent_for
-        return two_round_agent_for(scenario, name, limits, initial)
-    if scenario.estimator().links == 'communication':
-        return link_estimator_for(scenario, name, limits, initial)
-    return estimator_for(scenario, name, limits, initial)

@@ -35,7 +35,6 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Collection
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,9 +45,6 @@ from ..core.odometry import OdometryBuffer
 from .agent import Limits, _Prepared, _vector_problem
 from .base import AnchorInputs, Edges, Estimator, LinkInputs, State, StepInputs
 from .link_agent import _HISTORY, Link, LinkAgentEstimator, _bounded_problem, _interpolated
-
-if TYPE_CHECKING:
-    from ..scenario.model import Scenario
 
 Array = NDArray[np.float64]
 # A bearing rate above this [1/s] is absurd (a target crossing the view in 10 ms).
@@ -432,29 +428,3 @@ def _waiting(link: Link, name: str, t: float) -> bool:
     """j's value of ``name`` at ``t`` may still come (not here, nothing newer either)."""
     value, decided = link.value_at(name, t)
     return value is None and not decided
-
-
-def two_round_agent_for(scenario: Scenario, name: str, limits: Limits = Limits(),
-                        initial: tuple[Array, Array] | None = None) -> TwoRoundAgent:
-    """The estimator of robot ``name`` as the scenario defines it: its communication links
-    (sensing either way, and the anchor's ranging) in the batch simulator's order."""
-    from ..scenario.model import initial_estimates
-
-    i = scenario.index[name]
-    anchor = scenario.anchor
-    assert anchor is not None, 'two-round methods have an anchor'
-    R0, p0 = initial if initial is not None else initial_estimates(scenario)
-    senses = {nb.name for nb in scenario.agents[i].neighbours}
-    sensed_by = set(scenario.listeners(name))
-    ranging = set(scenario.ranged) if name == anchor else (
-        {anchor} if name in scenario.ranged else set())
-    others = sorted(senses | sensed_by | ranging, key=scenario.index.__getitem__)
-    links = [(o, scenario.agent_id(o), o in senses, o in sensed_by) for o in others]
-    ranges = {scenario.agent_id(o) for o in scenario.ranged} if name == anchor else set()
-    spec = scenario.sensors.bearing_rates
-    return TwoRoundAgent(scenario.estimator(), agent_id=scenario.agent_id(name), links=links,
-                         step=scenario.step, R0=R0[i], p0=p0[i],
-                         anchor=(anchor, scenario.agent_id(anchor)), ranges=ranges,
-                         ranged=name in scenario.ranged, pinned=scenario.anchor_pinned,
-                         rate_tau=spec.tau if spec.from_bearings else None,
-                         known_ids=set(range(1, len(scenario.agents) + 1)), limits=limits)

@@ -96,8 +96,9 @@ from ..core.errors import ScenarioError
 from ..estimators.agent import TIME_EVENTS, AgentEstimator, Exchange, Limits
 from ..estimators.base import (Array, Channel, Estimator, Sensor, format_gains, gain_fields,
                                parse_gains)
-from ..estimators.link_agent import LinkAgentEstimator, agent_for
+from ..estimators.link_agent import LinkAgentEstimator
 from ..estimators.two_round_agent import TwoRoundAgent
+from ..scenario.agents import agent_for
 from ..scenario.model import Scenario
 from ..scenario.parse import load_scenario
 from .node_main import declare, parameter_overrides, run_node, warn_unknown_parameters
@@ -491,7 +492,7 @@ class EstimatorNode(Node):
             gains = _validated_gains(self.gains, new_gains) if new_gains else self.gains
             if new_gains and self.scenario is not None:
                 errors = estimators.build(self.scenario.method, gains).check(
-                    replace(self.scenario, gains=gains)).errors
+                    self.scenario.fleet()).errors
                 if errors:
                     raise ScenarioError(str(errors[0]))
         except ScenarioError as exc:

@@ -223,7 +223,7 @@ class MonitorNode(Node):
 
     def _fleet_margins(self, t: float, R_hat: np.ndarray, p_hat: np.ndarray) -> None:
         """Record the method's fleet margins at ``t``; publish them once per second."""
-        values = self.method.fleet_margins(self.scenario, R_hat, p_hat)
+        values = self.method.fleet_margins(self.scenario.fleet(), R_hat, p_hat)
         for key, value in values.items():
             self.margins.setdefault(key, []).append((t, value))
         if values and (len(self.margins[next(iter(values))]) - 1) % max(
@@ -257,7 +257,7 @@ class MonitorNode(Node):
         write_metrics_csv(rec, self.out_dir / 'metrics.csv')
         write_summary_json(summary, self.out_dir / 'summary.json')
         from ..studies.plots import write_role_outputs
-        write_role_outputs(rec, self.method.agent_groups(self.scenario), self.out_dir,
+        write_role_outputs(rec, self.method.agent_groups(self.scenario.fleet()), self.out_dir,
                            title=f'{self.scenario.name} over DDS: errors by role',
                            plot=self.plots)
         if self.plots:

@@ -14,7 +14,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from .. import msg_defs as wire
 from ..estimators.agent import AgentEstimator
 from ..estimators.base import Channel
-from ..estimators.link_agent import LinkAgentEstimator, agent_for
+from ..estimators.link_agent import LinkAgentEstimator
+from ..scenario.agents import agent_for
 
 if TYPE_CHECKING:
     from ..scenario.model import Scenario

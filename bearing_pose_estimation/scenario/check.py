@@ -39,12 +39,12 @@ def check_scenario(scenario: Scenario) -> CheckReport:
         collocated.append(Finding('error', b, 'position', f'collocated with {a}',
                                   f'move {b} or {a}: bearings between them are undefined'))
     estimator = scenario.estimator()
-    report = estimator.check(scenario)
+    report = estimator.check(scenario.fleet())
     report.findings[:0] = collocated
     if scenario.moves:
         times, positions = sample_truth(scenario)
         report.findings += close_approach_findings(scenario, times, positions)
-        report.findings += estimator.check_motion(scenario, times, positions)
+        report.findings += estimator.check_motion(scenario.fleet(), times, positions)
     return report
 
 

@@ -47,8 +47,9 @@ from numpy.typing import NDArray
 from ..core.errors import ScenarioError
 from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits, advance_together
 from ..estimators.base import Channel
-from ..estimators.link_agent import LinkAgentEstimator, agent_for
+from ..estimators.link_agent import LinkAgentEstimator
 from ..estimators.two_round_agent import TwoRoundAgent
+from ..scenario.agents import agent_for
 from ..scenario.model import Scenario, initial_estimates
 from ..studies.results import PoseErrors, Recording, pose_errors
 from .world import World
