@@ -32,7 +32,7 @@ sensing), the round-1 channels (:meth:`Estimator.outbox`; the anchor's relative 
 its ranged robots), then the round-2 channels each robot forms from them
 (:meth:`Estimator.reply`), and the anchor's gyro increment and odometry for every robot
 (:class:`estimators.base.AnchorInputs`). Agents with ``anchor_estimate`` velocities move with
-the commands their estimates give (:meth:`sim.truth.Truth.command`, a closed loop).
+the commands their estimates give (:meth:`scenario.truth.Truth.command`, a closed loop).
 """
 from __future__ import annotations
 
@@ -49,9 +49,9 @@ from ..core.motion import in_anchor_frame, yaw_of
 from ..estimators.base import (AnchorInputs, Edges, EstimateFrame, LinkInputs, State, StepInputs,
                                communication_links, route)
 from ..scenario.model import Scenario, initial_estimates
+from ..scenario.truth import OnTruth, Truth
 from ..studies.results import PoseErrors, Recording, pose_errors, to_world
 from .noise import NoiseModel
-from .truth import OnTruth, Truth
 
 Array = NDArray[np.float64]
 
