@@ -32,7 +32,7 @@ from bearing_pose_estimation.ros.estimator_node import INCOMPLETE_LOG  # noqa: E
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 from bearing_pose_estimation.scenario.generate import generate_scenario  # noqa: E402
 from bearing_pose_estimation.sim.netsim import run_network  # noqa: E402
-from bearing_pose_estimation.studies.results import Recording  # noqa: E402
+from bearing_pose_estimation.metrics.results import Recording  # noqa: E402
 from bearing_pose_estimation.studies.summary import read_metrics_csv  # noqa: E402
 
 FLOOR = 1e-4   # [rad, m]: below, differences are absolute

@@ -12,7 +12,7 @@ A method is a subclass of :class:`Estimator`, registered under the scenario's ``
 - ``sends``: what each agent sends the agents that listen to it (:class:`Channel`: per agent
   or per sensing edge, with its frame);
 - ``frame``: how its estimates are expressed (:class:`EstimateFrame`), so that errors are
-  measured after the right alignment (:mod:`bearing_pose_estimation.studies.results`);
+  measured after the right alignment (:mod:`bearing_pose_estimation.metrics.results`);
 
 and implements its per-agent state (a :class:`State` dataclass of ``(N, ...)`` arrays, the
 class's second type parameter) and its initial value, its graph-assumption check

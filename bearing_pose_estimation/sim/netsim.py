@@ -49,9 +49,9 @@ from ..estimators.agent import TIME_EVENTS, AgentEstimator, Limits, advance_toge
 from ..estimators.base import Channel
 from ..estimators.link_agent import LinkAgentEstimator
 from ..estimators.two_round_agent import TwoRoundAgent
+from ..metrics.results import PoseErrors, Recording, pose_errors
 from ..scenario.agents import agent_for
 from ..scenario.model import Scenario, initial_estimates
-from ..studies.results import PoseErrors, Recording, pose_errors
 from .world import World
 
 Array = NDArray[np.float64]
@@ -571,7 +571,7 @@ class _Network:
             self.deliver(now)
 
     def errors(self, followers: list[int]) -> PoseErrors:
-        """The followers' pose errors (:func:`studies.results.pose_errors`), each estimate
+        """The followers' pose errors (:func:`metrics.results.pose_errors`), each estimate
         against the truth at its estimator's state time (now, unless it waits for gyro data)."""
         R, p = self.world.R.copy(), self.world.p.copy()
         for i, name in enumerate(self.names):
