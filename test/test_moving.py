@@ -15,7 +15,7 @@ from bearing_pose_estimation.core.odometry import OdometryBuffer
 from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.scenario.model import SensorSpec
 from bearing_pose_estimation.sim.batch import BatchSimulator
-from bearing_pose_estimation.sim.truth import Truth
+from bearing_pose_estimation.scenario.truth import Truth
 from bearing_pose_estimation.sim.world import World
 from conftest import REPO_ROOT
 
@@ -259,7 +259,7 @@ def test_the_node_logic_pairs_late_messages_with_the_own_past():
 
 
 def test_bad_odometry_is_rejected_with_a_cause_and_live_odometry_paces_the_steps():
-    from bearing_pose_estimation.estimators.agent import estimator_for
+    from bearing_pose_estimation.scenario.agents import estimator_for
 
     est = estimator_for(load_scenario(MOVING), 'agent_3')
     nan = np.array([np.nan, 0.0, 0.0])
@@ -299,7 +299,7 @@ def test_a_leaders_known_pose_waits_for_the_odometry_that_carries_it():
     """A known pose stamped ahead of the odometry cannot be carried back to the step time
     yet: it is applied once odometry covers the way, and the leader's estimate is then its
     true pose (here: constant body velocity, so p(t) = p(t_k) + R (t - t_k) v)."""
-    from bearing_pose_estimation.estimators.agent import estimator_for
+    from bearing_pose_estimation.scenario.agents import estimator_for
 
     s = load_scenario(MOVING)
     est = estimator_for(s, 'agent_1')
@@ -324,7 +324,7 @@ def test_the_truth_computed_in_chunks_is_the_truth_step_by_step(repo_root, confi
     next `chunk` steps in one call: the same numbers, bit for bit, as one call per step at
     t = k dt, across chunk boundaries and a reset."""
     from bearing_pose_estimation.core.motion import body_displacement, magnus_increment
-    from bearing_pose_estimation.sim.truth import Truth
+    from bearing_pose_estimation.scenario.truth import Truth
 
     scenario = load_scenario(repo_root / 'config' / config)
     truth = Truth(scenario, 1e-3)

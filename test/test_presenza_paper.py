@@ -124,7 +124,7 @@ def test_what_the_nodes_cannot_run_is_refused_with_the_reason_and_the_fix():
     """Case 2's closed loop (u = Q̂ᵀ v) needs the estimates inside the truth, which a simulator
     node (or netsim's world) cannot have. Case 1 runs over DDS (test_presenza_dds.py) and in
     netsim (test_presenza_faults.py)."""
-    from bearing_pose_estimation.estimators.link_agent import agent_for
+    from bearing_pose_estimation.scenario.agents import agent_for
     from bearing_pose_estimation.scenario import ScenarioError
     from bearing_pose_estimation.sim.netsim import simulate_network
 
