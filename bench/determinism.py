@@ -28,11 +28,12 @@ import yaml
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from bearing_pose_estimation.cli import launch  # noqa: E402
+from bearing_pose_estimation.metrics.results import Recording  # noqa: E402
+from bearing_pose_estimation.plan import processes as plan  # noqa: E402
 from bearing_pose_estimation.runtime.health import INCOMPLETE_LOG  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 from bearing_pose_estimation.scenario.generate import generate_scenario  # noqa: E402
 from bearing_pose_estimation.sim.netsim import run_network  # noqa: E402
-from bearing_pose_estimation.studies.results import Recording  # noqa: E402
 from bearing_pose_estimation.studies.summary import read_metrics_csv  # noqa: E402
 
 FLOOR = 1e-4   # [rad, m]: below, differences are absolute
@@ -69,8 +70,8 @@ def _fmt(d: tuple[float, float]) -> str:
 
 def run_dds(scenario_file: Path, out: Path, duration: float, domain: int,
             load: int) -> tuple[Recording, float, list[str]]:
-    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=out, duration=duration,
-                           domain_id=domain, plots=False, timeout=20 * duration + 300)
+    cfg = plan.RunConfig(scenario_file=scenario_file, out_dir=out, duration=duration,
+                         domain_id=domain, plots=False, timeout=20 * duration + 300)
     scenario = load_scenario(scenario_file)
     stop = mp.Event()
     burners = [mp.Process(target=_burn, args=(stop,), daemon=True) for _ in range(load)]

@@ -12,7 +12,7 @@ and reported.
 Measured 2026-12-06 (BENCHMARKS.md, "Discovery"): the pair matches within a second after 5,
 30 or 31 idle processes and never after 32: the 33rd and 34th participants of a domain never
 discover each other, which is why ``bearing-pose run`` uses at most 32 processes
-(``cli.launch.MAX_PROCESSES``).
+(``plan.processes.MAX_PROCESSES``).
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ import sys
 import tempfile
 import time
 
-from bearing_pose_estimation.cli import launch
+from bearing_pose_estimation.plan import dds
 
 CHILD = r'''
 import sys, time
@@ -83,7 +83,7 @@ def probe(n_idle: int, wait: float, domain_id: int) -> tuple[bool, float]:
         [sys.executable, '-c', CHILD, role, str(wait)], env=env, stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL, text=True)
     idle: list[subprocess.Popen[str]] = []
-    before = launch.shm_files()
+    before = dds.shm_files()
     try:
         for _ in range(n_idle):   # one at a time: each takes the next participant id
             idle.append(start('idle'))
@@ -98,7 +98,7 @@ def probe(n_idle: int, wait: float, domain_id: int) -> tuple[bool, float]:
         return int(count) > 0, float(seconds)
     finally:
         killed = _stop(idle)
-        left = launch.leaked_shm(before, lockless=True)
+        left = dds.leaked_shm(before, lockless=True)
         for path in left:
             os.remove(path)
         if killed or left:   # Fast DDS keeps a port file after clean exits now and then

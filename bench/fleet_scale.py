@@ -32,6 +32,7 @@ import yaml
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from bearing_pose_estimation.cli import launch  # noqa: E402
+from bearing_pose_estimation.plan import processes as plan  # noqa: E402
 from bearing_pose_estimation.scenario.generate import generate_scenario  # noqa: E402
 from bearing_pose_estimation.ros.node_main import (  # noqa: E402
     DEFAULT_EXECUTOR, EXECUTOR_ENV, EXECUTORS)
@@ -43,12 +44,12 @@ _MATCHED = re.compile(r'all matched after (?P<s>\S+) s')
 
 
 def run_config(scenario_file: Path, out_dir: Path, duration: float, domain_id: int,
-               agents_per_process: int = 1) -> launch.RunConfig:
+               agents_per_process: int = 1) -> plan.RunConfig:
     """A fleet run as this bench makes it: paced at real time (``--real-time-factor 1``), no
     plots, a generous timeout."""
-    return launch.RunConfig(scenario_file=scenario_file, out_dir=out_dir, duration=duration,
-                            domain_id=domain_id, real_time_factor=1.0, plots=False,
-                            agents_per_process=agents_per_process, timeout=20 * duration + 300)
+    return plan.RunConfig(scenario_file=scenario_file, out_dir=out_dir, duration=duration,
+                          domain_id=domain_id, real_time_factor=1.0, plots=False,
+                          agents_per_process=agents_per_process, timeout=20 * duration + 300)
 
 
 def simulator_stats(log: str) -> dict[str, float]:

@@ -4,7 +4,7 @@ For each run (seeds ``noise.seed``, +1, ...) and each agent that estimates its p
 normalised estimation error squared of the position, ``e_iᵀ P_ee⁻¹ e_i``, and of the
 attitude, ``φ_iᵀ P_φφ⁻¹ φ_i``, averaged over the samples after ``--after`` seconds. World-frame
 methods: ``e_i = p̂_i − p_i``, ``R̂_i = exp([φ_i]x) R_i`` (3 dof each). De Carli et al. (no
-anchor): the errors after the exact alignment (studies/results.py), ``e_i = p̂_i − R_z(a*) p_i −
+anchor): the errors after the exact alignment (metrics/results.py), ``e_i = p̂_i − R_z(a*) p_i −
 t*`` in the estimation frame and the yaw error alone (1 dof: roll and pitch are known). A
 consistent covariance gives the number of dof; the 95 % band of the average of ``runs``
 independent values is ``chi2(dof runs) / runs``. Per method (``--methods``, default the

@@ -22,6 +22,8 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 101))
 
 from bearing_pose_estimation.cli import launch  # noqa: E402
+from bearing_pose_estimation.plan import dds  # noqa: E402
+from bearing_pose_estimation.plan import processes as plan  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 
 FOUR = {
@@ -49,18 +51,18 @@ def main() -> None:
         scenario_file.write_text(yaml.safe_dump(FOUR))
         scenario = load_scenario(scenario_file)
         for k in range(args.rounds):
-            cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp / f'round_{k}',
-                                   duration=600.0, domain_id=domain, plots=False,
-                                   real_time_factor=0.5)
+            cfg = plan.RunConfig(scenario_file=scenario_file, out_dir=tmp / f'round_{k}',
+                                 duration=600.0, domain_id=domain, plots=False,
+                                 real_time_factor=0.5)
             cfg.logs_dir.mkdir(parents=True)
-            specs = launch.plan_processes(scenario, launch.write_params(scenario, cfg),
-                                          cfg.logs_dir, launch.find_executable)
-            specs = [s if s.name != 'simulator' else launch.ProcessSpec(
+            specs = plan.plan_processes(scenario, plan.write_params(scenario, cfg),
+                                        cfg.logs_dir, plan.find_executable)
+            specs = [s if s.name != 'simulator' else plan.ProcessSpec(
                 s.name, s.kind, s.argv + ('-p', 'wait_for_monitor:=false', '-p',
                                           'lockstep:=false'), s.log)
                      for s in specs if s.name != 'monitor']
-            shm_before = launch.shm_files()
-            with launch.ProcessGroup(env=launch.dds_env(domain, tmp / 'ros')) as group:
+            shm_before = dds.shm_files()
+            with launch.ProcessGroup(env=dds.dds_env(domain, tmp / 'ros')) as group:
                 for spec in specs:
                     group.start(spec)
                 time.sleep(args.run_for)
@@ -68,8 +70,8 @@ def main() -> None:
                 group.shutdown()
                 stop_s.append(time.monotonic() - t0)
                 failed = group.unclean()
-                hung = [n for n in group.pids if group.returncode(n) == launch.TEARDOWN_HUNG]
-            leaked = launch.leaked_shm(shm_before)  # after the group removed the hung ones'
+                hung = [n for n in group.pids if group.returncode(n) == dds.TEARDOWN_HUNG]
+            leaked = dds.leaked_shm(shm_before)  # after the group removed the hung ones'
             print(f'round {k}: {"ok" if not failed else f"FAILED {failed}"}, '
                   f'stopped in {stop_s[-1]:.2f} s'
                   + (f'; teardown watchdog fired in {hung}' if hung else '')

@@ -22,6 +22,7 @@ import numpy as np
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from bearing_pose_estimation.cli import launch  # noqa: E402
+from bearing_pose_estimation.plan import processes as plan  # noqa: E402
 from bearing_pose_estimation.runtime.health import INCOMPLETE_LOG  # noqa: E402
 from bearing_pose_estimation.scenario import load_scenario  # noqa: E402
 from bearing_pose_estimation.studies.summary import read_metrics_csv  # noqa: E402
@@ -71,9 +72,9 @@ def main() -> None:
     scenario = load_scenario(args.scenario)
     with tempfile.TemporaryDirectory(prefix='soak_') as tmp:
         out = Path(tmp) / 'run'
-        cfg = launch.RunConfig(scenario_file=args.scenario, out_dir=out, duration=args.duration,
-                               domain_id=1 + os.getpid() % 101, plots=False,
-                               timeout=3 * args.duration + 300)
+        cfg = plan.RunConfig(scenario_file=args.scenario, out_dir=out, duration=args.duration,
+                             domain_id=1 + os.getpid() % 101, plots=False,
+                             timeout=3 * args.duration + 300)
         samples: dict[str, list[tuple[float, float]]] = {}
         done = threading.Event()
 

@@ -118,6 +118,9 @@ from fleet_scale import run_config, simulator_stats  # noqa: E402
 from bearing_pose_estimation import msg_defs as wire  # noqa: E402
 from bearing_pose_estimation.cli import launch  # noqa: E402
 from bearing_pose_estimation.estimators.base import Sensor  # noqa: E402
+from bearing_pose_estimation.plan.dds import dds_env, leaked_shm, shm_files  # noqa: E402
+from bearing_pose_estimation.plan.processes import (ProcessSpec, estimator_groups,  # noqa: E402
+                                                    plan_processes)
 from bearing_pose_estimation.runtime.table import (ODOMETRY, optional_first,  # noqa: E402
                                                    subscriptions)
 from bearing_pose_estimation.ros.estimator_group import parse_args as group_args  # noqa: E402
@@ -519,10 +522,10 @@ def process_main(role: str, scenario_file: str, aligned: bool, omit: Collection[
 def process_groups(agents: Sequence[str], others: Iterable[str],
                    per_process: int) -> dict[str, list[str]]:
     """A run's processes: name -> what it runs. Consecutive agents share a process as
-    ``launch.plan_processes`` groups them (:func:`launch.estimator_groups`); the ``others``
+    ``plan_processes`` groups them (:func:`estimator_groups`); the ``others``
     (monitor, simulator) and, with ``per_process`` 1, each agent run alone."""
     out = ({name: [name] for name in agents} if per_process <= 1
-           else launch.estimator_groups(agents, per_process))
+           else estimator_groups(agents, per_process))
     out.update({name: [name] for name in others})
     return out
 
@@ -561,15 +564,15 @@ def run_floor(scenario_file: Path, scenario: Scenario, plans: dict[str, ProcessP
     """Start the floor's processes (``per_process`` agents in each agent process), wait until
     every node is matched (at most ``match_timeout`` s), measure the window."""
     logs = work / 'logs'
-    env = launch.dds_env(domain_id, logs / 'ros')
+    env = dds_env(domain_id, logs / 'ros')
     me = [sys.executable, str(Path(__file__).resolve()), '--scenario', str(scenario_file),
           '--phases', phases, *(['--omit', *omit] if omit else []),
           '--per-process', str(per_process)]
     agents = [a.name for a in scenario.agents]
     groups = process_groups(agents, [n for n in plans if n not in agents], per_process)
-    specs = [launch.ProcessSpec(name, 'floor', tuple(me + ['--role', ','.join(members)]),
-                                logs / f'{name}.log') for name, members in groups.items()]
-    before = launch.shm_files()
+    specs = [ProcessSpec(name, 'floor', tuple(me + ['--role', ','.join(members)]),
+                         logs / f'{name}.log') for name, members in groups.items()]
+    before = shm_files()
     notes = []
     with launch.ProcessGroup(env) as group:
         for spec in specs:
@@ -592,7 +595,7 @@ def run_floor(scenario_file: Path, scenario: Scenario, plans: dict[str, ProcessP
         unclean = group.unclean()
     if killed or unclean:
         notes.append(f'unclean stop: {killed or unclean}')
-    if launch.leaked_shm(before):
+    if leaked_shm(before):
         notes.append('files left in /dev/shm')
     # How much of its planned traffic (received and published) each process moved in the
     # window; its CPU is scaled to the plan (1.0 unless the machine could not keep up).
@@ -766,7 +769,7 @@ def run_nodes(scenario_file: Path, scenario: Scenario, duration: float, warmup: 
     processes = process_groups([a.name for a in scenario.agents], ['simulator', 'monitor'],
                                per_process)
     sampler = _RunSampler(cfg.logs_dir, len(processes), warmup, duration)
-    before = launch.shm_files()
+    before = shm_files()
     sampler.start()
     try:
         with (work / 'run.out').open('w') as out, contextlib.redirect_stdout(out), \
@@ -778,7 +781,7 @@ def run_nodes(scenario_file: Path, scenario: Scenario, duration: float, warmup: 
     notes = []
     if not result.ok:
         notes.append(f'run failed: {result.failure.format() if result.failure else "?"}')
-    if launch.leaked_shm(before):
+    if leaked_shm(before):
         notes.append('files left in /dev/shm')
     if sampler.clock_at is None or sampler.end_at is None:
         raise RuntimeError(f'nodes: no window found; logs in {cfg.logs_dir}')

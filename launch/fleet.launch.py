@@ -5,7 +5,7 @@
 
 One estimator per agent (namespace /<agent>), the monitor and the simulator, with the
 parameter files `bearing-pose run` writes (into `out`/params) and the same remappings
-(bearing_pose_estimation.cli.launch.launch_nodes: one plan for both). DDS discovery stays on
+(bearing_pose_estimation.plan.processes.launch_nodes: one plan for both). DDS discovery stays on
 loopback; the domain is your ROS_DOMAIN_ID. Unlike `bearing-pose run`, nothing stops the fleet
 when the monitor is done: Ctrl-C.
 """
@@ -20,7 +20,7 @@ PACKAGE = 'bearing_pose_estimation'
 
 
 def _fleet(context, *args, **kwargs):
-    from bearing_pose_estimation.cli import launch as plan
+    from bearing_pose_estimation.plan import processes as plan
     from bearing_pose_estimation.scenario import load_scenario
 
     def value(name: str) -> str:

@@ -22,6 +22,8 @@ from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.core import so3
 from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.msg_defs import cdr
+from bearing_pose_estimation.plan import dds
+from bearing_pose_estimation.plan import processes as plan
 
 
 class Observer:
@@ -68,8 +70,8 @@ def assert_no_shm_left(groups: launch.ProcessGroup | list[launch.ProcessGroup],
     node was ended in a group the test does not hold (a launcher it ran said so)."""
     groups = groups if isinstance(groups, list) else [groups]
     if hung or any(group.hung_teardowns() for group in groups):
-        launch.clean_shm(before)
-    assert launch.leaked_shm(before) == [], 'Fast DDS files left in /dev/shm'
+        dds.clean_shm(before)
+    assert dds.leaked_shm(before) == [], 'Fast DDS files left in /dev/shm'
 
 
 @contextmanager
@@ -177,7 +179,7 @@ PATIENT = {'neighbour_wait': 10.0}
 
 def with_parameters(params: dict[str, Path], agents: list[str], **values: object
                     ) -> dict[str, Path]:
-    """``params`` (launch.write_params' files) with ``values`` added to each of ``agents``'."""
+    """``params`` (plan.write_params' files) with ``values`` added to each of ``agents``'."""
     import yaml
 
     for agent in agents:

@@ -22,6 +22,9 @@ from bearing_pose_estimation.core import so3
 from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.msg_defs import cdr, rviz
 from bearing_pose_estimation.cli.main import main
+from bearing_pose_estimation.plan.dds import TEARDOWN_HUNG, dds_env, shm_files
+from bearing_pose_estimation.plan.processes import (BAG_DIR, ProcessSpec, RunConfig,
+                                                    find_executable, plan_processes, write_params)
 from bearing_pose_estimation.ros.estimator_group import CPU_SPLIT_ENV
 from bearing_pose_estimation.ros.step_batch import read_cpu_split
 from bearing_pose_estimation.scenario import initial_estimates, load_scenario
@@ -59,12 +62,12 @@ def no_leftovers(tmp_path):
     adds it to ``watch.groups``: a node its teardown watchdog ended leaves files that the
     test's observer still used when the group cleaned up, removed now (assert_no_shm_left);
     `bearing-pose run` says so in its output (a test's run.log)."""
-    before = launch.shm_files()
+    before = shm_files()
     with ProcessWatch(str(tmp_path)) as watch:
         yield watch
     assert watch.seen, 'the test started no process: the check below would prove nothing'
     assert watch.left() == [], 'processes left behind'
-    noted = any(launch.describe_exit(launch.TEARDOWN_HUNG) in p.read_text(errors='replace')
+    noted = any(launch.describe_exit(TEARDOWN_HUNG) in p.read_text(errors='replace')
                 for p in tmp_path.glob('*.log'))
     assert_no_shm_left(watch.groups, before, hung=noted)
 
@@ -72,18 +75,18 @@ def no_leftovers(tmp_path):
 def _start(group: launch.ProcessGroup, scenario_file: Path, out: Path, duration: float,
            monitor: bool, real_time_factor: float = 0.0, rviz: bool = False) -> None:
     scenario = load_scenario(scenario_file)
-    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=out, duration=duration,
-                           domain_id=DOMAIN, plots=False, real_time_factor=real_time_factor,
-                           rviz=rviz)
+    cfg = RunConfig(scenario_file=scenario_file, out_dir=out, duration=duration,
+                    domain_id=DOMAIN, plots=False, real_time_factor=real_time_factor,
+                    rviz=rviz)
     cfg.logs_dir.mkdir(parents=True, exist_ok=True)
-    specs = launch.plan_processes(scenario, launch.write_params(scenario, cfg), cfg.logs_dir,
-                                  launch.find_executable)
+    specs = plan_processes(scenario, write_params(scenario, cfg), cfg.logs_dir,
+                           find_executable)
     for spec in specs:
         if spec.kind == 'monitor' and not monitor:
             continue
         if spec.kind == 'simulator' and not monitor:
-            spec = launch.ProcessSpec(spec.name, spec.kind,
-                                      spec.argv + ('-p', 'wait_for_monitor:=false'), spec.log)
+            spec = ProcessSpec(spec.name, spec.kind,
+                               spec.argv + ('-p', 'wait_for_monitor:=false'), spec.log)
         group.start(spec)
 
 
@@ -101,7 +104,7 @@ def test_messages_on_the_wire(tmp_path, no_leftovers):
     agent_3 moves (0.2-0.36 m/s: a bearing 20 ms old would be off by ~3e-3)."""
     scenario_file = tmp_path / 'three.yaml'
     scenario_file.write_text(yaml.safe_dump(THREE_AGENTS))
-    env = launch.dds_env(DOMAIN, tmp_path / 'ros_logs')
+    env = dds_env(DOMAIN, tmp_path / 'ros_logs')
     topics = {
         '/agent_3/imu': (wire.Imu, wire.SENSOR_QOS),
         '/agent_3/bearings': (wire.PointCloud2, wire.SENSOR_QOS),
@@ -300,7 +303,7 @@ def test_several_agents_per_process_recorded_and_evaluated_with_evo(tmp_path, no
     scenario = load_scenario(PAPER)
     typestore = get_typestore(Stores.ROS2_JAZZY)
     stamps: dict[str, set[int]] = {}
-    with Reader(out / launch.BAG_DIR) as bag:
+    with Reader(out / BAG_DIR) as bag:
         assert {(c.topic, c.msgtype) for c in bag.connections} == {
             (name, wire.type_name(t)) for name, t in recorded_topics(scenario)}
         for c, _, raw in bag.messages():
@@ -416,11 +419,11 @@ def test_explicit_parameter_files_without_a_scenario_file(tmp_path, no_leftovers
     scenario_file = tmp_path / 'explicit.yaml'
     scenario_file.write_text(yaml.safe_dump(EXPLICIT_FLEET))
     scenario = load_scenario(scenario_file)
-    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp_path / 'out', duration=600.0,
-                           domain_id=DOMAIN, plots=False, real_time_factor=2.0)
+    cfg = RunConfig(scenario_file=scenario_file, out_dir=tmp_path / 'out', duration=600.0,
+                    domain_id=DOMAIN, plots=False, real_time_factor=2.0)
     cfg.logs_dir.mkdir(parents=True)
-    sim = next(s for s in launch.plan_processes(scenario, launch.write_params(scenario, cfg),
-                                                cfg.logs_dir, launch.find_executable)
+    sim = next(s for s in plan_processes(scenario, write_params(scenario, cfg),
+                                         cfg.logs_dir, find_executable)
                if s.kind == 'simulator')
     extra = {'agent_3': '    neighbour_timout: 0.5\n',  # misspelt on purpose
              'agent_4': '    method: tran_anderson_ahn\n'
@@ -429,18 +432,18 @@ def test_explicit_parameter_files_without_a_scenario_file(tmp_path, no_leftovers
     for agent in scenario.agents:
         params = tmp_path / f'{agent.name}.yaml'
         params.write_text(_explicit_params(scenario, agent.name, extra.get(agent.name, '')))
-        argv = [str(launch.find_executable('estimator')), '--ros-args', '-r',
+        argv = [str(find_executable('estimator')), '--ros-args', '-r',
                 f'__ns:=/{agent.name}', '--params-file', str(params)]
         if agent.name in scenario.leaders:
             argv += ['-r', 'known_pose:=ground_truth']
-        specs.append(launch.ProcessSpec(agent.name, 'estimator', tuple(argv),
-                                        cfg.logs_dir / f'{agent.name}.log'))
+        specs.append(ProcessSpec(agent.name, 'estimator', tuple(argv),
+                                 cfg.logs_dir / f'{agent.name}.log'))
     # The observer takes the monitor's place: the simulator starts the clock only once the
     # observer's subscriptions (the followers' estimates and ground truth) are matched and it
     # says so.
     specs.append(sim)
     followers = ('agent_3', 'agent_4')
-    with observer() as obs, launch.ProcessGroup(env=launch.dds_env(
+    with observer() as obs, launch.ProcessGroup(env=dds_env(
             DOMAIN, tmp_path / 'ros')) as group:
         no_leftovers.groups.append(group)
         for agent in followers:

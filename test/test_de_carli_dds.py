@@ -21,6 +21,9 @@ from diagnostic_msgs.msg import DiagnosticArray
 from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.msg_defs import cdr
 from bearing_pose_estimation.cli import launch
+from bearing_pose_estimation.plan.dds import CLEAN_EXITS, dds_env, shm_files
+from bearing_pose_estimation.plan.processes import (RunConfig, find_executable, plan_processes,
+                                                    write_params)
 from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.scenario.parse import read_scenario_data
 from bearing_pose_estimation.sim.batch import BatchSimulator
@@ -54,14 +57,14 @@ def run(tmp_path_factory):
     scenario_file = tmp / 'hover.yaml'
     scenario_file.write_text(yaml.safe_dump(data, sort_keys=False))
     scenario = load_scenario(scenario_file)
-    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp / 'out', duration=DURATION,
-                           domain_id=DOMAIN, plots=False)
+    cfg = RunConfig(scenario_file=scenario_file, out_dir=tmp / 'out', duration=DURATION,
+                    domain_id=DOMAIN, plots=False)
     cfg.logs_dir.mkdir(parents=True)
-    params = with_parameters(launch.write_params(scenario, cfg), list(scenario.index), **PATIENT)
-    specs = launch.plan_processes(scenario, params, cfg.logs_dir,
-                                  launch.find_executable)
-    shm = launch.shm_files()
-    with observer() as obs, launch.ProcessGroup(env=launch.dds_env(DOMAIN, tmp / 'ros')) as g:
+    params = with_parameters(write_params(scenario, cfg), list(scenario.index), **PATIENT)
+    specs = plan_processes(scenario, params, cfg.logs_dir,
+                           find_executable)
+    shm = shm_files()
+    with observer() as obs, launch.ProcessGroup(env=dds_env(DOMAIN, tmp / 'ros')) as g:
         obs.subscribe(DiagnosticArray, '/diagnostics', 50)
         for spec in specs:
             g.start(spec)
@@ -70,7 +73,7 @@ def run(tmp_path_factory):
             obs.subscribe(msg_type, name, qos)
         assert obs.spin_until(lambda: g.returncode('monitor') is not None, 300.0), \
             'the monitor did not finish'
-        assert g.returncode('monitor') in launch.CLEAN_EXITS
+        assert g.returncode('monitor') in CLEAN_EXITS
         g.shutdown()
         assert g.unclean() == {}
     assert_no_shm_left(g, shm)

@@ -9,11 +9,12 @@ import pytest
 import yaml
 from rclpy.parameter import Parameter
 
-from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.core import so3
 from bearing_pose_estimation.estimators.base import Sensor
 from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.msg_defs import cdr
+from bearing_pose_estimation.plan import dds
+from bearing_pose_estimation.plan import processes as plan
 from bearing_pose_estimation.ros.estimator_node import EstimatorNode
 from bearing_pose_estimation.ros.node_main import parameter_overrides
 from bearing_pose_estimation.estimators.boughellaba_tayebi import CascadeGains
@@ -333,10 +334,10 @@ def _run_estimator(tmp_path, params: str, timeout: float = 30.0) -> subprocess.C
     ``timeout`` s."""
     path = tmp_path / 'params.yaml'
     path.write_text(params)
-    argv = [str(launch.find_executable('estimator')), '--ros-args', '-r', '__ns:=/agent_5',
+    argv = [str(plan.find_executable('estimator')), '--ros-args', '-r', '__ns:=/agent_5',
             '--params-file', str(path)]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=launch.dds_env(int(os.environ['ROS_DOMAIN_ID']), tmp_path / 'ros'))
+                            env=dds.dds_env(int(os.environ['ROS_DOMAIN_ID']), tmp_path / 'ros'))
     try:
         out, _ = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -354,7 +355,7 @@ def _run_estimator(tmp_path, params: str, timeout: float = 30.0) -> subprocess.C
 def test_the_executable_reports_a_wrong_type_in_one_line(tmp_path, line, message):
     """A wrong type in a parameter file: exit code 1, one fatal line naming the parameter and
     the fix, no traceback (integer gains, `[2, 1]`, are not an error)."""
-    shm = launch.shm_files()
+    shm = dds.shm_files()
     result = _run_estimator(tmp_path, f"""/agent_5/estimator:
   ros__parameters:
     agent_id: 5
@@ -367,7 +368,7 @@ def test_the_executable_reports_a_wrong_type_in_one_line(tmp_path, line, message
     assert 'Traceback' not in result.stdout
     fatal = [x for x in result.stdout.splitlines() if 'FATAL' in x]
     assert len(fatal) == 1 and message in fatal[0] and 'Fix: ' in fatal[0], result.stdout
-    assert launch.leaked_shm(shm) == []
+    assert dds.leaked_shm(shm) == []
 
 
 def test_the_readme_explicit_parameter_file_is_valid(context, repo_root, tmp_path):

@@ -15,6 +15,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.msg_defs import cdr
+from bearing_pose_estimation.plan import dds
+from bearing_pose_estimation.plan import processes as plan
 from bearing_pose_estimation.scenario import load_scenario, parse_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
 
@@ -46,21 +48,21 @@ def _fleet(tmp_path, lockstep: bool = False, real_time_factor: float = 0.75,
     scenario_file = tmp_path / 'four.yaml'
     scenario_file.write_text(yaml.safe_dump(FOUR))
     scenario = load_scenario(scenario_file)
-    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp_path / 'out', duration=600.0,
-                           domain_id=DOMAIN, plots=False, real_time_factor=real_time_factor)
+    cfg = plan.RunConfig(scenario_file=scenario_file, out_dir=tmp_path / 'out', duration=600.0,
+                         domain_id=DOMAIN, plots=False, real_time_factor=real_time_factor)
     cfg.logs_dir.mkdir(parents=True)
-    params = launch.write_params(scenario, cfg)
+    params = plan.write_params(scenario, cfg)
     for agent in scenario.followers:
         data = yaml.safe_load(params[agent.name].read_text())
         data[f'/{agent.name}/estimator']['ros__parameters'].update(follower_params or {})
         params[agent.name].write_text(yaml.safe_dump(data))
-    specs = {s.name: s for s in launch.plan_processes(scenario, params, cfg.logs_dir,
-                                                      launch.find_executable)}
+    specs = {s.name: s for s in plan.plan_processes(scenario, params, cfg.logs_dir,
+                                                    plan.find_executable)}
     sim = specs['simulator']
-    specs['simulator'] = launch.ProcessSpec(sim.name, sim.kind, sim.argv + (
+    specs['simulator'] = plan.ProcessSpec(sim.name, sim.kind, sim.argv + (
         '-p', 'wait_for_monitor:=false', '-p', f'lockstep:={str(lockstep).lower()}'), sim.log)
-    shm = launch.shm_files()
-    with observer() as obs, launch.ProcessGroup(env=launch.dds_env(
+    shm = dds.shm_files()
+    with observer() as obs, launch.ProcessGroup(env=dds.dds_env(
             DOMAIN, tmp_path / 'ros')) as group:
         for name, (msg_type, qos) in TOPICS.items():
             obs.subscribe(msg_type, name, qos)
@@ -189,7 +191,7 @@ def test_simulator_restart_jumps_the_clock_back(fleet):
     for topic in ('/agent_3/estimate', '/agent_4/estimate', '/agent_3/ground_truth'):
         obs.messages[topic].clear()
     sim = specs['simulator']
-    group.start(launch.ProcessSpec(sim.name, sim.kind, sim.argv + (
+    group.start(plan.ProcessSpec(sim.name, sim.kind, sim.argv + (
         '-p', 'wait_for_estimators:=false'), sim.log))
     _wait_sim(obs, 10.0, timeout=240)
     for agent in ('agent_3', 'agent_4'):

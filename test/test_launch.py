@@ -1,4 +1,5 @@
-"""`bearing-pose run` and bearing_pose_estimation.cli.launch, with stand-in node executables.
+"""`bearing-pose run`, bearing_pose_estimation.plan and bearing_pose_estimation.cli.launch, with
+stand-in node executables.
 
 The stand-ins are one small Python script installed as `estimator`, `simulator` and `monitor`
 in a temp folder (found through $BEARING_POSE_BIN_DIR). Each records its pid, command line,
@@ -23,6 +24,8 @@ import yaml
 
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.cli.main import main
+from bearing_pose_estimation.plan import dds
+from bearing_pose_estimation.plan import processes as plan
 from bearing_pose_estimation.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parents[1]
@@ -111,11 +114,11 @@ def standins(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     bin_dir, records = tmp_path / 'bin', tmp_path / 'records'
     bin_dir.mkdir()
     records.mkdir()
-    for name in launch.NODE_EXECUTABLES:
+    for name in plan.NODE_EXECUTABLES:
         exe = bin_dir / name
         exe.write_text(STANDIN.format(python=sys.executable))
         exe.chmod(0o755)
-    monkeypatch.setenv(launch.BIN_DIR_ENV, str(bin_dir))
+    monkeypatch.setenv(plan.BIN_DIR_ENV, str(bin_dir))
     monkeypatch.setenv('STANDIN_DIR', str(records))
     return records
 
@@ -158,9 +161,9 @@ def wait_for_records(folder: Path, n: int, timeout: float = 10.0) -> dict[str, d
 # ----------------------------------------------------------------------------- set-up
 def test_params_files_have_the_ros2_layout(tmp_path):
     scenario = load_scenario(PAPER)
-    cfg = launch.RunConfig(scenario_file=PAPER, out_dir=tmp_path, duration=12.0, domain_id=7,
-                           real_time_factor=2.0, plots=False)
-    files = launch.write_params(scenario, cfg)
+    cfg = plan.RunConfig(scenario_file=PAPER, out_dir=tmp_path, duration=12.0, domain_id=7,
+                         real_time_factor=2.0, plots=False)
+    files = plan.write_params(scenario, cfg)
     assert set(files) == {f'agent_{k}' for k in range(1, 9)} | {'simulator', 'monitor'}
     assert all(f.parent == tmp_path / 'params' for f in files.values())
     assert yaml.safe_load(files['agent_3'].read_text()) == {'/agent_3/estimator': {
@@ -172,7 +175,7 @@ def test_params_files_have_the_ros2_layout(tmp_path):
     assert yaml.safe_load(files['monitor'].read_text()) == {'/monitor': {
         'ros__parameters': {'scenario_file': str(PAPER), 'duration': 12.0,
                             'out_dir': str(tmp_path), 'plots': False, 'use_sim_time': True}}}
-    recorded = launch.write_params(scenario, dataclasses.replace(cfg, record=True))
+    recorded = plan.write_params(scenario, dataclasses.replace(cfg, record=True))
     assert yaml.safe_load(recorded['monitor'].read_text())['/monitor']['ros__parameters'][
         'bag'] == str(tmp_path / 'bag')
 
@@ -181,7 +184,7 @@ def test_plan_starts_estimators_then_monitor_then_simulator(tmp_path):
     scenario = load_scenario(PAPER)
     params = {n: tmp_path / f'{n}.yaml' for n in [a.name for a in scenario.agents]
               + ['monitor', 'simulator']}
-    specs = launch.plan_processes(scenario, params, tmp_path, lambda n: Path('/x') / n)
+    specs = plan.plan_processes(scenario, params, tmp_path, lambda n: Path('/x') / n)
     assert [s.name for s in specs] == [f'agent_{k}' for k in range(1, 9)] + ['monitor',
                                                                              'simulator']
     assert specs[0].argv == ('/x/estimator', '--ros-args', '-r', '__ns:=/agent_1', '-r',
@@ -194,19 +197,19 @@ def test_plan_starts_estimators_then_monitor_then_simulator(tmp_path):
 
 
 def test_executable_lookup_follows_ros2_run(tmp_path, monkeypatch):
-    monkeypatch.delenv(launch.BIN_DIR_ENV, raising=False)
+    monkeypatch.delenv(plan.BIN_DIR_ENV, raising=False)
     prefixes = [tmp_path / 'ws1', tmp_path / 'ws2']
     venv_bin = tmp_path / 'venv' / 'bin'
     monkeypatch.setenv('AMENT_PREFIX_PATH', os.pathsep.join(map(str, prefixes)))
     monkeypatch.setattr(sys, 'executable', str(venv_bin / 'python'))
-    with pytest.raises(launch.LaunchError, match='scripts/dev.sh setup.*colcon build'):
-        launch.find_executable('estimator')
-    for exe in (venv_bin / 'estimator', prefixes[1] / 'lib' / launch.PACKAGE / 'estimator'):
+    with pytest.raises(plan.LaunchError, match='scripts/dev.sh setup.*colcon build'):
+        plan.find_executable('estimator')
+    for exe in (venv_bin / 'estimator', prefixes[1] / 'lib' / plan.PACKAGE / 'estimator'):
         exe.parent.mkdir(parents=True)
         exe.write_text('#!/bin/sh\n')
         exe.chmod(0o755)
-        assert launch.find_executable('estimator') == exe   # the colcon install wins
-    assert launch.find_executable('estimator', bin_dir=venv_bin) == venv_bin / 'estimator'
+        assert plan.find_executable('estimator') == exe   # the colcon install wins
+    assert plan.find_executable('estimator', bin_dir=venv_bin) == venv_bin / 'estimator'
 
 
 def test_bad_command_lines_exit_2(capsys):
@@ -223,14 +226,14 @@ def test_a_run_stays_within_the_processes_discovery_connects():
     each other on localhost (BENCHMARKS.md, "Discovery"): a run needs at most 32 processes,
     agents share processes when they must, and a K that needs more is an error naming the
     fix."""
-    assert launch.fit_agents_per_process(30, None) == 1                  # 30 + 2 = 32
-    assert launch.fit_agents_per_process(31, None) == 2                  # 16 + 2
-    assert launch.fit_agents_per_process(30, None, rviz=True) == 2       # fleet_markers too
-    assert launch.fit_agents_per_process(100, None) == 4                 # 25 + 2
-    assert launch.fit_agents_per_process(100, 8) == 8
-    with pytest.raises(launch.LaunchError, match=r'40 agents at 1 per process need 42 '
+    assert plan.fit_agents_per_process(30, None) == 1                  # 30 + 2 = 32
+    assert plan.fit_agents_per_process(31, None) == 2                  # 16 + 2
+    assert plan.fit_agents_per_process(30, None, rviz=True) == 2       # fleet_markers too
+    assert plan.fit_agents_per_process(100, None) == 4                 # 25 + 2
+    assert plan.fit_agents_per_process(100, 8) == 8
+    with pytest.raises(plan.LaunchError, match=r'40 agents at 1 per process need 42 '
                        r'processes.*Fix: --agents-per-process 2 or more'):
-        launch.fit_agents_per_process(40, 1)
+        plan.fit_agents_per_process(40, 1)
 
 
 def test_large_fleets_share_processes(tmp_path, monkeypatch, capsys):
@@ -252,7 +255,7 @@ def test_large_fleets_share_processes(tmp_path, monkeypatch, capsys):
 
 
 def test_missing_executables_name_the_fix(tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv(launch.BIN_DIR_ENV, str(tmp_path))
+    monkeypatch.setenv(plan.BIN_DIR_ENV, str(tmp_path))
     assert main(['run', str(PAPER), '--out', str(tmp_path / 'out')]) == 1
     assert "cannot find the node executable 'estimator'" in capsys.readouterr().err
 
@@ -261,7 +264,7 @@ def test_missing_executables_name_the_fix(tmp_path, monkeypatch, capsys):
 def test_run_succeeds_and_leaves_nothing_behind(standins, tmp_path, monkeypatch, capsys):
     shm = tmp_path / 'shm'
     shm.mkdir()
-    monkeypatch.setattr(launch, 'SHM_GLOB', str(shm / 'fastrtps_*'))
+    monkeypatch.setattr(dds, 'SHM_GLOB', str(shm / 'fastrtps_*'))
     monkeypatch.setenv('STANDIN_SHM', str(shm))
     monkeypatch.setenv('ROS_DOMAIN_ID', '0')
     out = tmp_path / 'out'
@@ -286,11 +289,11 @@ def test_run_succeeds_and_leaves_nothing_behind(standins, tmp_path, monkeypatch,
     assert {p.name for p in (out / 'logs').glob('*.log')} == {f'{n}.log' for n in recs}
     assert 'shared-memory' not in captured.err and 'error' not in captured.err
     # The same fleet for `ros2 launch`: one node per process it started, the same arguments.
-    nodes = _launched(out / launch.LAUNCH_FILE)
+    nodes = _launched(out / plan.LAUNCH_FILE)
     assert {n['name'] for n in nodes.values()} == set(recs)
     for name, rec in recs.items():
         assert nodes[name]['argv'] == _ros_args(rec['argv']), name
-    env = dict(_env(out / launch.LAUNCH_FILE))
+    env = dict(_env(out / plan.LAUNCH_FILE))
     assert env == {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST', 'ROS_DOMAIN_ID': domain}
 
 
@@ -339,7 +342,7 @@ def test_run_removes_the_shm_files_it_left(standins, tmp_path, monkeypatch, caps
     shm = tmp_path / 'shm'
     shm.mkdir()
     (shm / there_before).write_text('')
-    monkeypatch.setattr(launch, 'SHM_GLOB', str(shm / 'fastrtps_*'))
+    monkeypatch.setattr(dds, 'SHM_GLOB', str(shm / 'fastrtps_*'))
     monkeypatch.setenv('STANDIN_SHM', str(shm))
     monkeypatch.setenv('STANDIN_SIMULATOR', behaviour)
     assert main(['run', str(PAPER), '--out', str(tmp_path / 'out'), '--duration', '5']) == 0
@@ -358,7 +361,7 @@ def test_a_teardown_ended_by_the_watchdog_counts_as_clean(standins, tmp_path, mo
     and succeeds. Any other signal is a failure (below)."""
     shm = tmp_path / 'shm'
     shm.mkdir()
-    monkeypatch.setattr(launch, 'SHM_GLOB', str(shm / 'fastrtps_*'))
+    monkeypatch.setattr(dds, 'SHM_GLOB', str(shm / 'fastrtps_*'))
     monkeypatch.setenv('STANDIN_SHM', str(shm))
     monkeypatch.setenv('STANDIN_AGENT_4', 'teardown_hung')
     assert main(['run', str(PAPER), '--out', str(tmp_path / 'out'), '--duration', '5']) == 0
@@ -383,11 +386,11 @@ def test_run_that_does_not_stop_cleanly_fails(standins, tmp_path, monkeypatch, c
     is reported as failed (exit 1), with the cure for /dev/shm."""
     shm = tmp_path / 'shm'
     shm.mkdir()
-    monkeypatch.setattr(launch, 'SHM_GLOB', str(shm / 'fastrtps_*'))
+    monkeypatch.setattr(dds, 'SHM_GLOB', str(shm / 'fastrtps_*'))
     monkeypatch.setenv('STANDIN_SHM', str(shm))
     monkeypatch.setenv(f'STANDIN_{culprit}', behaviour)
     if behaviour == 'shm':  # a file the run may not remove
-        monkeypatch.setattr(launch, '_remove', lambda path: None)
+        monkeypatch.setattr(dds, '_remove', lambda path: None)
     monkeypatch.setattr(launch.ProcessGroup, 'shutdown',
                         functools.partialmethod(launch.ProcessGroup.shutdown, grace=0.5,
                                                 term_grace=0.5))
@@ -437,15 +440,15 @@ def test_shutdown_escalates_and_reports_sigkill(standins, tmp_path, monkeypatch,
     process group is stopped too."""
     params = tmp_path / 'p.yaml'
     params.write_text('/x:\n  ros__parameters: {}\n')
-    exe = Path(os.environ[launch.BIN_DIR_ENV]) / 'simulator'
+    exe = Path(os.environ[plan.BIN_DIR_ENV]) / 'simulator'
     behaviours = ['loop', 'deaf', 'stubborn', 'spawn']
     for b in behaviours:
         monkeypatch.setenv(f'STANDIN_{b.upper()}', b)
     with launch.ProcessGroup() as group:
         for b in behaviours:
-            group.start(launch.ProcessSpec(b, 'standin', (str(exe), '--ros-args', '-r',
-                                           f'__node:={b}', '--params-file', str(params)),
-                                           tmp_path / 'logs' / f'{b}.log'))
+            group.start(plan.ProcessSpec(b, 'standin', (str(exe), '--ros-args', '-r',
+                                         f'__node:={b}', '--params-file', str(params)),
+                                         tmp_path / 'logs' / f'{b}.log'))
         recs = wait_for_records(standins, len(behaviours))
         assert alive(recs['spawn']['grandchild'])
         killed = group.shutdown(grace=0.5, term_grace=0.5)
@@ -483,8 +486,8 @@ def test_interrupting_run_stops_every_child(standins, small, tmp_path, monkeypat
 def test_leaked_shm_ignores_files_live_processes_use(tmp_path, monkeypatch):
     """Only orphans count as leaks: another program's live segment (here, held open by this
     process) does not, so the check works beside other ROS programs and test runs."""
-    monkeypatch.setattr(launch, 'SHM_GLOB', str(tmp_path / 'fastrtps_*'))
-    before = launch.shm_files()
+    monkeypatch.setattr(dds, 'SHM_GLOB', str(tmp_path / 'fastrtps_*'))
+    before = dds.shm_files()
     live = tmp_path / 'fastrtps_port7001_el'
     orphan = tmp_path / 'fastrtps_0123abcd'
     live.write_bytes(b'\0')
@@ -492,5 +495,5 @@ def test_leaked_shm_ignores_files_live_processes_use(tmp_path, monkeypatch):
     port = tmp_path / 'fastrtps_port7002'  # Fast DDS's own lock-less port file: not a leak
     port.write_bytes(b'\0')
     with live.open('rb'):
-        assert launch.leaked_shm(before) == [str(orphan)]
-    assert launch.leaked_shm(before) == sorted([str(live), str(orphan)])
+        assert dds.leaked_shm(before) == [str(orphan)]
+    assert dds.leaked_shm(before) == sorted([str(live), str(orphan)])

@@ -1,7 +1,7 @@
 """The installed launch file, launch/fleet.launch.py, without launch_ros (not installable
 here): stand-ins for launch and launch_ros record what it builds, and the nodes must be the
 processes `bearing-pose run` plans, with the same executables, names, namespaces, remappings
-and parameter files (launch.launch_nodes: one plan for both)."""
+and parameter files (plan.processes.launch_nodes: one plan for both)."""
 from __future__ import annotations
 
 import importlib.util
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from bearing_pose_estimation.cli import launch
+from bearing_pose_estimation.plan import processes as plan
 from bearing_pose_estimation.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,9 +66,9 @@ def test_the_launch_file_starts_what_run_plans(launch_file, tmp_path):
     nodes = [n.kwargs for n in fleet(context=None)]
 
     scenario = load_scenario(PAPER)
-    cfg = launch.RunConfig(scenario_file=PAPER, out_dir=out, duration=5.0, domain_id=0)
-    specs = launch.plan_processes(scenario, launch.write_params(scenario, cfg), cfg.logs_dir,
-                                  lambda name: Path(name))
+    cfg = plan.RunConfig(scenario_file=PAPER, out_dir=out, duration=5.0, domain_id=0)
+    specs = plan.plan_processes(scenario, plan.write_params(scenario, cfg), cfg.logs_dir,
+                                lambda name: Path(name))
     assert len(nodes) == len(specs) == 10
     for node, spec in zip(nodes, specs):
         argv = list(spec.argv)

@@ -11,7 +11,7 @@ import yaml
 from bearing_pose_estimation.studies import montecarlo as mc
 from bearing_pose_estimation.cli.main import main
 from bearing_pose_estimation.scenario import initial_estimates, load_scenario, parse_scenario
-from bearing_pose_estimation.studies.results import Recording
+from bearing_pose_estimation.metrics.results import Recording
 from bearing_pose_estimation.studies.summary import SETTLE_FACTOR
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'

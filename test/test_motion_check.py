@@ -15,7 +15,7 @@ from bearing_pose_estimation.estimators import bearing_leaders
 from bearing_pose_estimation.scenario import check as check_module
 from bearing_pose_estimation.scenario import check_scenario, load_scenario, parse_scenario
 from bearing_pose_estimation.scenario.generate import MAX_RELATIVE_DRIFT_M, MIN_SPACING_M
-from bearing_pose_estimation.sim.truth import Truth
+from bearing_pose_estimation.scenario.truth import Truth
 
 CONFIG = Path(__file__).resolve().parent.parent / 'config'
 PAPER = str(CONFIG / 'paper_8_agents.yaml')

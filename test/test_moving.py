@@ -15,7 +15,7 @@ from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.scenario.model import SensorSpec
 from bearing_pose_estimation.scenario.runtimes import agent_specs, runtime_for
 from bearing_pose_estimation.sim.batch import BatchSimulator
-from bearing_pose_estimation.sim.truth import Truth
+from bearing_pose_estimation.scenario.truth import Truth
 from bearing_pose_estimation.sim.world import World
 from conftest import REPO_ROOT
 
@@ -330,7 +330,7 @@ def test_the_truth_computed_in_chunks_is_the_truth_step_by_step(repo_root, confi
     next `chunk` steps in one call: the same numbers, bit for bit, as one call per step at
     t = k dt, across chunk boundaries and a reset."""
     from bearing_pose_estimation.core.motion import body_displacement, magnus_increment
-    from bearing_pose_estimation.sim.truth import Truth
+    from bearing_pose_estimation.scenario.truth import Truth
 
     scenario = load_scenario(repo_root / 'config' / config)
     truth = Truth(scenario, 1e-3)

@@ -1,6 +1,7 @@
 """run_node's life cycle in a real process: a signal stops the spin loop and the node is torn
 down in order (exit 0); a teardown that hangs is cut short by the watchdog, said loudly, even
-when it hangs holding the GIL, and ends by the signal the launcher knows (launch.TEARDOWN_HUNG)."""
+when it hangs holding the GIL, and ends by the signal the launcher knows
+(plan.dds.TEARDOWN_HUNG)."""
 import os
 import signal
 import subprocess
@@ -9,7 +10,7 @@ import time
 
 import pytest
 
-from bearing_pose_estimation.cli import launch
+from bearing_pose_estimation.plan import dds
 
 CHILD = r'''
 import sys, time
@@ -56,17 +57,17 @@ def test_a_signal_stops_the_loop_and_the_node_exits_0(sig):
 
 
 def test_a_hung_teardown_is_cut_short_by_the_watchdog():
-    shm = launch.shm_files()
+    shm = dds.shm_files()
     proc = _start('hang')
     t0 = time.monotonic()
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)
     assert time.monotonic() - t0 < 10.0
     # Its work was done: it ends as the launcher expects a hung teardown to (counted clean)
-    assert proc.returncode == launch.TEARDOWN_HUNG, err
+    assert proc.returncode == dds.TEARDOWN_HUNG, err
     assert 'DDS teardown did not finish in 1 s' in err and 'fastdds shm clean' in err
     assert 'in destroy_node' in err  # the stack dump shows where it hung
-    assert not launch.leaked_shm(shm)  # the hang came after the participant was released
+    assert not dds.leaked_shm(shm)  # the hang came after the participant was released
 
 
 def test_a_teardown_hung_holding_the_gil_still_ends():
@@ -78,5 +79,5 @@ def test_a_teardown_hung_holding_the_gil_still_ends():
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)
     assert time.monotonic() - t0 < 10.0
-    assert proc.returncode == launch.TEARDOWN_HUNG, err
+    assert proc.returncode == dds.TEARDOWN_HUNG, err
     assert 'in destroy_node' in err and 'DDS teardown did not finish' not in err

@@ -22,6 +22,9 @@ from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.estimators import presenza
 from bearing_pose_estimation.msg_defs import cdr
 from bearing_pose_estimation.cli import launch
+from bearing_pose_estimation.plan.dds import CLEAN_EXITS, dds_env, shm_files
+from bearing_pose_estimation.plan.processes import (RunConfig, find_executable, plan_processes,
+                                                    write_params)
 from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
 from bearing_pose_estimation.studies.summary import read_metrics_csv
@@ -50,14 +53,14 @@ def run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp('presenza_dds')
     scenario_file = camera_rate_case1(tmp, duration=DURATION, gains=MODEL)
     scenario = load_scenario(scenario_file)
-    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp / 'out', duration=DURATION,
-                           domain_id=DOMAIN, plots=False)
+    cfg = RunConfig(scenario_file=scenario_file, out_dir=tmp / 'out', duration=DURATION,
+                    domain_id=DOMAIN, plots=False)
     cfg.logs_dir.mkdir(parents=True)
-    params = with_parameters(launch.write_params(scenario, cfg), list(scenario.index), **PATIENT)
-    specs = launch.plan_processes(scenario, params, cfg.logs_dir,
-                                  launch.find_executable)
-    shm = launch.shm_files()
-    with observer() as obs, launch.ProcessGroup(env=launch.dds_env(DOMAIN, tmp / 'ros')) as g:
+    params = with_parameters(write_params(scenario, cfg), list(scenario.index), **PATIENT)
+    specs = plan_processes(scenario, params, cfg.logs_dir,
+                           find_executable)
+    shm = shm_files()
+    with observer() as obs, launch.ProcessGroup(env=dds_env(DOMAIN, tmp / 'ros')) as g:
         obs.subscribe(DiagnosticArray, '/diagnostics', 50)
         # The simulator last, once this observer hears every node's diagnostics: the run
         # lasts ~1.5 s here, and the monitor's first reports (volatile) must not go out
@@ -77,7 +80,7 @@ def run(tmp_path_factory):
             obs.subscribe(msg_type, name, qos)
         assert obs.spin_until(lambda: g.returncode('monitor') is not None, 120.0), \
             'the monitor did not finish'
-        assert g.returncode('monitor') in launch.CLEAN_EXITS
+        assert g.returncode('monitor') in CLEAN_EXITS
         # The writers keep their last 20 values (transient local): a late reader gets them
         # once matched, which on a fast run can be after the monitor is done.
         assert obs.spin_until(lambda: all(obs.messages[t] for t in LATE_TOPICS), 60.0), \
@@ -210,14 +213,14 @@ def test_robots_sharing_a_process_step_together_to_the_same_records(run, tmp_pat
     out as before, and every record equals the one-process-per-robot fleet's."""
     scenario_file, out, _, _ = run
     scenario = load_scenario(scenario_file)
-    cfg = launch.RunConfig(scenario_file=scenario_file, out_dir=tmp_path / 'shared',
-                           duration=DURATION, domain_id=DOMAIN, plots=False,
-                           agents_per_process=3)
+    cfg = RunConfig(scenario_file=scenario_file, out_dir=tmp_path / 'shared',
+                    duration=DURATION, domain_id=DOMAIN, plots=False,
+                    agents_per_process=3)
     cfg.logs_dir.mkdir(parents=True)
-    params = with_parameters(launch.write_params(scenario, cfg), list(scenario.index), **PATIENT)
-    specs = launch.plan_processes(scenario, params, cfg.logs_dir, launch.find_executable, 3)
-    shm = launch.shm_files()
-    with launch.ProcessGroup(env=launch.dds_env(DOMAIN, tmp_path / 'ros')) as g:
+    params = with_parameters(write_params(scenario, cfg), list(scenario.index), **PATIENT)
+    specs = plan_processes(scenario, params, cfg.logs_dir, find_executable, 3)
+    shm = shm_files()
+    with launch.ProcessGroup(env=dds_env(DOMAIN, tmp_path / 'ros')) as g:
         for spec in specs:
             g.start(spec)
         failure = g.wait_for('monitor', 180.0, [s.name for s in specs if s.name != 'monitor'])

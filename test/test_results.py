@@ -1,11 +1,11 @@
-"""Errors measured as each estimate frame requires (studies/results.py): world estimates
+"""Errors measured as each estimate frame requires (metrics/results.py): world estimates
 directly; anchor-free estimates after the exact common-yaw-and-translation alignment; estimates
 in the anchor's body frame through the anchor's true pose."""
 import numpy as np
 
 from bearing_pose_estimation.core import so3
 from bearing_pose_estimation.estimators.base import EstimateFrame
-from bearing_pose_estimation.studies.results import Recording, pose_errors
+from bearing_pose_estimation.metrics.results import Recording, pose_errors
 
 RNG = np.random.default_rng(4)
 N = 6

@@ -17,7 +17,7 @@ from bearing_pose_estimation.scenario.runtimes import agent_specs, runtime_for
 from bearing_pose_estimation.sim.netsim import (Outage, convergence_cost, fault_cases,
                                             reconvergence_time, run_case)
 from bearing_pose_estimation.scenario import load_scenario
-from bearing_pose_estimation.studies.results import Recording
+from bearing_pose_estimation.metrics.results import Recording
 from bearing_pose_estimation.sim.world import World
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'

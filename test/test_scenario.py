@@ -43,6 +43,41 @@ def test_paper_scenario_is_section_v():
     assert s.step <= 0.01
 
 
+@pytest.mark.parametrize('name', ['paper_8_agents', 'de_carli_8_quadrotors', 'presenza_case1'])
+def test_fleet_is_what_the_methods_know_of_the_scenario(name):
+    """Scenario.fleet(): the estimators' view (estimators/fleet.py), built once, equal to what
+    the scenario says (initial estimates drawn from its seed as initial_estimates draws them);
+    a replaced scenario builds its own."""
+    import dataclasses
+    s = load_scenario(CONFIG / f'{name}.yaml')
+    fleet = s.fleet()
+    assert s.fleet() is fleet
+    assert fleet.names == tuple(a.name for a in s.agents)
+    assert fleet.index == s.index
+    assert fleet.neighbours == tuple(tuple((s.index[n.name], n.k) for n in a.neighbours)
+                                     for a in s.agents)
+    assert [fleet.names[i] for i in fleet.followers] == [a.name for a in s.followers]
+    assert [fleet.names[i] for i in fleet.leaders] == list(s.leaders)
+    assert fleet.anchor == s.anchor_index and fleet.moves == s.moves
+    assert [fleet.names[i] for i in fleet.ranged] == list(s.ranged)
+    assert (fleet.step, fleet.frequency) == (s.step, s.frequency)
+    for i, a in enumerate(s.agents):
+        assert fleet.agent_id(i) == s.agent_id(a.name)
+        assert [fleet.names[j] for j in fleet.listeners(i)] == s.listeners(a.name)
+    for mine, theirs in zip(fleet.sensing_edges(), s.sensing_edges()):
+        np.testing.assert_array_equal(mine, theirs)
+    R0, p0 = initial_estimates(s)
+    np.testing.assert_array_equal(fleet.initial_R, R0)
+    np.testing.assert_array_equal(fleet.initial_p, p0)
+    np.testing.assert_array_equal(fleet.positions, [a.position for a in s.agents])
+    np.testing.assert_array_equal(fleet.attitudes, [a.attitude for a in s.agents])
+    with pytest.raises(ValueError):
+        fleet.initial_p[0, 0] = 1.0   # shared by every caller: read-only
+    again = dataclasses.replace(s, duration=1.0)
+    assert again.fleet() is not fleet
+    np.testing.assert_array_equal(again.fleet().initial_p, p0)
+
+
 def test_paper_scenario_warns_about_agent_8_spectrum():
     report = check_scenario(load_scenario(PAPER))
     assert report.ok

@@ -11,9 +11,9 @@ from bearing_pose_estimation.cli.main import main
 from bearing_pose_estimation.estimators.base import EstimateFrame
 from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
-from bearing_pose_estimation.sim.truth import Truth
+from bearing_pose_estimation.scenario.truth import Truth
 from bearing_pose_estimation.studies import plots
-from bearing_pose_estimation.studies.results import PoseErrors, Recording
+from bearing_pose_estimation.metrics.results import PoseErrors, Recording
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
 MOVING = CONFIG / 'paper_8_agents_moving.yaml'

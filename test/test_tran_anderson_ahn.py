@@ -119,7 +119,7 @@ def test_the_node_refuses_k_R_for_this_method(tmp_path, context):
             Parameter('scenario_file', value=str(path)), Parameter('k_R', value=2.0)])
     node = EstimatorNode(namespace='/agent_3', context=context, parameter_overrides=[
         Parameter('scenario_file', value=str(path)), Parameter('k_p', value=1.5)])
-    assert node.gains == TranGains(k_omega=2.0, k_p=1.5, k_c=1.0)
+    assert node.s.gains == TranGains(k_omega=2.0, k_p=1.5, k_c=1.0)
     node.destroy_node()
 
 
@@ -253,18 +253,20 @@ def test_the_node_diagnostics_report_the_checks_K_i():
     """One function (Estimator.conditioning) gives `check`'s spectra and the node's
     /diagnostics: for a two-neighbour follower K_i includes k_c c cᵀ (the node's diagnostics
     once left it out), from the body-frame bearings the agent measures."""
-    from bearing_pose_estimation.estimators.agent import estimator_for
+    from bearing_pose_estimation.estimators.base import Sensor
+    from bearing_pose_estimation.scenario.runtimes import agent_specs, runtime_for
     from bearing_pose_estimation.sim.world import World
 
     scenario = load_scenario(CUBE)
     report = check_scenario(scenario)
     world = World(scenario)
+    specs = agent_specs(scenario)
     two = [a.name for a in scenario.followers if len(a.neighbours) == 2]
     assert two
     for a in scenario.followers:
-        est = estimator_for(scenario, a.name)
+        est = runtime_for(scenario, specs[scenario.index[a.name]])
         j, b = world.bearings(scenario.index[a.name])
-        assert est.add_bearings(0.0, j + 1, b) == []
+        assert est.add_points(Sensor.BEARINGS, 0.0, j + 1, b) == []
         np.testing.assert_allclose(est.conditioning(), report.spectra[a.name], atol=1e-12)
     agent = scenario.agent(two[0])  # without the k_c term the spectrum differs
     b = [(scenario.agent(nb.name).position - agent.position) for nb in agent.neighbours]

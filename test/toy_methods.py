@@ -27,6 +27,7 @@ from bearing_pose_estimation.core import so3
 from bearing_pose_estimation.estimators.base import (
     ANCHOR_DELTA_R, ANCHOR_DISPLACEMENT, PEER_ODOMETRY, PINNED, POSE_POSITION, VECTOR, Channel,
     CheckReport, EstimateFrame, Estimator, Finding, Roles, Sensor, State, StepInputs, gain)
+from bearing_pose_estimation.estimators.fleet import Fleet
 
 
 @dataclass(frozen=True)
@@ -34,13 +35,13 @@ class ToyGains:
     k: float = gain(1.5, 'attitude and position gain k')
 
 
-def _isolated(scenario, report: CheckReport) -> CheckReport:   # type: ignore[no-untyped-def]
+def _isolated(fleet: Fleet, report: CheckReport) -> CheckReport:
     """An error for every estimating agent that nobody senses and that senses nobody."""
-    sensed = {nb.name for a in scenario.agents for nb in a.neighbours}
-    for a in scenario.followers:
-        if not a.neighbours and a.name not in sensed:
-            report.findings.append(Finding('error', a.name, 'neighbours', 'it senses nobody '
-                                           'and nobody senses it', 'add a neighbour'))
+    sensed = {j for nbrs in fleet.neighbours for j, _ in nbrs}
+    for i in fleet.followers:
+        if not fleet.neighbours[i] and i not in sensed:
+            report.findings.append(Finding('error', fleet.names[i], 'neighbours', 'it senses '
+                                           'nobody and nobody senses it', 'add a neighbour'))
     return report
 
 
@@ -85,11 +86,11 @@ class ToyBearings(Estimator[ToyGains, State]):
             p_hat = p_hat + np.einsum('nab,nb->na', x.R_hat, inputs.displacement)
         return State(R_hat=R, p_hat=p_hat), {'innovation': sigma}
 
-    def check(self, scenario):
+    def check(self, fleet):
         report = CheckReport(spectra_of='none')
-        for a in scenario.followers:
-            if len(a.neighbours) < 2:
-                report.findings.append(Finding('error', a.name, 'neighbours',
+        for i in fleet.followers:
+            if len(fleet.neighbours[i]) < 2:
+                report.findings.append(Finding('error', fleet.names[i], 'neighbours',
                                                'the toy needs two neighbours', 'add one'))
         return report
 
@@ -154,8 +155,8 @@ class ToyLinks(Estimator[ToyGains, State]):
         assert moved.shape == (len(e),)
         return State(R_hat=R, p_hat=p_hat), {'innovation': correction}
 
-    def check(self, scenario):
-        return _isolated(scenario, CheckReport(spectra_of='none'))
+    def check(self, fleet):
+        return _isolated(fleet, CheckReport(spectra_of='none'))
 
 
 class ToyRounds(Estimator[ToyGains, State]):
@@ -225,5 +226,5 @@ class ToyRounds(Estimator[ToyGains, State]):
         p_hat[hold], R[hold] = 0.0, np.eye(3)
         return State(R_hat=R, p_hat=p_hat), {'innovation': grad}
 
-    def check(self, scenario):
-        return _isolated(scenario, CheckReport(spectra_of='none'))
+    def check(self, fleet):
+        return _isolated(fleet, CheckReport(spectra_of='none'))

@@ -25,7 +25,7 @@ import yaml
 
 from .. import __version__, estimators
 from ..estimators.base import format_gains
-from .launch import BAG_DIR, MARKERS
+from ..plan.processes import BAG_DIR, MARKERS
 from ..scenario import (Scenario, ScenarioError, check_scenario, load_scenario,
                         parse_scenario)
 
@@ -108,7 +108,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     # Moving fleets also get their trajectories drawn (the recording holds them).
     plots = [] if args.no_plots else (PLOT_FILES + ([TRAJECTORY_PLOT] if scenario.moves else [])
                                       + [CASCADE_PLOT])
-    groups = scenario.estimator().agent_groups(scenario)
+    groups = scenario.estimator().agent_groups(scenario.fleet())
     roles = ([ROLES_CSV] + ([] if args.no_plots else [ROLES_PLOT])) if groups else []
     out = _out_dir(args.out or f'results/{scenario.name}', ['metrics.csv', 'summary.json']
                    + plots + roles, args.force)
@@ -313,23 +313,24 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
                   args: argparse.Namespace) -> RunResult:
     """One distributed run (``run``, ``compare --distributed``): a process per agent, the
     simulator and the monitor, on a private (or --domain-id) domain, loopback only."""
+    from ..plan import dds, processes
     from . import launch
 
-    domain_id = args.domain_id if args.domain_id is not None else launch.private_domain_id()
+    domain_id = args.domain_id if args.domain_id is not None else dds.private_domain_id()
     how = 'from --domain-id' if args.domain_id is not None else 'private to this run'
     if args.domain_id is None and os.environ.get('ROS_DOMAIN_ID'):
         how += f"; the caller's ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} is not used"
     rviz = getattr(args, 'rviz', False)
     try:
-        per_process = launch.fit_agents_per_process(len(scenario.agents),
-                                                    args.agents_per_process, rviz)
-    except launch.LaunchError as exc:
+        per_process = processes.fit_agents_per_process(len(scenario.agents),
+                                                       args.agents_per_process, rviz)
+    except processes.LaunchError as exc:
         raise ScenarioError(str(exc)) from exc
     if args.agents_per_process is None and per_process > 1:
         print(f'note: {len(scenario.agents)} agents run {per_process} per process, so that '
-              f'the run needs at most {launch.MAX_PROCESSES} processes (DDS discovery on '
+              f'the run needs at most {processes.MAX_PROCESSES} processes (DDS discovery on '
               'localhost connects no more; --agents-per-process sets it)', file=sys.stderr)
-    cfg = launch.RunConfig(
+    cfg = processes.RunConfig(
         scenario_file=scenario_file.resolve(), out_dir=out.resolve(), duration=duration,
         domain_id=domain_id, real_time_factor=args.real_time_factor, plots=not args.no_plots,
         timeout=args.timeout, agents_per_process=per_process,
@@ -347,7 +348,7 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
         print(f'interrupted: all processes stopped; partial outputs (if any) and logs in {out}',
               file=sys.stderr)
         raise
-    except launch.LaunchError as exc:
+    except processes.LaunchError as exc:
         raise ScenarioError(str(exc)) from exc
 
 

@@ -50,7 +50,7 @@ from ..core import so3
 from ..core.errors import ScenarioError
 
 if TYPE_CHECKING:
-    from ..scenario.model import Scenario
+    from .fleet import Fleet
 
 Array = NDArray[np.float64]
 Index = NDArray[np.intp]
@@ -647,9 +647,10 @@ class Estimator(ABC, Generic[G, S]):
 
     # --- assumptions
     @abstractmethod
-    def check(self, scenario: Scenario) -> CheckReport:
-        """The method's graph assumptions on ``scenario``: errors for what breaks convergence,
-        warnings for what weakens it, each naming the agent, the field and the fix."""
+    def check(self, fleet: Fleet) -> CheckReport:
+        """The method's graph assumptions on ``fleet`` (``Scenario.fleet()``): errors for what
+        breaks convergence, warnings for what weakens it, each naming the agent, the field and
+        the fix."""
 
     def conditioning(self, bearings: Array, k: Array) -> Array | None:
         """The local matrix whose spectrum the method's convergence proof needs, from one
@@ -661,12 +662,12 @@ class Estimator(ABC, Generic[G, S]):
         """Why the spectrum ``eig`` (ascending) breaks the method's hypothesis, or None."""
         return None
 
-    def agent_groups(self, scenario: Scenario) -> dict[str, list[str]]:
+    def agent_groups(self, fleet: Fleet) -> dict[str, list[str]]:
         """The method's roles among the estimating robots, ``{role: names}``, for outputs
         that show them apart (Presenza et al.: sensing and free robots). Empty: none."""
         return {}
 
-    def fleet_margins(self, scenario: Scenario, R_hat: Array, p_hat: Array) -> dict[str, float]:
+    def fleet_margins(self, fleet: Fleet, R_hat: Array, p_hat: Array) -> dict[str, float]:
         """Margins of the method's assumptions evaluated on the whole fleet's estimates
         ``(N, 3, 3)``, ``(N, 3)`` (what the monitor, which sees every estimate, reports;
         Presenza et al.: angle rigidity). Empty: none."""
@@ -696,9 +697,9 @@ class Estimator(ABC, Generic[G, S]):
         P = getattr(x, 'P', None)
         return None if P is None else P[:, :6, :6]
 
-    def check_motion(self, scenario: Scenario, times: Array,
+    def check_motion(self, fleet: Fleet, times: Array,
                      positions: Array) -> list[Finding]:
-        """The method's assumptions that the motion of a moving ``scenario`` breaks, from its
+        """The method's assumptions that the motion of a moving ``fleet`` breaks, from its
         sampled truth: ``times`` ``(K,)`` [s] from 0 to its duration and ``positions``
         ``(K, N, 3)`` [m] (agents in scenario order; ``positions[0]`` is where :meth:`check`
         looked). Each finding names the time; what :meth:`check` already reports at t = 0 is

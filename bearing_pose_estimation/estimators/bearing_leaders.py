@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, ClassVar, TypeVar
+from typing import ClassVar, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,9 +25,7 @@ from ..core import graph, so3
 from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, G,
                    HELD, Index, P_OWN, POSE_POSITION, Roles, Sensor, State, StepInputs)
 from .covariance import DOF, POSE_COV, initial_covariance
-
-if TYPE_CHECKING:
-    from ..scenario.model import Agent, Scenario
+from .fleet import Fleet
 
 P_HAT = Channel('p_hat', per='agent', frame='world', doc='p̂_j, the position estimate [m]',
                 topic='pose', kind=POSE_POSITION)
@@ -159,13 +157,12 @@ class BearingLeaderEstimator(Estimator[G, S]):
         return -inputs.edge[WORLD_BEARING.name], inputs.edge[P_HAT.name]
 
     # ------------------------------------------------------------------ Assumption 2
-    def check(self, scenario: Scenario) -> CheckReport:
+    def check(self, fleet: Fleet) -> CheckReport:
         report = CheckReport(spectra_of=self.conditioning_label)
         add = report.findings.append
-        pos = np.stack([a.position for a in scenario.agents])
-        names = [a.name for a in scenario.agents]
-        order = scenario.index
-        nbrs = {a.name: [n.name for n in a.neighbours] for a in scenario.agents}
+        pos = fleet.positions
+        names = list(fleet.names)
+        nbrs = {names[i]: [names[j] for j, _ in fleet.neighbours[i]] for i in range(fleet.n)}
 
         cycle = graph.find_cycle(names, nbrs)
         if cycle:
@@ -173,27 +170,28 @@ class BearingLeaderEstimator(Estimator[G, S]):
                         + ' -> '.join(cycle) + ' (Assumption 2a)',
                         f'remove {cycle[1]} from the neighbours of {cycle[0]} (or another edge '
                         'of the cycle)'))
-        reach = [graph.reachable_from(leader, names, nbrs) for leader in scenario.leaders]
-        for a in scenario.followers:
-            i = order[a.name]
-            if len(a.neighbours) < 2:
-                add(Finding('error', a.name, 'neighbours', f'has {len(a.neighbours)} '
+        leaders = [names[k] for k in fleet.leaders]
+        reach = [graph.reachable_from(leader, names, nbrs) for leader in leaders]
+        for i in fleet.followers:
+            name, neighbours = names[i], fleet.neighbours[i]
+            if len(neighbours) < 2:
+                add(Finding('error', name, 'neighbours', f'has {len(neighbours)} '
                             'neighbour(s), needs at least 2 (Assumption 2d)',
                             'add an earlier agent it can see'))
             if not cycle:
-                for n in a.neighbours:
-                    if order[n.name] > i:
-                        add(Finding('error', a.name, 'neighbours', f'{n.name} comes after '
-                                    f'{a.name} in `agents`; neighbours must be earlier '
+                for j, _ in neighbours:
+                    if j > i:
+                        add(Finding('error', name, 'neighbours', f'{names[j]} comes after '
+                                    f'{name} in `agents`; neighbours must be earlier '
                                     '(Assumption 2d)',
-                                    f'move {n.name} above {a.name} in `agents`'))
-            for leader, seen in zip(scenario.leaders, reach):
-                if a.name not in seen:
-                    add(Finding('error', a.name, 'neighbours', f'not reachable from leader '
-                                f'{leader} (Assumption 2a)', f'give {a.name} or one of its '
+                                    f'move {names[j]} above {name} in `agents`'))
+            for leader, seen in zip(leaders, reach):
+                if name not in seen:
+                    add(Finding('error', name, 'neighbours', f'not reachable from leader '
+                                f'{leader} (Assumption 2a)', f'give {name} or one of its '
                                 f'ancestors a path from {leader}'))
 
-            idx = [order[n.name] for n in a.neighbours]
+            idx = [j for j, _ in neighbours]
             d = pos[idx] - pos[i]
             dist = np.linalg.norm(d, axis=1)
             if len(idx) == 0 or np.any(dist < graph.COLLOCATED_M):
@@ -202,27 +200,27 @@ class BearingLeaderEstimator(Estimator[G, S]):
             if len(idx) >= 2:
                 widest = graph.widest_angle(b)
                 if widest < COLLINEAR_ERROR_RAD:
-                    add(Finding('error', a.name, 'neighbours', 'all bearings to its neighbours '
+                    add(Finding('error', name, 'neighbours', 'all bearings to its neighbours '
                                 'are collinear, so its position is unobservable '
                                 '(Assumption 2d)',
                                 'add a neighbour off the line through the current ones'))
                 elif np.degrees(widest) < COLLINEAR_WARN_DEG:
-                    add(Finding('warning', a.name, 'neighbours', f'bearings are nearly '
+                    add(Finding('warning', name, 'neighbours', f'bearings are nearly '
                                 f'collinear (widest angle {np.degrees(widest):.2f} deg): slow, '
                                 'noise-sensitive position estimate',
                                 'add a neighbour in another direction'))
-            matrix = self.conditioning(b, np.array([n.k for n in a.neighbours]))
+            matrix = self.conditioning(b, np.array([k for _, k in neighbours]))
             assert matrix is not None  # both methods have one
             eig = np.linalg.eigvalsh(matrix).astype(np.float64)
-            report.spectra[a.name] = eig
+            report.spectra[name] = eig
             problem = self.conditioning_problem(eig)
             if problem is not None:
-                add(Finding('warning', a.name, 'neighbours', problem,
-                            self.conditioning_fix(eig, a.neighbours[0].name, len(idx))))
+                add(Finding('warning', name, 'neighbours', problem,
+                            self.conditioning_fix(eig, names[neighbours[0][0]], len(idx))))
         return report
 
     # ------------------------------------------------------------------ along the motion
-    def check_motion(self, scenario: Scenario, times: Array,
+    def check_motion(self, fleet: Fleet, times: Array,
                      positions: Array) -> list[Finding]:
         """Assumption 2d's geometry at every sample of a moving fleet, and the lemma's
         spectrum. Per follower, at most one finding for its bearings becoming collinear (error)
@@ -233,19 +231,18 @@ class BearingLeaderEstimator(Estimator[G, S]):
         condition that holds at t = 0 is :meth:`check`'s until it first clears; only a later
         onset is reported. Samples where a neighbour is collocated (a collision, reported by
         ``check_scenario``) are skipped."""
-        order = scenario.index
-        by_size: dict[int, list[Agent]] = {}
-        for a in scenario.followers:
-            if len(a.neighbours) >= 2:
-                by_size.setdefault(len(a.neighbours), []).append(a)
+        by_size: dict[int, list[int]] = {}
+        for i in fleet.followers:
+            if len(fleet.neighbours[i]) >= 2:
+                by_size.setdefault(len(fleet.neighbours[i]), []).append(i)
         found: list[tuple[int, int, Finding]] = []   # (agent index, kind, finding)
         n_samples = len(times)
         block = max(1, MOTION_BLOCK // max(n_samples, 1))
         for group in by_size.values():
             for start in range(0, len(group), block):
                 part = group[start:start + block]
-                own = np.array([order[a.name] for a in part], dtype=np.intp)
-                nbr = np.array([[order[n.name] for n in a.neighbours] for a in part],
+                own = np.array(part, dtype=np.intp)
+                nbr = np.array([[j for j, _ in fleet.neighbours[i]] for i in part],
                                dtype=np.intp)
                 d = positions[:, nbr, :] - positions[:, own, None, :]     # (K, F, M, 3)
                 dist = np.linalg.norm(d, axis=-1)
@@ -261,30 +258,32 @@ class BearingLeaderEstimator(Estimator[G, S]):
                 spectrum_at = np.ones(valid.shape, dtype=bool)
                 spectrum_at[1:] = (bucket[1:] != bucket[:-1]) | ~valid[:-1]
                 spectrum_at &= valid
-                for f, a in enumerate(part):
-                    finding = self._collinear_along(a, times, widest[:, f], valid[:, f])
+                for f, i in enumerate(part):
+                    finding = self._collinear_along(fleet, i, times, widest[:, f], valid[:, f])
                     if finding is not None:
-                        found.append((order[a.name], 0, finding))
-                    finding = self._conditioning_along(a, times, b[:, f], spectrum_at[:, f])
+                        found.append((i, 0, finding))
+                    finding = self._conditioning_along(fleet, i, times, b[:, f],
+                                                       spectrum_at[:, f])
                     if finding is not None:
-                        found.append((order[a.name], 1, finding))
+                        found.append((i, 1, finding))
         return [f for _, _, f in sorted(found, key=lambda x: x[:2])]
 
-    def _collinear_along(self, a: Agent, times: Array, widest: Array,
+    def _collinear_along(self, fleet: Fleet, i: int, times: Array, widest: Array,
                          valid: NDArray[np.bool_]) -> Finding | None:
-        """The collinearity finding of follower ``a`` from its widest angle ``(K,)``."""
+        """The collinearity finding of follower ``i`` from its widest angle ``(K,)``."""
+        name = fleet.names[i]
         deg = np.degrees(widest)
         collinear = after_start(valid & (widest < COLLINEAR_ERROR_RAD))
         nearly = after_start(valid & (deg < COLLINEAR_WARN_DEG))
         if not nearly.any():
             return None
-        nbrs = ', '.join(n.name for n in a.neighbours)
+        nbrs = ', '.join(fleet.names[j] for j, _ in fleet.neighbours[i])
         if collinear.any():
             k = int(np.argmax(collinear))
-            return Finding('error', a.name, 'velocity', f'at t = {times[k]:.2f} s its bearings '
+            return Finding('error', name, 'velocity', f'at t = {times[k]:.2f} s its bearings '
                            f'to its neighbours become collinear (widest angle {deg[k]:.2g} deg),'
                            ' so its position is unobservable then (Assumption 2d)',
-                           f'change the velocities of {a.name} or of its neighbours ({nbrs}), '
+                           f'change the velocities of {name} or of its neighbours ({nbrs}), '
                            'or add a neighbour off the line through the current ones')
         k = int(np.argmax(nearly))
         when = np.flatnonzero(nearly)
@@ -292,16 +291,17 @@ class BearingLeaderEstimator(Estimator[G, S]):
         worst = (f'widest angle {deg[k]:.2f} deg' if w == k else
                  f'widest angle {deg[k]:.2f} deg, down to {deg[w]:.2f} deg at '
                  f't = {times[w]:.2f} s')
-        return Finding('warning', a.name, 'velocity', f'at t = {times[k]:.2f} s its bearings '
+        return Finding('warning', name, 'velocity', f'at t = {times[k]:.2f} s its bearings '
                        f'become nearly collinear ({worst}): slow, noise-sensitive position '
-                       'estimate', f'change the velocities of {a.name} or of its neighbours '
+                       'estimate', f'change the velocities of {name} or of its neighbours '
                        f'({nbrs}), or add a neighbour in another direction')
 
-    def _conditioning_along(self, a: Agent, times: Array, b: Array,
+    def _conditioning_along(self, fleet: Fleet, i: int, times: Array, b: Array,
                             at: NDArray[np.bool_]) -> Finding | None:
-        """The spectrum finding of follower ``a`` from its bearings ``(K, M, 3)`` at the
+        """The spectrum finding of follower ``i`` from its bearings ``(K, M, 3)`` at the
         samples ``at`` ``(K,)``."""
-        k_ij = np.array([n.k for n in a.neighbours])
+        name, neighbours = fleet.names[i], fleet.neighbours[i]
+        k_ij = np.array([k for _, k in neighbours])
         samples = np.flatnonzero(at)
         if samples.size == 0:
             return None
@@ -319,10 +319,11 @@ class BearingLeaderEstimator(Estimator[G, S]):
         when = np.flatnonzero(bad)
         w = int(when[np.argmin([self.conditioning_margin(eig[j]) for j in when])])
         worst = '' if w == first else f' (the worst at t = {times[samples[w]]:.2f} s)'
-        return Finding('warning', a.name, 'velocity', f'at t = {times[samples[first]]:.2f} s'
+        return Finding('warning', name, 'velocity', f'at t = {times[samples[first]]:.2f} s'
                        f'{worst} {problem[w]}',
-                       self.conditioning_fix(eig[w], a.neighbours[0].name, len(a.neighbours))
-                       + f', or change the velocities of {a.name} or of its neighbours')
+                       self.conditioning_fix(eig[w], fleet.names[neighbours[0][0]],
+                                             len(neighbours))
+                       + f', or change the velocities of {name} or of its neighbours')
 
     def conditioning_margin(self, eig: Array) -> float:
         """How far the spectrum ``eig`` (ascending) is from what :meth:`conditioning_problem`

@@ -75,7 +75,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, ClassVar, Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -87,9 +87,7 @@ from .base import (PEER_DELTA_R, PEER_DISPLACEMENT, PEER_ODOMETRY, POSE_POSITION
                    Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, Index, Mask,
                    Motion, Roles, Sensor, State, StepInputs, gain)
 from .covariance import POSE_COV, PoseCovarianceModel
-
-if TYPE_CHECKING:
-    from ..scenario.model import Scenario
+from .fleet import Fleet
 
 Complex = NDArray[np.complex128]
 
@@ -554,11 +552,11 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         return out
 
     # --- assumptions
-    def check(self, scenario: Scenario) -> CheckReport:
+    def check(self, fleet: Fleet) -> CheckReport:
         report = CheckReport()
-        names = [a.name for a in scenario.agents]
+        names = list(fleet.names)
         n = len(names)
-        tail, head = scenario.sensing_edges()
+        tail, head = fleet.sensing_edges()
         adjacency = np.zeros((n, n))
         adjacency[tail, head] = adjacency[head, tail] = 1.0
         count, label = connected_components(adjacency, directed=False)
@@ -569,24 +567,24 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
                     'error', names[i], 'neighbours', 'not connected to the rest of the fleet '
                     'in the communication graph (every sensing edge, both ways)',
                     'add a sensing edge between it and the fleet'))
-        for a in scenario.agents:
-            if a.yaw is None and (abs(a.attitude[2, 2] - 1.0) > 1e-9
-                                  or any(c.constant or c.terms for c in
-                                         (a.angular_velocity.x, a.angular_velocity.y))):
+        for name, attitude, omega, yaw in zip(names, fleet.attitudes,
+                                              fleet.angular_velocities, fleet.yaws):
+            if yaw is None and (abs(attitude[2, 2] - 1.0) > 1e-9
+                                or any(c.constant or c.terms for c in (omega.x, omega.y))):
                 report.findings.append(Finding(
-                    'error', a.name, 'attitude', 'De Carli et al. need yaw-only body frames '
+                    'error', name, 'attitude', 'De Carli et al. need yaw-only body frames '
                     '(roll and pitch compensated by the IMU)',
                     'give it a `yaw:` spline, or an attitude about z and an angular velocity '
                     '[0, 0, w]'))
-        h = scenario.step
+        h = fleet.step
         for rate_name in ('yaw_rate', 'position_rate'):
             rate = getattr(self.gains, rate_name)
-            ratio = scenario.frequency / rate
+            ratio = fleet.frequency / rate
             if ratio < 1.0 - 1e-9 or abs(ratio - round(ratio)) > 1e-6:
                 report.findings.append(Finding(
                     'error', 'gains', rate_name, f'{rate:g} Hz does not divide the estimator '
-                    f'frequency {scenario.frequency:g} Hz',
-                    f'use frequency / n, e.g. {scenario.frequency / 2:g}'))
+                    f'frequency {fleet.frequency:g} Hz',
+                    f'use frequency / n, e.g. {fleet.frequency / 2:g}'))
         laplacian = edge_laplacian(tail, head, n)
         lam = float(np.linalg.eigvalsh(laplacian)[-1]) if len(tail) else 0.0
         h3 = self.every(self.gains.position_rate, h) * h
@@ -595,22 +593,22 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
                 'error', 'gains', 'k_p', f'the position correction diverges: h3 k_p '
                 f'lambda_max(L) = {h3 * self.gains.k_p * lam:.3g} >= {EULER_LIMIT:g}',
                 f'lower k_p below {EULER_LIMIT / (h3 * lam):.3g} or raise position_rate'))
-        if not scenario.moves:
-            for a_, b_, sensed in pairs_and_sensed(scenario):
+        if not fleet.moves:
+            for a_, b_, sensed in pairs_and_sensed(fleet):
                 report.findings.append(unexcited(names, a_, b_, sensed, 0.0))
         return report
 
-    def check_motion(self, scenario: Scenario, times: Array,
+    def check_motion(self, fleet: Fleet, times: Array,
                      positions: Array) -> list[Finding]:
         """Warn for every pair whose sensed robots' horizontal motion along the sampled truth
         stays below the excitation the consensus waits for (the paper's mode is checked with
         the exogenous motion: the truth cannot depend on estimates here)."""
-        names = [a.name for a in scenario.agents]
+        names = list(fleet.names)
         step = np.diff(positions[:, :, :2], axis=0)
         dt = np.diff(times)[:, None]
         energy = (np.sum(step ** 2, axis=2) / np.maximum(dt, 1e-300)).sum(axis=0)  # (N,)
         return [unexcited(names, a, b, sensed, float(energy[list(sensed)].sum()))
-                for a, b, sensed in pairs_and_sensed(scenario)
+                for a, b, sensed in pairs_and_sensed(fleet)
                 if energy[list(sensed)].sum() < EXCITATION_M2_S]
 
 
@@ -622,9 +620,9 @@ def edge_laplacian(tail: Index, head: Index, n: int) -> Array:
     return incidence @ incidence.T
 
 
-def pairs_and_sensed(scenario: Scenario) -> list[tuple[int, int, set[int]]]:
+def pairs_and_sensed(fleet: Fleet) -> list[tuple[int, int, set[int]]]:
     """Every communication pair ``(a, b)``, ``a < b``, with the robots its edges sense."""
-    tail, head = scenario.sensing_edges()
+    tail, head = fleet.sensing_edges()
     pairs: dict[tuple[int, int], set[int]] = {}
     for i, j in zip(tail.tolist(), head.tolist()):
         pairs.setdefault((min(i, j), max(i, j)), set()).add(j)

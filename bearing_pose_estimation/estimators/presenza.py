@@ -63,20 +63,19 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from functools import lru_cache
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..core import angles, so3
+from ..core.motion import in_anchor_frame
 from . import presenza_covariance as cov
 from .base import (ANCHOR_DELTA_R, ANCHOR_DISPLACEMENT, IS_ANCHOR, PINNED, POSE_POSITION, Array,
                    Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, Index, Mask,
                    Motion, Roles, Sensor, State, StepInputs, gain)
 from .covariance import POSE_COV, initial_covariance
-
-if TYPE_CHECKING:
-    from ..scenario.model import Scenario
+from .fleet import Fleet
 
 # Every value a robot receives is checked against this bound [m, 1/m, 1/m², m/s].
 MAX_VALUE = 1e4
@@ -247,18 +246,18 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                 out[name] = delta_R_a.T @ v
         return out
 
-    def agent_groups(self, scenario: Scenario) -> dict[str, list[str]]:
+    def agent_groups(self, fleet: Fleet) -> dict[str, list[str]]:
         """Sensing robots (two or more out-neighbours) and free robots, as the paper's
         figures show them apart."""
-        sensing = [a.name for a in scenario.agents if len(a.neighbours) >= 2]
+        sensing = [name for name, nbrs in zip(fleet.names, fleet.neighbours) if len(nbrs) >= 2]
         return {'sensing': sensing,
-                'free': [a.name for a in scenario.agents if a.name not in sensing]}
+                'free': [name for name in fleet.names if name not in sensing]}
 
-    def fleet_margins(self, scenario: Scenario, R_hat: Array, p_hat: Array) -> dict[str, float]:
+    def fleet_margins(self, fleet: Fleet, R_hat: Array, p_hat: Array) -> dict[str, float]:
         """Infinitesimal angle rigidity of the estimated positions: ``σ_{3N-7}/σ_1`` of the
         angle rigidity matrix on the normalised estimates (the check's margin, §2, on ``q̂``
         instead of the truth): the gradient flow (16) needs it away from 0."""
-        out = [[scenario.index[nb.name] for nb in a.neighbours] for a in scenario.agents]
+        out = [[j for j, _ in nbrs] for nbrs in fleet.neighbours]
         return {'angle_rigidity_margin': angles.iar_margin(p_hat, _triples(tuple(map(tuple,
                                                                                   out))))}
 
@@ -441,8 +440,8 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                                         edges.sum_by_agent(packed[:, 3:])]))
 
     # --- assumptions
-    def check(self, scenario: Scenario) -> CheckReport:
-        return check_angle_graph(self.gains, scenario)
+    def check(self, fleet: Fleet) -> CheckReport:
+        return check_angle_graph(self.gains, fleet)
 
 
 def _eig(bearings: Array) -> Array:
@@ -450,23 +449,23 @@ def _eig(bearings: Array) -> Array:
     return np.asarray(np.linalg.eigvalsh(angles.projector_sum(bearings)), dtype=np.float64)
 
 
-def check_angle_graph(gains: PresenzaGains, scenario: Scenario) -> CheckReport:
+def check_angle_graph(gains: PresenzaGains, fleet: Fleet) -> CheckReport:
     """The method's assumptions at t = 0 (§2, §3): the anchor senses, its ranged robots are not
     aligned from it (A3), enough angles and infinitesimal angle rigidity on normalised
     positions (Definition 1), every sensing robot's bearings span (A5), every free robot seen
     by two sensing robots along non-collinear bearings (L2), and the explicit update's step
     limit (§9). The spectra are A5's and L2's matrices; the margins those of §2-§3."""
-    from ..scenario.model import initial_truth
-
     report = CheckReport(spectra_of='Σ_j Π(β_ij) (sensing robots, A5) and P_i = Σ_j Π(𝔮_ji) '
                                     '(free robots, L2)')
-    names = [a.name for a in scenario.agents]
+    names = list(fleet.names)
     n = len(names)
-    out = [[scenario.index[nb.name] for nb in a.neighbours] for a in scenario.agents]
+    out = [[j for j, _ in nbrs] for nbrs in fleet.neighbours]
     sensing = [len(o) >= 2 for o in out]
-    _, q = initial_truth(scenario)
-    a = scenario.index[scenario.anchor] if scenario.anchor is not None else 0
-    ranged = [scenario.index[r] for r in scenario.ranged]
+    # The true positions at t = 0 in the estimate frame: the anchor's body frame.
+    q = (fleet.positions if fleet.anchor is None
+         else in_anchor_frame(fleet.attitudes, fleet.positions, fleet.anchor)[1])
+    a = fleet.anchor if fleet.anchor is not None else 0
+    ranged = list(fleet.ranged)
 
     def unit(i: int, j: int) -> Array:
         d = q[j] - q[i]
@@ -532,9 +531,9 @@ def check_angle_graph(gains: PresenzaGains, scenario: Scenario) -> CheckReport:
                 rate = max(rate, gains.kappa_Q_sensing * k_max)
             limit = EULER_LIMIT / rate
             report.margins['explicit update step limit [s]'] = limit
-            if scenario.step >= limit:
+            if fleet.step >= limit:
                 report.findings.append(Finding(
                     'error', 'gains', 'preconditioning', f'the explicit update (w = 0) '
-                    f'diverges at h = {scenario.step:.3g} s: its limit is {limit:.3g} s (§9)',
+                    f'diverges at h = {fleet.step:.3g} s: its limit is {limit:.3g} s (§9)',
                     f'set gains.preconditioning: 1, or frequency above {1.0 / limit:.3g} Hz'))
     return report

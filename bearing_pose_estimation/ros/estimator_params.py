@@ -249,8 +249,7 @@ def live_change(s: Setup, params: list[Parameter]) -> tuple[Any, Limits]:
     new_limits = {p.name: float(p.value) for p in params if p.name in LIVE_LIMITS}
     gains = validated_gains(s.gains, new_gains) if new_gains else s.gains
     if new_gains and s.scenario is not None:
-        errors = estimators.build(s.scenario.method, gains).check(
-            replace(s.scenario, gains=gains)).errors
+        errors = estimators.build(s.scenario.method, gains).check(s.scenario.fleet()).errors
         if errors:
             raise ScenarioError(str(errors[0]))
     return gains, replace(s.limits, **new_limits)

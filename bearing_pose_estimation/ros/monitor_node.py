@@ -5,7 +5,7 @@ at identical stamps on a ``record_every`` grid (estimates come every estimator s
 ground-truth period, so the grid instants carry both), and writes ``metrics.csv``,
 ``summary.json`` and the plots to ``out_dir`` once ``t = duration`` is recorded, then exits.
 Interrupted, it writes what it has. Progress goes to stdout. Errors come from
-:func:`studies.results.pose_errors`, as in the batch simulator. A moving fleet, or a method whose
+:func:`metrics.results.pose_errors`, as in the batch simulator. A moving fleet, or a method whose
 estimates are not world poses, needs the whole fleet's truth (:func:`watched`): the trajectories
 then go to ``trajectories.png``, and the alignment covers every agent, as in the batch
 simulator.
@@ -35,8 +35,8 @@ from .. import msg_defs as wire
 from ..msg_defs import cdr
 from ..core.errors import ScenarioError
 from ..estimators.base import EstimateFrame
+from ..metrics.results import PoseErrors, Recording, pose_errors, to_world
 from ..scenario.model import Scenario
-from ..studies.results import PoseErrors, Recording, pose_errors, to_world
 from ..studies.summary import format_summary, summarize, write_metrics_csv, write_summary_json
 from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
 
@@ -223,7 +223,7 @@ class MonitorNode(Node):
 
     def _fleet_margins(self, t: float, R_hat: np.ndarray, p_hat: np.ndarray) -> None:
         """Record the method's fleet margins at ``t``; publish them once per second."""
-        values = self.method.fleet_margins(self.scenario, R_hat, p_hat)
+        values = self.method.fleet_margins(self.scenario.fleet(), R_hat, p_hat)
         for key, value in values.items():
             self.margins.setdefault(key, []).append((t, value))
         if values and (len(self.margins[next(iter(values))]) - 1) % max(
@@ -257,7 +257,7 @@ class MonitorNode(Node):
         write_metrics_csv(rec, self.out_dir / 'metrics.csv')
         write_summary_json(summary, self.out_dir / 'summary.json')
         from ..studies.plots import write_role_outputs
-        write_role_outputs(rec, self.method.agent_groups(self.scenario), self.out_dir,
+        write_role_outputs(rec, self.method.agent_groups(self.scenario.fleet()), self.out_dir,
                            title=f'{self.scenario.name} over DDS: errors by role',
                            plot=self.plots)
         if self.plots:

@@ -35,8 +35,8 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
 from .executor import DrainingExecutor
-from ..cli.launch import TEARDOWN_WATCHDOG_SIGNAL
 from ..core.errors import ScenarioError
+from ..plan.dds import TEARDOWN_WATCHDOG_SIGNAL
 from ..scenario.model import Scenario
 from ..scenario.parse import load_scenario
 
@@ -258,7 +258,7 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
         # The watchdog is a Python thread: a teardown that hangs holding the GIL (the Fast DDS
         # deadlock does) never lets it run. The kernel's alarm needs no GIL: one second later
         # faulthandler's C handler dumps the stacks, then SIGALRM's default action ends the
-        # process. The launcher knows that exit (launch.TEARDOWN_WATCHDOG_SIGNAL) from a crash.
+        # process. The launcher knows that exit (plan.dds.TEARDOWN_WATCHDOG_SIGNAL) from a crash.
         faulthandler.register(TEARDOWN_WATCHDOG_SIGNAL, all_threads=True, chain=True)
         signal.setitimer(signal.ITIMER_REAL, TEARDOWN_TIMEOUT_S + 1.0)
         if executor is not None:

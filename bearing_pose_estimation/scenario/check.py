@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from ..core import graph
 from ..estimators.base import CheckReport, Finding, Sensor
 from .model import Scenario
+from .truth import Truth
 
 Array = NDArray[np.float64]
 
@@ -39,12 +40,12 @@ def check_scenario(scenario: Scenario) -> CheckReport:
         collocated.append(Finding('error', b, 'position', f'collocated with {a}',
                                   f'move {b} or {a}: bearings between them are undefined'))
     estimator = scenario.estimator()
-    report = estimator.check(scenario)
+    report = estimator.check(scenario.fleet())
     report.findings[:0] = collocated
     if scenario.moves:
         times, positions = sample_truth(scenario)
         report.findings += close_approach_findings(scenario, times, positions)
-        report.findings += estimator.check_motion(scenario, times, positions)
+        report.findings += estimator.check_motion(scenario.fleet(), times, positions)
     return report
 
 
@@ -53,13 +54,11 @@ def sample_truth(scenario: Scenario, step: float = SAMPLE_STEP_S) -> tuple[Array
     ``scenario.duration`` about ``step`` apart (coarser for huge fleets,
     :data:`MAX_AGENT_SAMPLES`): ``(times, positions (K, N, 3))`` [s], [m].
 
-    Integrated by :class:`sim.truth.Truth`, attitudes included, so body-frame velocities are
+    Integrated by :class:`.truth.Truth`, attitudes included, so body-frame velocities are
     right (at steps of 0.05 s the paper's rates, up to 9 rad/s, move a body-frame agent 2e-5 m
     off in 60 s); with a body-frame velocity the integration step stays at most ``step`` when
     the samples are coarser.
     """
-    from ..sim.truth import Truth  # sim imports scenario
-
     n = len(scenario.agents)
     coarse = max(step, scenario.duration * n / MAX_AGENT_SAMPLES)
     n_samples = max(1, math.ceil(scenario.duration / coarse - 1e-9))

@@ -15,6 +15,7 @@ from .. import estimators
 from ..core import so3
 from ..core.motion import AngularVelocity, LinearVelocity, YawSpline, in_anchor_frame
 from ..estimators.base import Estimator
+from ..estimators.fleet import Fleet
 
 
 @dataclass(frozen=True)
@@ -202,6 +203,8 @@ class Scenario:
     formation: FormationControl | None = None
     source: str = '<memory>'
     index: dict[str, int] = field(default_factory=dict, compare=False, repr=False)
+    # fleet()'s value, computed on first use (dataclasses.replace starts a new one).
+    _fleet: Fleet | None = field(default=None, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         self.index.update({a.name: i for i, a in enumerate(self.agents)})
@@ -215,6 +218,30 @@ class Scenario:
     def estimator(self) -> Estimator:
         """The scenario's method with its gains."""
         return estimators.build(self.method, self.gains)
+
+    def fleet(self) -> Fleet:
+        """What the method knows of this fleet (:class:`estimators.fleet.Fleet`: agents,
+        sensing graph, roles, true poses and :func:`initial_estimates` at t = 0), built once:
+        the initial estimates come from the scenario's own seed, so it is always the same."""
+        if self._fleet is None:
+            R0, p0 = initial_estimates(self)
+            positions = np.stack([a.position for a in self.agents])
+            attitudes = np.stack([a.attitude for a in self.agents])
+            for array in (R0, p0, positions, attitudes):
+                array.flags.writeable = False
+            fleet = Fleet(
+                names=tuple(a.name for a in self.agents),
+                neighbours=tuple(tuple((self.index[n.name], n.k) for n in a.neighbours)
+                                 for a in self.agents),
+                positions=positions, attitudes=attitudes, initial_R=R0, initial_p=p0,
+                frequency=self.frequency, leaders=tuple(self.index[n] for n in self.leaders),
+                anchor=self.anchor_index, ranged=tuple(self.index[n] for n in self.ranged),
+                anchor_pinned=self.anchor_pinned, moves=self.moves,
+                angular_velocities=tuple(a.angular_velocity for a in self.agents),
+                yaws=tuple(a.yaw for a in self.agents))
+            object.__setattr__(self, '_fleet', fleet)
+            return fleet
+        return self._fleet
 
     def with_method(self, method: str, **gains: float) -> Scenario:
         """The same scenario run by ``method``: each of its gains is the value of this

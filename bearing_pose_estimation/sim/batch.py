@@ -24,7 +24,7 @@ there only), the other end's measurement of each edge's agent by the method's
 topic), what every agent sends (round 1, then round 2 from what round 1 gave), the other ends'
 odometry or the anchor's. In the formation controller's ``paper`` mode the truth moves with the
 estimated yaws (a closed loop); agents with ``anchor_estimate`` velocities move with the
-commands their estimates give (:meth:`sim.truth.Truth.command`). Recordings of methods with
+commands their estimates give (:meth:`scenario.truth.Truth.command`). Recordings of methods with
 per-pair states add each pair's error (:meth:`Estimator.edge_errors`) and, under formation
 control, each robot's formation error (:func:`core.formation.formation_error`).
 """
@@ -43,10 +43,10 @@ from ..core.motion import in_anchor_frame, yaw_of
 from ..estimators.base import (ANCHOR_DELTA_R, ANCHOR_DISPLACEMENT, DELTA_R, DISPLACEMENT,
                                IS_ANCHOR, PEER_DELTA_R, PEER_DISPLACEMENT, PINNED, EstimateFrame,
                                Index, Mask, Sensor, State, StepInputs, edge_table, route)
+from ..metrics.results import PoseErrors, Recording, pose_errors, to_world
 from ..scenario.model import Scenario, initial_estimates
-from ..studies.results import PoseErrors, Recording, pose_errors, to_world
+from ..scenario.truth import OnTruth, Truth
 from .noise import NoiseModel
-from .truth import OnTruth, Truth
 
 Array = NDArray[np.float64]
 
@@ -255,7 +255,7 @@ class BatchSimulator(OnTruth):
                                                     self.p[self.leader_idx])
 
     def errors(self) -> PoseErrors:
-        """Errors of the estimating agents now (:func:`studies.results.pose_errors`)."""
+        """Errors of the estimating agents now (:func:`metrics.results.pose_errors`)."""
         return pose_errors(self.estimator.frame, self.R, self.p, self.x.R_hat, self.x.p_hat,
                            self.follower_idx, anchor=self.scenario.anchor_index)
 
@@ -271,7 +271,7 @@ class BatchSimulator(OnTruth):
                 simulated seconds.
 
         When the fleet moves, the recording also holds every agent's true and estimated
-        positions at the record times (:class:`studies.results.Trajectories`; the estimates in
+        positions at the record times (:class:`metrics.results.Trajectories`; the estimates in
         the world frame, aligned as for the errors).
         """
         n_steps = int(round(duration / self.h))

@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 
 from ..core.errors import ScenarioError
 from ..estimators.base import Channel, Sensor
-from ..studies.results import PoseErrors, Recording, pose_errors
+from ..metrics.results import PoseErrors, Recording, pose_errors
 from ..runtime.agent import AgentRuntime, AgentSpec
 from ..runtime.buffers import TIME_EVENTS, Limits
 from ..runtime.faults import FaultyLink, LinkFaults
@@ -541,7 +541,7 @@ class _Network:
             self.link.release(now)
 
     def errors(self, followers: list[int]) -> PoseErrors:
-        """The followers' pose errors (:func:`metrics.pose_errors`), each estimate against
+        """The followers' pose errors (:func:`metrics.results.pose_errors`), each estimate against
         the truth at its estimator's state time (now, unless it waits for gyro data)."""
         R, p = self.world.R.copy(), self.world.p.copy()
         for i, name in enumerate(self.names):

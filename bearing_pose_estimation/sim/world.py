@@ -25,8 +25,8 @@ from numpy.typing import NDArray
 from ..core import so3
 from ..core.odometry import se3_step, twist_of
 from ..scenario.model import Scenario
+from ..scenario.truth import OnTruth, Truth
 from .noise import NoiseModel
-from .truth import OnTruth, Truth
 
 Array = NDArray[np.float64]
 

@@ -23,10 +23,10 @@ import numpy as np
 
 from .. import estimators
 from ..estimators.base import Sensor, format_gains, gain_fields
+from ..metrics.results import Recording
 from ..scenario.model import Scenario
 from ..scenario.parse import EDGE_GAIN, parse_scenario
 from ..sim.batch import BatchSimulator
-from .results import Recording
 from .summary import ATT_THRESHOLD_RAD, POS_THRESHOLD_M, quantities, when
 
 OUTPUT_FILES = ('compare.csv', 'compare.md', 'compare_errors.png')

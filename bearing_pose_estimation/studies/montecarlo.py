@@ -24,11 +24,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..metrics.results import Recording
 from ..scenario.model import Scenario
 from ..scenario.parse import load_scenario
 from ..sim.batch import BatchSimulator
 from .parallel import run_all
-from .results import Recording
 from .summary import (ATT_THRESHOLD_RAD, POS_THRESHOLD_M, QUANTITIES, SETTLE_FACTOR,
                       STEADY_FRACTION, TIMES, quantities)
 

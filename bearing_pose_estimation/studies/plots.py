@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .results import Recording
+from ..metrics.results import Recording
 
 
 def _figure(t: np.ndarray, per_agent: np.ndarray, names: list[str], title: str, ylabel: str,

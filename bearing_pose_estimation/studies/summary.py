@@ -2,8 +2,8 @@
 output: ``bearing-pose simulate`` and ``run`` (``summary.json``), ``compare`` (its table and
 CSV), ``montecarlo`` (``runs.csv`` and statistics) and ``noise-study``.
 
-Quantities of a :class:`.results.Recording` (:func:`quantities`; "mean" is over the estimating
-agents at one time, errors as in :mod:`.results`):
+Quantities of a :class:`metrics.results.Recording` (:func:`quantities`; "mean" is over the
+estimating agents at one time, errors as in :mod:`metrics.results`):
 
 - ``final_attitude_error_mean_rad``, ``final_position_error_mean_m``,
   ``final_attitude_error_max_rad``, ``final_position_error_max_m``: at the last record;
@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .results import Recording
+from ..metrics.results import Recording
 
 Array = NDArray[np.float64]
 

@@ -1,4 +1,5 @@
-"""The truth of a scenario, the one model behind the batch simulator and the simulator node.
+"""The truth of a scenario, the one model behind the batch simulator, the simulator node and
+the check of a moving scenario (:func:`.check.sample_truth`).
 
 Every attitude follows ``dR_i/dt = R_i [ω_i(t)]x`` and every position
 ``dp_i/dt = v_i(t)`` (world-frame velocity) or ``R_i(t) v_i(t)`` (body-frame), both advanced
@@ -37,7 +38,7 @@ from ..core import formation
 from ..core.motion import (ZERO, ProfileSet, YawSplines, body_displacement,
                            held_body_displacement, in_anchor_frame, magnus_increment,
                            rot_z)
-from ..scenario.model import Scenario
+from .model import Scenario
 
 Array = NDArray[np.float64]
 Index = NDArray[np.intp]
