@@ -9,13 +9,11 @@ announced until the clock starts) is written once. Then::
     evo_ape tum DIR/tum/agent_3_truth.tum DIR/tum/agent_3_estimate.tum
 
 gives the agent's position errors; add ``--align`` for estimates that are not world poses.
-The poses are decoded from the bag's CDR bytes by the package's codec (``msg_defs.cdr``); one
-it rejects (non-finite, a quaternion far from unit norm) is left out, with a warning.
 """
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,36 +26,26 @@ TRACKS = {'estimate': 'estimate', 'ground_truth': 'truth'}
 
 def read_tracks(bag: Path) -> dict[tuple[str, str], NDArray[np.float64]]:
     """``(agent, track) -> (n, 8)`` rows ``t x y z qx qy qz qw`` of every PoseStamped on an
-    agent's ``estimate`` and ``ground_truth`` topics in the rosbag2 ``bag``, by stamp; the
-    quaternion is the decoded attitude's (normalised, ``so3.to_quat``)."""
+    agent's ``estimate`` and ``ground_truth`` topics in the rosbag2 ``bag``, by stamp."""
     from rosbags.rosbag2 import Reader
-
-    from ..core import so3
-    from ..msg_defs import WireError, cdr   # imported here: the module needs no rclpy
+    from rosbags.typesys import Stores, get_typestore
 
     if not (bag / 'metadata.yaml').is_file():
         raise ScenarioError(f'{bag}: not a finished rosbag2 (no metadata.yaml). Fix: record one '
                             'with `bearing-pose run --record`')
+    typestore = get_typestore(Stores.ROS2_JAZZY)
     rows: dict[tuple[str, str], dict[int, list[float]]] = {}
-    rejected: dict[str, int] = {}
     with Reader(bag) as reader:
         wanted = [c for c in reader.connections
                   if c.msgtype == 'geometry_msgs/msg/PoseStamped'
                   and c.topic.count('/') == 2 and c.topic.rsplit('/', 1)[1] in TRACKS]
-        for connection, _, data in reader.messages(connections=wanted):
+        for connection, _, raw in reader.messages(connections=wanted):
+            msg: Any = typestore.deserialize_cdr(raw, connection.msgtype)
             _, agent, track = connection.topic.split('/')
-            try:
-                ns = cdr.read_header(data).ns
-                _, R, p = cdr.decode_pose_raw(data)
-            except WireError:
-                rejected[connection.topic] = rejected.get(connection.topic, 0) + 1
-                continue
+            ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            p, q = msg.pose.position, msg.pose.orientation
             rows.setdefault((agent, track), {}).setdefault(
-                ns, [ns * 1e-9, *p, *so3.to_quat(R)])
-    if rejected:
-        warnings.warn(f'{bag}: poses left out, not decodable: '
-                      + ', '.join(f'{n} on {topic}' for topic, n in sorted(rejected.items())),
-                      stacklevel=2)
+                ns, [ns * 1e-9, p.x, p.y, p.z, q.x, q.y, q.z, q.w])
     return {key: np.array([by_ns[ns] for ns in sorted(by_ns)]) for key, by_ns in rows.items()}
 
 
