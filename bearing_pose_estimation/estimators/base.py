@@ -452,6 +452,8 @@ class StepInputs:
     def complete(self, keys: Sequence[str]) -> StepInputs:
         """Only the edges that have every one of ``keys`` (a method without
         ``partial_edges``: an edge with an input missing sits the step out)."""
+        if not self.mask:
+            return self
         keep = np.ones(len(self.edges), dtype=bool)
         for key in keys:
             if key in self.mask:

@@ -227,6 +227,12 @@ class AgentRuntime:
             self.expects(p, c) for c in self.channels.values())]
         self._required_names = [c.name for c in cls.sends if not c.optional]
         self._optional_names = [c.name for c in cls.sends if c.optional]
+        self._instant = any(c.pairing == 'instant' for c in cls.sends)
+        # Per round, the 'exact' channels and the senders' measurements (paired at t).
+        self._exact = {r: [c for c in cls.sends if c.round == r
+                           and (c.pairing == 'exact' or c.sensor is not None)]
+                       for r in range(1, self.rounds + 1)}
+        self._complete_keys = cls.required()
         flags = {name: np.array([p.flags.get(name, False) for p in self.peers], dtype=bool)
                  for name in sorted({f for p in self.peers for f in p.flags})}
         # Its edges, one per peer: the same object every step (a method may cache what it
@@ -806,7 +812,7 @@ class AgentRuntime:
             return StepInputs(edges=edges, agent=agent, edge={}, t=t)
         edge: dict[str, Array] = {}
         mask: dict[str, NDArray[np.bool_]] = {}
-        if any(c.pairing == 'instant' for c in self.channels.values()):
+        if self._instant:
             self._instant_channels(t, agent.get(DISPLACEMENT) is not None, edge, mask)
         else:
             self._own_interpolated(t, edge, mask)
@@ -816,7 +822,7 @@ class AgentRuntime:
             self._exact_channels(t, r, edge, mask)
         inputs = StepInputs(edges=edges, agent=agent, edge=edge, mask=mask, t=t)
         if not cls.partial_edges:
-            inputs = inputs.complete(cls.required())
+            inputs = inputs.complete(self._complete_keys)
         return inputs
 
     def _anchor_motion(self, t: float, agent: dict[str, Array]) -> None:
@@ -916,8 +922,7 @@ class AgentRuntime:
         newest earlier one carried to t, else left out; optional ones never wait; channels not
         read at t are their newest value."""
         est, n = self.estimator, len(self.peers)
-        chans = [c for c in self.channels.values()
-                 if c.round == round_ and (c.pairing == 'exact' or c.sensor is not None)]
+        chans = self._exact[round_]
         if not chans:
             return
         for c in chans:
