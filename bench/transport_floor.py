@@ -268,10 +268,8 @@ def agent_plan(s: Scenario, name: str, world: World) -> ProcessPlan:
         if content:
             data[topic] = wire.encode_channels(t, wire.channel_frame(
                 cs[0], name, frame, s.world_frame), cs, content)
-    P = rt.covariance()
     estimate = wire.cdr.encode_pose_raw(t, frame, rt.R0, rt.p0)
-    pose = wire.cdr.encode_pose_covariance_raw(t, frame, rt.R0, rt.p0,
-                                               np.zeros((6, 6)) if P is None else P)
+    pose = wire.cdr.encode_pose_covariance_raw(t, frame, rt.R0, rt.p0, rt.covariance())
     # When the node publishes each, over a cycle of steps.
     h, every = s.step, max(1, int(round(1.0 / (s.step * s.publish_rate))))
     cycle = every * max(1, int(round(s.frequency)))

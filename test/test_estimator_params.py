@@ -381,7 +381,7 @@ def test_the_readme_explicit_parameter_file_is_valid(context, repo_root, tmp_pat
     node = EstimatorNode(namespace='/agent_4', context=context,
                          cli_args=['--ros-args', '--params-file', str(path)])
     try:
-        assert node.rt is None and node.start_time < 0  # starts at the first gyro sample
+        assert node.rt is None and node.s.start_time < 0  # starts at the first gyro sample
         assert node.s.spec.agent_id == 4 and node.s.gains == TranGains(2.0, 1.0, 0.5)
         assert [(n.name, n.agent_id, n.k) for n in node.s.spec.peers] == [
             ('agent_1', 1, 1.0), ('agent_2', 2, 2.0)]

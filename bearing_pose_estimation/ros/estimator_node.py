@@ -1,35 +1,27 @@
-"""``estimator``: one agent's estimator as a ROS 2 node (run one per agent, in /<agent>), with
-the scenario's ``method`` (any registered one).
+"""``estimator``: one agent's estimator as a ROS 2 node (one per agent, in /<agent>), with the
+scenario's ``method`` (any registered one).
 
 A thin adapter around the agent runtime (:class:`runtime.agent.AgentRuntime`): it decodes
 messages (``msg_defs``), hands them to the runtime, runs the steps as soon as the runtime has
 their inputs (on every input that can complete one: no timer) and publishes. Subscribes
-(relative names, remappable): ``imu`` (sensor_msgs/Imu), the own point sensors the method
-reads (``bearings``, ``relative_positions``, ``bearing_rates``: sensor_msgs/PointCloud2),
-``odom`` (nav_msgs/Odometry, for methods that use odometry), ``known_pose`` (leaders), and
-what it reads from the others, from the one table of subscriptions (:mod:`runtime.table`):
-their channel topics (``/<j>/pose``, ``/<j>/world_bearings``, ...), their point sensor topics
-and their odometry. Publishes ``estimate`` (geometry_msgs/PoseStamped in the method's estimate
-frame), ``pose`` (the same with its covariance: what the neighbours and robot_localization
-read) and its other channels when a neighbour's step reads them ('instant' channels every
-``publish_rate`` period, on exact multiples of it; 'exact' ones at the instants the method
-reads them; a second round as soon as its first is in), and its health on ``/diagnostics``.
-When the agent moves, per-edge channels formed from its own measurements wait for the
-measurements of their instant, and are skipped if the next step comes first.
+(relative names, remappable): ``imu``, the own point sensors the method reads (``bearings``,
+``relative_positions``, ``bearing_rates``), ``odom`` (methods that use odometry),
+``known_pose`` (leaders), and what the table of subscriptions (:mod:`runtime.table`) says it
+reads from the others: their channel topics (``/<j>/pose``, ...), point sensor topics and
+odometry. Publishes ``estimate`` (PoseStamped in the method's estimate frame), ``pose`` (with
+its covariance: what neighbours and robot_localization read), its other channels when a
+neighbour's step reads them ('instant' ones on the ``publish_rate`` grid, 'exact' ones when the
+method reads them, a second round as soon as its first is in; per-edge values formed from
+moving own measurements wait for the measurements of their instant) and its health on
+``/diagnostics`` (:mod:`runtime.health`).
 
 In a simulation (``fixed_exchange``, default: ``use_sim_time``) a step's inputs are fixed by
-their stamps and waited for (:class:`runtime.buffers.Exchange`): what netsim feeds the same
-runtime, so a run equals netsim's to rounding however loaded the machine is. A step that
-waits with its own sensors standing still (a lockstep clock waiting for this agent) goes on
-without the missing input after ``neighbour_wait`` of wall time ('exact' channels) or
-:data:`EXCHANGE_PATIENCE` (counted in ``event_impatient_steps``).
-
-Bad input is rejected, counted by cause, warned about (throttled) and reported in the
-diagnostics; it never stops the node and never reaches the estimate. Parameters:
-:mod:`.estimator_params`, plus the expected frames ``imu_frame``, ``bearings_frame``,
-``odom_child_frame`` (empty: accept any), ``diagnostics_period`` [s, wall clock],
-``publish_tf``, ``raw_messages``, and the fault injection for tests and studies:
-``inject_drop_rate``, ``inject_delay`` [s], ``inject_seed`` (:mod:`runtime.faults`).
+their stamps and waited for: netsim feeds the same runtime the same way, so a run equals
+netsim's to rounding however loaded the machine is. A step that waits with its own sensors
+standing still (a lockstep clock waiting for this agent) goes on without what it waits for after
+``neighbour_wait`` of wall time ('exact' channels) or :data:`EXCHANGE_PATIENCE` (counted in
+``event_impatient_steps``). Bad input is rejected, counted by cause and warned about; it never
+stops the node and never reaches the estimate. Parameters: :mod:`.estimator_params`.
 """
 from __future__ import annotations
 
@@ -39,7 +31,6 @@ from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
@@ -56,7 +47,7 @@ from ..runtime.faults import FaultyLink, LinkFaults
 from ..runtime.health import health, summary
 from ..runtime.table import ODOMETRY, Subscription, optional_first, subscriptions
 from .estimator_params import live_change, setup
-from .node_main import declare, run_node, warn_unknown_parameters
+from .node_main import run_node, take_waiting, tf_broadcaster, warn_unknown_parameters
 from .step_batch import StepBatch
 
 # Wall time [s] a step of a fixed exchange waits with its own sensors standing still before
@@ -74,45 +65,15 @@ class EstimatorNode(Node):
         ``estimators`` process, :mod:`.step_batch`). ``node_kwargs`` go to rclpy's Node
         (``namespace``, ``context``, ``parameter_overrides``, ``cli_args``, ...)."""
         super().__init__('estimator', **node_kwargs)
-        p = partial(declare, self)
         self.fleet = wire.fleet_of(self.get_namespace())   # neighbours' topics: beside ours
         self.fleet_prefix = f'{self.fleet}/' if self.fleet else ''
         self.s = s = setup(self)
-        self.agent, self.method = s.agent, s.method
-        self.start_time = p('start_time', 0.0, 't = 0 of the scenario on this clock [s]; '
-                            'negative: the first gyro stamp')
-        body = wire.body_frame(self.agent)
-        self.frames = {'imu': p('imu_frame', body, 'expected Imu frame_id; empty: any'),
-                       'points': p('bearings_frame', body, 'expected frame_id of the own '
-                                   'point sensors; empty: any'),
-                       'odom': p('odom_child_frame', body, 'expected Odometry child_frame_id '
-                                 '(the twist\'s frame); empty: any')}
-        diagnostics_period = p('diagnostics_period', 1.0, '/diagnostics period [s, wall clock]',
-                               0.01, 3600.0)
-        self.neighbour_wait = p('neighbour_wait', 0.25, 'wall time [s] a step waits for a '
-                                'neighbour\'s input with its own sensors standing still before '
-                                'going on without it', 0.0, 60.0, read_only=False)
-        faults = LinkFaults(
-            p('inject_drop_rate', 0.0, 'fault injection: probability of dropping each '
-              'neighbour message', 0.0, 1.0),
-            p('inject_delay', 0.0, 'fault injection: extra delay of each neighbour message '
-              '[s]', 0.0, 60.0),
-            p('inject_seed', 0, 'fault injection: random seed', 0, 2**31 - 1))
-        self.link = FaultyLink(faults)
-        if s.exchange is not None and faults:
-            self.get_logger().info('fixed_exchange off: faults are injected')
-            s.exchange = None
-        self.tf = self._tf_broadcaster(p('publish_tf', True, 'broadcast the estimate on TF '
-                                         '(estimate frame -> <agent>/base_link) when tf2_ros '
-                                         'is installed; false for a robot whose odometry owns '
-                                         'base_link'))
-        # Messages as their serialised bytes (msg_defs/cdr.py): rclpy then builds no Python
-        # message (BENCHMARKS.md, "Raw CDR"); published as bytes either way.
-        self.raw = bool(p('raw_messages', True, 'take messages as serialised bytes; false: as '
-                          'rclpy message objects'))
+        self.agent, self.method, self.frames, self.raw = s.agent, s.method, s.frames, s.raw
+        self.link = FaultyLink(s.faults)
+        self.tf = tf_broadcaster(self, s.publish_tf)
         self.rt: AgentRuntime | None = None
-        if self.start_time >= 0.0:
-            self.rt = self._runtime(self.start_time)
+        if s.start_time >= 0.0:
+            self.rt = self._runtime(s.start_time)
         self.rejected: Counter[str] = Counter()
         self.events: Counter[str] = Counter()
         self._published_k = -1
@@ -125,8 +86,8 @@ class EstimatorNode(Node):
         if batch is not None:
             batch.join(self)
         self._make_subscriptions()
-        self.diag_timer = self.create_timer(diagnostics_period, self.publish_diagnostics,
-                                            clock=Clock(clock_type=STEADY))
+        self.create_timer(s.diagnostics_period, self.publish_diagnostics,
+                          clock=Clock(clock_type=STEADY))
         # The t0 state is announced once every subscription has a publisher and every writer
         # the readers it expects: best-effort readers drop what comes before they match, and
         # the simulator starts the clock only after hearing from everyone.
@@ -140,8 +101,8 @@ class EstimatorNode(Node):
         self.create_timer(WATCH_PERIOD_S, self.on_watch, clock=Clock(clock_type=STEADY))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         role = 'leader' if s.spec.leader else f'{len(s.spec.peers)} neighbours'
-        inject = (f'; INJECTING drop {faults.drop_rate:g}, delay {faults.delay:g} s on '
-                  'neighbour messages' if faults else '')
+        inject = (f'; INJECTING drop {s.faults.drop_rate:g}, delay {s.faults.delay:g} s on '
+                  'neighbour messages' if s.faults else '')
         self.get_logger().info(f'{self.agent} (id {s.spec.agent_id}, {role}) at '
                                f'{1.0 / s.step:g} Hz, {self.method.method}: '
                                f'{format_gains(s.gains)}{inject}')
@@ -210,19 +171,6 @@ class EstimatorNode(Node):
                 sub(wire.channel_type(chans[s.channels[0]]), topic,
                     partial(self._link, self.on_channels, s), self.channel_qos)
 
-    def _tf_broadcaster(self, wanted: bool) -> Any:
-        """tf2_ros's TransformBroadcaster, when wanted and installed (a full Jazzy install;
-        the PyPI wheels have no tf2_ros), else None."""
-        if not wanted:
-            return None
-        try:
-            from tf2_ros import TransformBroadcaster
-        except ImportError:
-            self.get_logger().info('tf2_ros is not installed: no TF broadcast (the estimate '
-                                   'topic carries the same pose)')
-            return None
-        return TransformBroadcaster(self)
-
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """A live change of gains or input limits, all or nothing, from the next step on."""
         try:
@@ -233,8 +181,6 @@ class EstimatorNode(Node):
         self.s.gains, self.s.limits = gains, limits
         if self.rt is not None:
             self.rt.estimator, self.rt.limits = self.method(gains), limits
-        self.neighbour_wait = next((float(p.value) for p in params if p.name == 'neighbour_wait'),
-                                   self.neighbour_wait)
         self.get_logger().info('parameters set live: '
                                + ', '.join(f'{p.name} = {p.value:g}' for p in params))
         return SetParametersResult(successful=True)
@@ -245,28 +191,16 @@ class EstimatorNode(Node):
         self.get_logger().warning(f'rejected {detail}: {cause} ({self.rejected[cause]} so far)',
                                   throttle_duration_sec=5.0)
 
-    def _bytes(self, msg: Any, frame: str, what: str) -> bytes | None:
-        """The message's bytes if its frame id is ``frame`` (anything for an empty
-        ``frame``); else None, after counting the rejection."""
-        data = wire.raw(msg)
-        if not frame:
-            return data
-        try:
-            frame_id = cdr.read_header(data).frame_id
-        except wire.WireError as exc:
-            self._reject('malformed', f'{what} ({exc})')
-            return None
-        if frame_id != frame:
-            self._reject('wrong_frame', f'{what} in frame {frame_id!r}')
-            return None
-        return data
-
     def _decoded(self, msg: Any, frame: str, what: str,
-                 decode: Callable[[bytes], tuple]) -> tuple | None:
-        data = self._bytes(msg, frame, what)
-        if data is None:
-            return None
+                 decode: Callable[[bytes], Any] = bytes) -> Any:
+        """``decode`` of the message's bytes if its frame id is ``frame`` (empty: any); else
+        None, after counting the rejection (a wrong frame, or ``malformed``)."""
+        data = wire.raw(msg)
         try:
+            frame_id = cdr.read_header(data).frame_id if frame else frame
+            if frame_id != frame:
+                self._reject('wrong_frame', f'{what} in frame {frame_id!r}')
+                return None
             return decode(data)
         except wire.WireError as exc:
             self._reject('malformed', f'{what} ({exc})')
@@ -348,7 +282,7 @@ class EstimatorNode(Node):
         what = f'{sub.topic} of agent {sub.source_id}'
         frame = wire.channel_frame(chans[0], sub.source, self.s.estimate_frame,
                                    self.s.world_frame)
-        data = self._bytes(msg, frame, what)
+        data = self._decoded(msg, frame, what)
         if data is None or self.rt is None:
             return
         t, values, problems = wire.decode_channels(data, chans)
@@ -449,7 +383,8 @@ class EstimatorNode(Node):
         now = time.monotonic()
         if self._stuck is None or self._stuck[:2] != (rt.k, rt.gyro.end):
             self._stuck = (rt.k, rt.gyro.end, now)
-        elif now - self._stuck[2] >= (self.neighbour_wait if self.exact else EXCHANGE_PATIENCE):
+        elif now - self._stuck[2] >= (self.s.neighbour_wait if self.exact
+                                      else EXCHANGE_PATIENCE):
             self.get_logger().warning(
                 f'the step at t = {rt.t:.3f} s waited {now - self._stuck[2]:.3g} s of wall time '
                 f'for {rt.awaited or "a neighbour"} with its own sensors standing still: going '
@@ -471,12 +406,7 @@ class EstimatorNode(Node):
         moved, self._watched = self._watched != (rt.k, rt.gyro.end), (rt.k, rt.gyro.end)
         if moved or now <= rt.t + 2.0 * rt.h:
             return
-        found = 0
-        for sub in list(self.subscriptions):
-            with sub.handle:
-                while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
-                    found += 1
-                    sub.callback(taken[0])
+        found = take_waiting(self)
         if found:
             self.events['taken_while_stalled'] += found
             self.get_logger().warning(
@@ -500,9 +430,8 @@ class EstimatorNode(Node):
         if not deferred and (force or (self._published_k != rt.k and (grid or any(
                 rt.sends_now(c.name, grid) for c in self.pose_channels)))):
             if self.pub_pose is not None:   # first: what the neighbours' steps wait for
-                P = rt.covariance()
                 self.pub_pose.publish(cdr.encode_pose_covariance_raw(
-                    t, frame, rt.R_hat[0], rt.p_hat[0], np.zeros((6, 6)) if P is None else P))
+                    t, frame, rt.R_hat[0], rt.p_hat[0], rt.covariance()))
             self.pub_estimate.publish(cdr.encode_pose_raw(t, frame, rt.R_hat[0], rt.p_hat[0]))
             if self.tf is not None:
                 self.tf.sendTransform(rviz.encode_transform(

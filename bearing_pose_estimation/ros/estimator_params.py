@@ -11,6 +11,11 @@ the truth; a gain of another method is an error. The gains and the input limits
 (``sensor_timeout``, ``neighbour_timeout``, ``max_rate``, ``link_wait``) and ``neighbour_wait``
 can be set while the node runs: a change is validated (range, the gain's minimum, and the
 method's check on the scenario) and applies from the next step, or is refused with the reason.
+The node's own: ``start_time``, the expected frames ``imu_frame``, ``bearings_frame``,
+``odom_child_frame`` (empty: accept any), ``diagnostics_period`` [s, wall clock],
+``neighbour_wait``, ``publish_tf``, ``raw_messages``, ``fixed_exchange``, and the fault
+injection for tests and studies ``inject_drop_rate``, ``inject_delay`` [s], ``inject_seed``
+(:mod:`runtime.faults`; it turns ``fixed_exchange`` off).
 """
 from __future__ import annotations
 
@@ -31,6 +36,7 @@ from ..core.errors import ScenarioError
 from ..estimators.base import Estimator, gain_fields, parse_gains
 from ..runtime.agent import AgentSpec, PeerSpec
 from ..runtime.buffers import Exchange, Limits
+from ..runtime.faults import LinkFaults
 from ..runtime.table import listener_counts
 from ..scenario.model import Scenario
 from ..scenario.parse import load_scenario
@@ -62,6 +68,13 @@ class Setup:
     estimate_frame: str
     world_frame: str
     exchange: Exchange | None
+    start_time: float                  # t = 0 on the node's clock; negative: the first gyro
+    frames: dict[str, str]             # expected frame ids: 'imu', 'points', 'odom'
+    diagnostics_period: float
+    neighbour_wait: float
+    faults: LinkFaults
+    publish_tf: bool
+    raw: bool
 
 
 def _gain_parameters() -> dict[str, str]:
@@ -224,19 +237,50 @@ def setup(node: Node) -> Setup:
     fixed = p('fixed_exchange', sim_time, 'a step uses the own measurements up to its end and '
               'each neighbour\'s values of its publish instant at or before its start, and '
               'waits for them (default: use_sim_time)')
+    faults = LinkFaults(
+        p('inject_drop_rate', 0.0, 'fault injection: probability of dropping each neighbour '
+          'message', 0.0, 1.0),
+        p('inject_delay', 0.0, 'fault injection: extra delay of each neighbour message [s]',
+          0.0, 60.0),
+        p('inject_seed', 0, 'fault injection: random seed', 0, 2**31 - 1))
     exchange = None
-    if fixed:
+    if fixed and faults:
+        node.get_logger().info('fixed_exchange off: faults are injected')
+    elif fixed:
         exchange = (exchange_of(scenario, publish_every) if scenario is not None
                     else Exchange(publish_every * step))
-    return Setup(agent=agent, scenario=scenario, method=cls, gains=gains, spec=spec,
-                 step=step, publish_every=publish_every, limits=limits, listeners=listeners,
-                 expects_odometry=scenario is not None and scenario.simulates('odometry'),
-                 estimate_frame=wire.estimate_frame(cls.frame.value, fleet, anchor, world),
-                 world_frame=world, exchange=exchange)
+    body = wire.body_frame(agent)
+    return Setup(
+        agent=agent, scenario=scenario, method=cls, gains=gains, spec=spec, step=step,
+        publish_every=publish_every, limits=limits, listeners=listeners,
+        expects_odometry=scenario is not None and scenario.simulates('odometry'),
+        estimate_frame=wire.estimate_frame(cls.frame.value, fleet, anchor, world),
+        world_frame=world, exchange=exchange,
+        start_time=p('start_time', 0.0, 't = 0 of the scenario on this clock [s]; negative: '
+                     'the first gyro stamp'),
+        frames={'imu': p('imu_frame', body, 'expected Imu frame_id; empty: any'),
+                'points': p('bearings_frame', body, 'expected frame_id of the own point '
+                            'sensors; empty: any'),
+                'odom': p('odom_child_frame', body, 'expected Odometry child_frame_id (the '
+                          'twist\'s frame); empty: any')},
+        diagnostics_period=p('diagnostics_period', 1.0, '/diagnostics period [s, wall clock]',
+                             0.01, 3600.0),
+        neighbour_wait=p('neighbour_wait', 0.25, 'wall time [s] a step waits for a '
+                         'neighbour\'s input with its own sensors standing still before going '
+                         'on without it', 0.0, 60.0, read_only=False),
+        faults=faults,
+        publish_tf=p('publish_tf', True, 'broadcast the estimate on TF (estimate frame -> '
+                     '<agent>/base_link) when tf2_ros is installed; false for a robot whose '
+                     'odometry owns base_link'),
+        # Messages as their serialised bytes (msg_defs/cdr.py): rclpy then builds no Python
+        # message (BENCHMARKS.md, "Raw CDR"); published as bytes either way.
+        raw=bool(p('raw_messages', True, 'take messages as serialised bytes; false: as rclpy '
+                   'message objects')))
 
 
 def live_change(s: Setup, params: list[Parameter]) -> tuple[Any, Limits]:
-    """New gains and limits from a live change of ``params`` (rclpy has checked the type,
+    """New gains and limits (and ``s.neighbour_wait``) from a live change of ``params`` (rclpy
+    has checked the type,
     the range and that the parameter is not read-only): the gains must be valid and, with a
     scenario, pass the method's check on it (e.g. a position gain whose Euler step would
     diverge is refused).
@@ -252,4 +296,6 @@ def live_change(s: Setup, params: list[Parameter]) -> tuple[Any, Limits]:
         errors = estimators.build(s.scenario.method, gains).check(s.scenario.fleet()).errors
         if errors:
             raise ScenarioError(str(errors[0]))
+    s.neighbour_wait = next((float(p.value) for p in params if p.name == 'neighbour_wait'),
+                            s.neighbour_wait)
     return gains, replace(s.limits, **new_limits)

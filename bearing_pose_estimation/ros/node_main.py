@@ -299,3 +299,29 @@ def _teardown_hung(name: str, code: int) -> None:
     signal.setitimer(signal.ITIMER_REAL, 0.0)
     faulthandler.unregister(TEARDOWN_WATCHDOG_SIGNAL)  # back to SIG_DFL; the stacks are out
     os.kill(os.getpid(), TEARDOWN_WATCHDOG_SIGNAL)
+
+
+def tf_broadcaster(node: Node, wanted: bool) -> Any:
+    """tf2_ros's TransformBroadcaster, when wanted and installed (a full Jazzy install; the
+    PyPI wheels have no tf2_ros), else None."""
+    if not wanted:
+        return None
+    try:
+        from tf2_ros import TransformBroadcaster
+    except ImportError:
+        node.get_logger().info('tf2_ros is not installed: no TF broadcast (the estimate topic '
+                               'carries the same pose)')
+        return None
+    return TransformBroadcaster(node)
+
+
+def take_waiting(node: Node) -> int:
+    """Take what ``node``'s subscriptions hold and run their callbacks: for a node stalled on
+    messages its executor was not told of. Returns how many it took."""
+    found = 0
+    for sub in list(node.subscriptions):
+        with sub.handle:
+            while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
+                found += 1
+                sub.callback(taken[0])
+    return found

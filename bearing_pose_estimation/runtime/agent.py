@@ -1236,10 +1236,11 @@ class AgentRuntime:
             return self.estimator.due(name, self.t, self.h)
         return publish_grid
 
-    def covariance(self) -> Array | None:
-        """``(6, 6)`` the pose covariance (position, then rotation), or None."""
+    def covariance(self) -> Array:
+        """``(6, 6)`` the pose covariance (position, then rotation); zeros for a method that
+        keeps none."""
         P = self.estimator.covariance(self.x)
-        return None if P is None else P[0]
+        return np.zeros((6, 6)) if P is None else P[0]
 
     def conditioning(self) -> Array | None:
         """Eigenvalues of the method's local matrix (:meth:`Estimator.conditioning`) from the
