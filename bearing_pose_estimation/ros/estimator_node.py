@@ -213,6 +213,8 @@ class EstimatorNode(Node):
         return ns * 1e-9 if ns > 0 else None
 
     def _counted(self, causes: Sequence[str | None], what: str) -> None:
+        if not any(causes):
+            return   # every input used (the common case: no Counter)
         for cause, n in Counter(c for c in causes if c is not None).items():
             if cause in TIME_EVENTS:
                 self.events[cause] += n
@@ -270,6 +272,8 @@ class EstimatorNode(Node):
     def _link(self, handler: Callable[[Subscription, Any], None], sub: Subscription,
               msg: Any) -> None:
         """A neighbour's message through the (optional) injected loss and delay."""
+        if not self.s.faults:
+            return handler(sub, msg)
         before = self.link.dropped
         self.link.send(self._now() or 0.0, lambda _: handler(sub, msg))
         if self.link.dropped != before:
@@ -327,12 +331,12 @@ class EstimatorNode(Node):
         rt = self.rt
         if rt is None:
             return
-        self.link.release(self._now() or 0.0)
+        if self.link.holding:
+            self.link.release(self._now() or 0.0)
         while True:
             self._send_reply(impatient)
             if self.batch is not None and not impatient:
-                if rt.steps_ready():
-                    self.batch.request(self)
+                self.batch.request(self)   # its flush asks whether a step is ready
                 return
             self.before_step()
             if not rt.advance(1, impatient=impatient):
