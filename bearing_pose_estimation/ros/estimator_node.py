@@ -326,8 +326,8 @@ class EstimatorNode(Node):
             self._publish(grid=True, force=True)
 
     def run_ready_steps(self, impatient: bool = False) -> None:
-        """Every step the inputs allow now (called by each input that can complete one), with
-        what each step publishes; in an ``estimators`` process, the batch's call."""
+        """Every step the inputs allow now, with what each publishes (in an ``estimators``
+        process: the batch's call)."""
         rt = self.rt
         if rt is None:
             return
@@ -347,9 +347,8 @@ class EstimatorNode(Node):
             self.after_step()
 
     def before_step(self) -> None:
-        """What goes before a step (:class:`.step_batch.StepBatch` runs the step between
-        the two): channels deferred for the own measurements of their instant that never
-        came are skipped (listeners pair values of one instant)."""
+        """Before a step: channels deferred for own measurements that never came are skipped
+        (listeners pair values of one instant)."""
         if self.rt is not None and self._deferred == self.rt.k:
             self.events['channels_skipped'] += 1
             self._deferred = -1
@@ -376,10 +375,9 @@ class EstimatorNode(Node):
                 pub.publish(wire.encode_channels(rt.t, self.s.estimate_frame, chans, content))
 
     def on_patience(self) -> None:
-        """A step that waits while nothing moves (its own sensors stopped too: a lockstep
-        clock waiting for this agent) goes on without what it waits for after
-        ``neighbour_wait`` of wall time ('exact' channels) or :data:`EXCHANGE_PATIENCE`;
-        while its own sensors advance, the runtime's own rule applies (``link_wait``)."""
+        """A step waiting while its own sensors stand still too (a lockstep clock waiting for
+        this agent) goes on after ``neighbour_wait`` ('exact' channels) or
+        :data:`EXCHANGE_PATIENCE` of wall time; else the runtime's ``link_wait`` rules."""
         rt = self.rt
         if rt is None or not rt.own_inputs_ready() or rt.steps_ready() > 0:
             self._stuck = None
@@ -398,12 +396,9 @@ class EstimatorNode(Node):
             self.run_ready_steps()
 
     def on_watch(self) -> None:
-        """Every :data:`WATCH_PERIOD_S` of wall time: an agent that has not moved (state, gyro)
-        since the last check while its clock is more than two steps past its state takes what
-        its subscriptions hold and handles it. A message that waited there a second is one the
-        executor was not told of; under lockstep the clock would wait for this agent forever.
-        Found ones are counted (``taken_while_stalled``) and warned about; with none found and
-        the gyro silent too, that is reported."""
+        """An agent that has not moved for :data:`WATCH_PERIOD_S` while its clock is two steps
+        past its state takes what its subscriptions hold (messages the executor was not told
+        of: under lockstep the clock would wait forever; ``taken_while_stalled``)."""
         rt, now = self.rt, self._now()
         if rt is None or now is None:
             return
@@ -424,10 +419,9 @@ class EstimatorNode(Node):
 
     # --------------------------------------------------------------------------- outputs
     def _publish(self, grid: bool, force: bool = False, deferred: bool = False) -> None:
-        """After a step (or ``force``: the t0 announcement): the pose and the estimate on the
-        publish grid or when a neighbour reads the pose now; each channel topic a
-        neighbour's step reads now (``deferred``: those waiting for their own
-        measurements)."""
+        """The pose and estimate (on the grid, or when a neighbour reads the pose now) and each
+        channel topic a neighbour reads now; ``force``: everything (the t0 announcement);
+        ``deferred``: the channels that waited for their own measurements."""
         rt = self.rt
         assert rt is not None
         t, frame = rt.t, self.s.estimate_frame

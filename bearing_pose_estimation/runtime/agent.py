@@ -1,46 +1,36 @@
-"""One agent running any registered estimator, independent of ROS: the logic of the estimator
-node, of netsim's agents and of the steps an ``estimators`` process runs together.
+"""One agent running any registered estimator, independent of ROS: what the estimator node,
+netsim's agents and an ``estimators`` process's steps run.
 
 :class:`AgentRuntime` is configured by its method's declarations (:mod:`estimators.base`) and
-never names a method's quantity. Inputs arrive at their own rates and stamps; the fixed steps
-``h`` run as soon as their inputs are in:
+never names a method's quantity. Inputs arrive at their own rates and stamps; each fixed step
+``h`` runs as soon as its inputs are in:
 
-- **Own motion.** The gyro is integrated sample by sample (:class:`core.gyro.GyroBuffer`),
-  never held over a step; odometry likewise (:class:`core.odometry.OdometryBuffer`), and
-  while it is live the steps wait for it as for the gyro.
-- **Own point sensors** (``measures``: bearings, relative positions, bearing rates) are kept
-  per agent seen and rotated to the body frame of the step's instant with the gyro
-  (pairing a 20 ms old bearing with the current R̂ leaves an error of order ``|ω| · 20 ms``).
-  ``own_pairing = 'interpolated'``: between the samples around t (the step waits for the one
-  after t); ``'newest'``: the newest sample the gyro bridges, or in a moving fleet the one at
-  the stamp of the neighbour's values it pairs with.
-- **What neighbours send** (``sends``), per edge and channel, on the edges its ``on`` flag
-  names. ``pairing = 'exact'``: the value of t; the step waits for it until it is here or a
-  later one says it is lost, then carries the sender's newest earlier one to t
-  (:meth:`Estimator.carry`) or goes without it (masked). ``'instant'``: the sender's newest
-  instant at or before t at which it sent every required channel; a simulation
-  (:class:`.buffers.Exchange`) waits for it, a robot takes what is here; in a moving fleet the
-  own measurement and ``p̂_i`` are paired at that instant instead (:data:`base.P_OWN`).
-  Optional channels are never waited for. A channel the method does not read at t
-  (:meth:`Estimator.due`) is its newest value.
-- **The other end's measurement of this agent** (a channel with a ``sensor``) is interpolated
-  at t like the own, rotated with the sender's odometry when the method reads it.
-- **Whose odometry** (``peer_odometry``): every edge's other end (its motion over the step), or
-  the anchor's (the frame the estimates are in moves with it).
-- **Rounds.** A two-round method's reply (:meth:`Estimator.reply`) goes out once round 1 is in
+- **Own motion**: gyro and odometry integrated sample by sample (:mod:`core.gyro`,
+  :mod:`core.odometry`), never held over a step; live odometry is waited for as the gyro is.
+- **Own point sensors** (``measures``) kept per agent seen and rotated to the body frame of the
+  step's instant with the gyro (a 20 ms old bearing paired with the current R̂ costs
+  ``|ω| · 20 ms``): ``own_pairing = 'interpolated'``, between the samples around t (the one
+  after t is waited for); ``'newest'``, the newest the gyro bridges, or in a moving fleet the
+  one at the stamp of the neighbour's values it pairs with.
+- **What neighbours send** (``sends``), per edge on its ``on`` flag. ``'exact'``: the value of
+  t, waited for until it is here or a later one says it is lost, then the sender's newest
+  earlier one carried to t (:meth:`Estimator.carry`), or masked. ``'instant'``: the sender's
+  newest instant at or before t with every required channel, waited for in a simulation
+  (:class:`.buffers.Exchange`); a moving fleet pairs the own measurement and ``p̂_i`` at that
+  instant (:data:`base.P_OWN`). Optional channels are never waited for; one the method does not
+  read at t (:meth:`Estimator.due`) is its newest value. A sender's measurement of this agent
+  is interpolated like the own, turned with its odometry when the method reads it
+  (``peer_odometry``: every edge's other end, or the anchor).
+- **Rounds**: a reply (:meth:`Estimator.reply`) goes out once round 1 is in
   (:meth:`AgentRuntime.pending_reply`); the step then waits for round 2.
 
-Every wait ends when the own sensors are ``link_wait`` ahead of the step (own samples:
-``sensor_timeout``), or at once with ``impatient``; what is missing then is counted
-(``missing``) and masked. Time rules: a gyro stamp more than ``jump_back`` before the newest
-means the clock jumped back (the estimate restarts from its initial value, ``time_jump``); a
-gap longer than ``max_gyro_gap`` restarts the state time after it, keeping the estimate
-(``gyro_gap``); the step grid stays aligned to ``t0`` across both. Leaders take their known
-pose and propagate it with the gyro (and odometry) between pose samples.
-
-Every ``add_*`` method returns None when the input is used, or the cause of its rejection
-(``non_finite``, ``absurd_rate``, ``zero_vector``, ``not_unit``, ``unknown_id``,
-``out_of_order``, ``future_stamp``, ``stale``, ...).
+Every wait ends when the own sensors are ``link_wait`` ahead (own samples: ``sensor_timeout``),
+or at once when ``impatient``; what is missing is counted (``missing``) and masked. Time rules:
+a gyro stamp ``jump_back`` before the newest restarts from the initial estimate
+(``time_jump``); a gap over ``max_gyro_gap`` restarts the state time after it, keeping the
+estimate (``gyro_gap``); the step grid stays aligned to ``t0``. Leaders take their known pose,
+carried by the gyro (and odometry) between samples. Every ``add_*`` returns None when the input
+is used, or the cause of its rejection.
 """
 from __future__ import annotations
 
@@ -100,6 +90,14 @@ class AgentSpec:
     pinned: bool = False
     known_ids: frozenset[int] | None = None
     rate_tau: float | None = None
+
+
+def reads(flags: Mapping[str, bool], channel: Channel) -> bool:
+    """An agent reads ``channel`` on an edge with ``flags`` (its ``on`` flag; an owner-only
+    value comes from the owner)."""
+    if channel.on is not None and not flags.get(channel.on, False):
+        return False
+    return not (channel.owner_only and flags.get('owns', False))
 
 
 def _psd(v: Array, blocks: int) -> bool:
@@ -228,6 +226,8 @@ class AgentRuntime:
         self._required_names = [c.name for c in cls.sends if not c.optional]
         self._optional_names = [c.name for c in cls.sends if c.optional]
         self._instant = any(c.pairing == 'instant' for c in cls.sends)
+        self._instant_required = {c.name for c in cls.sends if c.pairing == 'instant'
+                                  and not c.optional and c.sensor is None}
         # Per round, the 'exact' channels and the senders' measurements (paired at t).
         self._exact = {r: [c for c in cls.sends if c.round == r
                            and (c.pairing == 'exact' or c.sensor is not None)]
@@ -353,21 +353,32 @@ class AgentRuntime:
         (``odometry_gap``); the steps over the gap run without it."""
         if not self.uses_odometry:
             return 'unused'
+        if now is not None and math.isfinite(stamp) and stamp > now + self.limits.max_future:
+            return twist_problem(stamp, np.asarray(v), np.asarray(omega),
+                                 self.limits) or 'future_stamp'
+        return self._add_twist(self.odometry, stamp, v, omega, own=True)
+
+    def _add_twist(self, odometry: OdometryBuffer, stamp: float, v: Array, omega: Array,
+                   own: bool) -> str | None:
+        """A twist into ``odometry``, or why not (non-finite, absurd, out of order); after a
+        gap its integration restarts at it (``odometry_gap``), and another agent's clock that
+        jumped back restarts it too (``own``: the gyro's time rules decide)."""
         v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
         problem = twist_problem(stamp, v, omega, self.limits)
         if problem is not None:
             return problem
-        if now is not None and stamp > now + self.limits.max_future:
-            return 'future_stamp'
-        end = self.odometry.end
+        end = odometry.end
         if stamp <= end:
-            if self.odometry.empty and stamp >= end - 1e-9:
+            if own and odometry.empty and stamp >= end - 1e-9:
                 return None   # the sample that closed a gap: the restart began at its stamp
+            if not own and stamp < end - self.limits.jump_back:   # its clock restarted
+                odometry.reset(stamp)
+                return None
             return 'out_of_order'
         if stamp - end > self.limits.max_gyro_gap:
-            self.odometry.reset(stamp)
+            odometry.reset(stamp)
             return 'odometry_gap'
-        self.odometry.add_twist(stamp, v, omega)
+        odometry.add_twist(stamp, v, omega)
         return None
 
     def odometry_live(self) -> bool:
@@ -439,11 +450,7 @@ class AgentRuntime:
         return None
 
     def expects(self, peer: Peer, channel: Channel) -> bool:
-        """This agent reads ``channel`` from ``peer`` (its ``on`` flag; an owner-only value
-        comes from the owner)."""
-        if channel.on is not None and not peer.flags.get(channel.on, False):
-            return False
-        return not (channel.owner_only and peer.flags.get('owns', False))
+        return reads(peer.flags, channel)
 
     def add_message(self, sender: int, stamp: float, values: Mapping[str, object]) -> str | None:
         """A message of neighbour ``sender`` with its values of some channels at its state
@@ -547,21 +554,7 @@ class AgentRuntime:
             odometry = None if peer is None else peer.odometry
         if odometry is None:
             return 'unknown_id'
-        v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
-        problem = twist_problem(stamp, v, omega, self.limits)
-        if problem is not None:
-            return problem
-        end = odometry.end
-        if stamp <= end:
-            if stamp < end - self.limits.jump_back:   # its clock restarted
-                odometry.reset(stamp)
-                return None
-            return 'out_of_order'
-        if stamp - end > self.limits.max_gyro_gap:
-            odometry.reset(stamp)
-            return 'odometry_gap'
-        odometry.add_twist(stamp, v, omega)
-        return None
+        return self._add_twist(odometry, stamp, v, omega, own=False)
 
     # ------------------------------------------------------------------------------ readiness
     def stale_neighbours(self, t: float) -> list[str]:
@@ -629,7 +622,8 @@ class AgentRuntime:
             for c in sent:
                 if self.expects(p, c):
                     hist = p.values.get(c.name)
-                    if hist is None or (hist.at(t)[0] is None and not hist.at(t)[1]):
+                    value, decided = hist.at(t) if hist is not None else (None, False)
+                    if value is None and not decided:
                         return c.name
         self.awaited_peer = None
         return None
@@ -648,8 +642,7 @@ class AgentRuntime:
                     return sensor.value
         if self.leader:
             return None if complete(self._pose_stamps, ex.known_pose_period, end) else 'known_pose'
-        required = {c.name for c in self.channels.values()
-                    if c.pairing == 'instant' and not c.optional and c.sensor is None}
+        required = self._instant_required
         if not required:
             return None
         alive = t - self.limits.neighbour_timeout
@@ -843,10 +836,6 @@ class AgentRuntime:
                       IS_ANCHOR: np.array([self.is_anchor]),
                       PINNED: np.array([self.is_anchor and self.spec.pinned])})
 
-    def _rotate_own(self, s: float, t: float) -> Array:
-        """``R(t)ᵀ R(s)`` from the gyro (raises ValueError when it does not cover)."""
-        return self.gyro.increment(t, s)
-
     def _own_interpolated(self, t: float, edge: dict[str, Array],
                           mask: dict[str, NDArray[np.bool_]]) -> None:
         """Each own point sensor's measurement of each edge it measures at ``t``, between
@@ -859,7 +848,7 @@ class AgentRuntime:
                 hist = by_target.get(p.agent_id)
                 if hist is None or not (flag is None or p.flags.get(flag)):
                     continue
-                v, _ = hist.interpolate(t, self._rotate_own)
+                v, _ = hist.interpolate(t, lambda s_, t_: self.gyro.increment(t_, s_))
                 if v is None:
                     self.missing[sensor.value] += 1
                     continue

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from ..estimators.base import Channel, Estimator
-from .agent import AgentSpec, PeerSpec
+from .agent import AgentSpec, reads
 
 ODOMETRY: Literal['odometry'] = 'odometry'   # the kind of an odometry subscription
 ODOM_TOPIC = 'odom'     # its topic (REP-105's name)
@@ -40,19 +40,13 @@ def optional_first(channels: Sequence[Channel]) -> list[Channel]:
     return sorted(channels, key=lambda c: not c.optional)
 
 
-def _expects(peer: PeerSpec, c: Channel) -> bool:
-    if c.on is not None and not peer.flags.get(c.on, False):
-        return False
-    return not (c.owner_only and peer.flags.get('owns', False))
-
-
 def subscriptions(method: type[Estimator], spec: AgentSpec) -> list[Subscription]:
     """What the agent of ``spec`` reads from the others (module docstring)."""
     out: list[Subscription] = []
     for peer in spec.peers if not spec.leader else ():
         topics: dict[str, tuple[str, ...]] = {}
         for c in optional_first(method.sends):
-            if not _expects(peer, c):
+            if not reads(peer.flags, c):
                 continue
             if c.sensor is not None:
                 out.append(Subscription(peer.name, peer.agent_id, c.topic, 'points', (c.name,)))
