@@ -5,13 +5,10 @@ Only standard common_interfaces messages are used, so any ROS tool (ros2 topic, 
 rosbag) reads them, and a user's own IMU driver or detector can feed an estimator by remapping
 one topic. Topic names are relative: each agent's node runs in the namespace ``/<agent>``.
 
-One codec per message type: :mod:`msg_defs.cdr` encodes values to a message's serialised bytes
-and decodes them back (``cdr.encode_pose_raw``/``cdr.decode_pose_raw``, ...), with numpy on
-the CDR layout; the channels of the estimators travel by their kind (:func:`encode_channels`,
-:func:`decode_channels`). rclpy publishers take the bytes as they are
-(``Publisher.publish(bytes)``), raw subscriptions (``raw=True``) give them, and the decoders
-also take a message object (serialised first, :func:`raw`); :func:`message` makes a message
-object of the bytes for the code that needs one.
+One codec per message type (:mod:`msg_defs.cdr`: values to serialised bytes and back); the
+estimators' channels travel by their kind (:func:`encode_channels`, :func:`decode_channels`).
+Publishers send the bytes as they are (``Publisher.publish(bytes)``), raw subscriptions
+(``raw=True``) give them; :func:`message` makes a message object of them for code that needs one.
 """
 from __future__ import annotations
 
@@ -105,35 +102,29 @@ def odom_frame(agent: str) -> str:
 
 
 # ----------------------------------------------------------------------------- QoS
+def _qos(depth: int, reliability: ReliabilityPolicy = ReliabilityPolicy.RELIABLE,
+         durability: DurabilityPolicy = DurabilityPolicy.VOLATILE) -> QoSProfile:
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=reliability,
+                      durability=durability)
+
+
 # Measurements: best effort (matches any publisher, like SensorDataQoS) but a deep queue, so a
 # briefly busy estimator loses no gyro sample (each one is integrated).
-SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
-                        reliability=ReliabilityPolicy.BEST_EFFORT,
-                        durability=DurabilityPolicy.VOLATILE)
+SENSOR_QOS = _qos(200, ReliabilityPolicy.BEST_EFFORT)
 # Estimates that other agents depend on: reliable.
-ESTIMATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
-                          reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.VOLATILE)
+ESTIMATE_QOS = _qos(20)
 # The estimate writer keeps its last 20 samples for readers that match late (transient local):
 # a recorder whose reader the writer discovers after t = 0 still receives the t = 0 estimate.
 # Volatile readers (neighbours, RViz, ESTIMATE_QOS) match it unchanged.
-ESTIMATE_PUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
-                              reliability=ReliabilityPolicy.RELIABLE,
-                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
+ESTIMATE_PUB_QOS = _qos(20, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # The recorder's reader asks for that history.
 ESTIMATE_RECORD_QOS = ESTIMATE_PUB_QOS
 # Simulator outputs (sensors, truth, clock) are published reliably: on loopback nothing is lost
 # to a best-effort subscriber unless its queue overflows.
-SIM_PUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
-                         reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
+SIM_PUB_QOS = _qos(200)
 # Announcements a late subscriber must still get (transient local, the last one).
-LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                         reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
-CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
-                       reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
+LATCHED_QOS = _qos(1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+CLOCK_QOS = _qos(10)
 
 
 class WireError(ValueError):
@@ -159,10 +150,7 @@ def stamp_ns(stamp: Time) -> int:
 # ----------------------------------------------------------------------------- covariance
 def checked_covariance(values: Array) -> Array:
     """The 6x6 covariance of 36 row-major ``values`` (``cdr.py``'s decoders check theirs).
-
-    Raises:
-        WireError: not 36 finite values, not symmetric or not positive semi-definite.
-    """
+    WireError: not 36 finite values, not symmetric or not positive semi-definite."""
     if values.size != 36 or not np.isfinite(values).all():
         raise WireError('non-finite or malformed covariance')
     P = values.reshape(6, 6)
@@ -178,10 +166,8 @@ def checked_covariance(values: Array) -> Array:
 
 
 # ----------------------------------------------------------------------------- bytes, objects
-# The codecs (cdr.py) work on a message's serialised bytes: what a raw subscription gives and
-# what a publisher sends as it is. These two convert between those bytes and rclpy's message
-# objects, for the code that has or needs one (a typed subscription, a test's observer, a
-# message whose fields a test spoils, a publisher of a modified message).
+# Between serialised bytes (the codecs') and rclpy's message objects, for code that has or
+# needs one (a typed subscription, a test's observer, a test spoiling a message's fields).
 _Msg = TypeVar('_Msg')
 
 
@@ -197,10 +183,7 @@ def raw(msg: Any) -> bytes:
 def message(data: bytes | bytearray | memoryview, msg_type: type[_Msg]) -> _Msg:
     """The ``msg_type`` object of a message's serialised bytes (rclpy's
     ``deserialize_message``), e.g. ``message(cdr.encode_imu_raw(t, agent, omega), Imu)``.
-
-    Raises:
-        WireError: bytes rclpy cannot read as a ``msg_type``.
-    """
+    WireError: bytes rclpy cannot read as a ``msg_type``."""
     from rclpy.serialization import deserialize_message
     try:
         return deserialize_message(bytes(data), msg_type)
@@ -212,8 +195,7 @@ def message(data: bytes | bytearray | memoryview, msg_type: type[_Msg]) -> _Msg:
 # How an estimator's channels (``estimators.base.Channel``) travel, by their wire kind, not by
 # their name: a value on the sender's ``pose`` (its position; its covariance), a per-agent
 # vector of its own Vector3Stamped (zero-padded), or one point per listener of a PointCloud2
-# (the channel's fields, FLOAT64, then agent_id UINT32). Each decodes from the message's bytes
-# (msg_defs/cdr.py); a message object is serialised first (one implementation, :func:`raw`).
+# (the channel's fields, FLOAT64, then agent_id UINT32).
 KIND_TYPES: dict[str, type] = {POSE_POSITION: PoseWithCovarianceStamped,
                                POSE_COVARIANCE: PoseWithCovarianceStamped,
                                VECTOR: Vector3Stamped, POINTS: PointCloud2}

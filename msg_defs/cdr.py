@@ -1,31 +1,28 @@
 """The codecs of the package's messages: values to a message's serialised bytes and back, with
 numpy on the CDR layout (issue 15: no rclpy message object is built, BENCHMARKS.md "Raw CDR").
-One codec per message type; publishers send the bytes as they are (``Publisher.publish``
-takes ``bytes``), raw subscriptions (``raw=True``) give them. Every decoder also takes an rclpy
-message object, serialised first (``msg_defs.raw``); ``msg_defs.message`` makes one of bytes.
+Every decoder also takes an rclpy message object, serialised first (``msg_defs.raw``).
 
-The bytes are what ``rclpy.serialization.serialize_message`` gives (rmw_fastrtps, Jazzy):
-plain CDR (XCDR1), little endian, after the 4-byte encapsulation header ``00 01 00 00``.
-Every value is aligned to its own size (float64 to 8), counted from the first byte after that
-header, and the padding bytes are zero here (rmw_fastrtps leaves them uninitialised, so its
-bytes differ from these only there). A string is a uint32 length counting its NUL, its UTF-8
-bytes, then the NUL. A ``std_msgs/Header`` is ``stamp.sec`` int32, ``stamp.nanosec`` uint32,
-then ``frame_id``. A sequence is a uint32 count, then its elements.
+The bytes are ``rclpy.serialization.serialize_message``'s (rmw_fastrtps, Jazzy): plain CDR
+(XCDR1), little endian, after the 4-byte encapsulation header ``00 01 00 00``. Every value is
+aligned to its own size (float64 to 8), counted from the first byte after that header; the
+padding bytes are zero here (rmw_fastrtps leaves them uninitialised: the only difference). A
+string is a uint32 length counting its NUL, its UTF-8 bytes, then the NUL. A
+``std_msgs/Header`` is ``stamp.sec`` int32, ``stamp.nanosec`` uint32, then ``frame_id``. A
+sequence is a uint32 count, then its elements.
 
-Each encoder's bytes are ``serialize_message`` of the message it describes (but for the padding
-bytes, zero here); each decoder returns the values of a message and raises :class:`WireError`
-(never another error) on values it rejects (non-finite, a non-unit quaternion, a covariance
-that is none, an Odometry twist in another frame) and on malformed bytes: another
-encapsulation, a buffer that ends early or has more than 3 bytes after the message, a string
-past the end or without its NUL, a bool other than 0 or 1, a PointCloud2 whose fields or data
-do not fit its points (``test/test_cdr.py`` checks every codec against rclpy's own
-serialisation).
+Each decoder raises :class:`WireError` (never another error) on values it rejects (non-finite,
+a non-unit quaternion, a covariance that is none, an Odometry twist in another frame) and on
+malformed bytes: another encapsulation, a buffer that ends early or has more than 3 bytes after
+the message, a string past the end or without its NUL, a bool other than 0 or 1, a PointCloud2
+whose fields or data do not fit its points (``test/test_cdr.py`` checks every codec against
+rclpy's own serialisation).
 """
 from __future__ import annotations
 
 import math
 import struct
 from collections.abc import Mapping
+from functools import lru_cache
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -37,17 +34,15 @@ from bearing_pose_estimation.core import so3
 from . import WireError, body_frame, checked_covariance, odom_frame, raw
 
 Array = NDArray[np.float64]
-Buffer = bytes | bytearray | memoryview
 # What a decoder takes: a message's serialised bytes, or its rclpy message object.
-Data = Buffer | Any
+Data = bytes | bytearray | memoryview | Any
 
 ENCAPSULATION = b'\x00\x01\x00\x00'   # CDR_LE (plain CDR, little endian), options 0
 # What else the first two bytes may say (RTPS 2.3, 10.5): named in the error.
 _REPRESENTATIONS = {b'\x00\x00': 'big-endian CDR', b'\x00\x02': 'big-endian PL_CDR',
-                    b'\x00\x03': 'PL_CDR', b'\x00\x06': 'big-endian XCDR2',
-                    b'\x00\x07': 'XCDR2', b'\x00\x08': 'big-endian delimited XCDR2',
-                    b'\x00\x09': 'delimited XCDR2', b'\x00\x0a': 'big-endian PL_XCDR2',
-                    b'\x00\x0b': 'PL_XCDR2'}
+                    b'\x00\x03': 'PL_CDR', b'\x00\x06': 'big-endian XCDR2', b'\x00\x07': 'XCDR2',
+                    b'\x00\x08': 'big-endian delimited XCDR2', b'\x00\x09': 'delimited XCDR2',
+                    b'\x00\x0a': 'big-endian PL_XCDR2', b'\x00\x0b': 'PL_XCDR2'}
 _TRAILING = 3   # bytes a writer may pad after the message (RTPS: to a multiple of 4)
 
 _HEAD = struct.Struct('<4siII')     # encapsulation, stamp.sec, stamp.nanosec, frame_id length
@@ -70,9 +65,7 @@ _DATATYPES = {dtype: datatype for datatype, dtype in _FORMATS.items()}
 # What a decoder accepts for a field it wants: FLOAT32 for FLOAT64, widened (most detectors
 # and PCL publish FLOAT32 points; a unit bearing in float32 is unit to 1e-7).
 _ACCEPTED = {PointField.FLOAT64: (PointField.FLOAT64, PointField.FLOAT32)}
-_VECTOR_FIELDS = {'x': PointField.FLOAT64, 'y': PointField.FLOAT64, 'z': PointField.FLOAT64,
-                  'agent_id': PointField.UINT32}
-_BLOCK_FIELDS = ('xx', 'yy', 'zz', 'xy', 'xz', 'yz')   # a symmetric 3x3 block, packed
+_XYZ = ('x', 'y', 'z')
 
 
 # ----------------------------------------------------------------------------- reading
@@ -95,7 +88,6 @@ class RawHeader(NamedTuple):
 
 
 def _as_bytes(data: Data) -> bytes:
-    """The bytes of ``data``: bytes-like, or a message object (serialised)."""
     return data if isinstance(data, bytes) else raw(data)
 
 
@@ -143,14 +135,12 @@ def _string(data: bytes, pos: int, what: str, name: str) -> tuple[str, int]:
 
 
 def _align(pos: int, size: int) -> int:
-    """``pos`` (an index into the buffer) rounded up to a multiple of ``size`` after the
-    encapsulation header."""
+    """``pos`` (a buffer index) rounded up to a multiple of ``size`` after the encapsulation."""
     return pos + (-(pos - 4) % size)
 
 
 def _header(data: bytes, what: str) -> tuple[int, int, str, int]:
-    """``(sec, nanosec, frame_id, position after frame_id)`` of a message starting with a
-    Header."""
+    """``(sec, nanosec, frame_id, position after frame_id)`` of a message opening with a Header."""
     _check_encapsulation(data, what)
     if len(data) < 16:
         raise _truncated(data, 16, what, 'the header')
@@ -161,27 +151,27 @@ def _header(data: bytes, what: str) -> tuple[int, int, str, int]:
 
 def read_header(data: Data) -> RawHeader:
     """The Header of any stamped message's bytes (every type here but Clock): stamp and
-    ``frame_id``, e.g. to check the frame before decoding.
-
-    Raises:
-        WireError: wrong encapsulation, or a header that does not fit the buffer.
-    """
+    ``frame_id``, e.g. to check the frame before decoding. WireError: a wrong encapsulation, or
+    a header that does not fit the buffer."""
     sec, nanosec, frame_id, _ = _header(_as_bytes(data), 'message')
     return RawHeader(sec, nanosec, frame_id)
 
 
-def _fixed(data: bytes, what: str, count: int) -> tuple[float, int]:
-    """The stamp and the position of the ``count`` float64 that follow the Header (8-aligned)
-    and end the message: the layout of every message here whose only string is
-    ``frame_id``."""
+def _fixed(data: Data, what: str, count: int) -> tuple[bytes, float, int]:
+    """The bytes, the stamp and the position of the ``count`` float64 that follow the Header
+    (8-aligned) and end the message: every message here whose only string is ``frame_id``."""
+    data = _as_bytes(data)
     sec, nanosec, _, pos = _header(data, what)
     pos = _align(pos, 8)
     _finish(data, pos + 8 * count, what)
-    return sec + nanosec * 1e-9, pos
+    return data, sec + nanosec * 1e-9, pos
 
 
-def _finite(values: tuple[float, ...]) -> bool:
-    return all(map(math.isfinite, values))
+def _vector3(data: bytes, pos: int, what: str) -> Array:
+    values = _VECTOR3.unpack_from(data, pos)
+    if not all(map(math.isfinite, values)):
+        raise WireError(f'non-finite {what}')
+    return np.array(values)
 
 
 # ----------------------------------------------------------------------------- writing
@@ -201,14 +191,15 @@ def _string_bytes(text: str, name: str) -> bytes:
     return _U32.pack(len(raw) + 1) + raw + b'\0'
 
 
+def _padded(head: bytes, align: int) -> bytes:
+    """``head`` (encapsulation included) and zeros up to the next multiple of ``align``."""
+    return head + bytes(-(len(head) - 4) % align)
+
+
 def _header_bytes(t: float, frame_id: str, align: int) -> bytes:
     """Encapsulation, Header, then zeros up to the next multiple of ``align``."""
-    sec, nanosec = _stamp(t)
-    raw = frame_id.encode()
-    if b'\0' in raw:
-        raise WireError(f'frame_id {frame_id!r} contains a NUL')
-    return (_HEAD.pack(ENCAPSULATION, sec, nanosec, len(raw) + 1) + raw
-            + bytes(1 + (-(13 + len(raw)) % align)))
+    return _padded(_CLOCK.pack(ENCAPSULATION, *_stamp(t)) + _string_bytes(frame_id, 'frame_id'),
+                   align)
 
 
 def _with_doubles(t: float, frame_id: str, values: NDArray[np.float64]) -> bytes:
@@ -225,10 +216,9 @@ def _pose_values(R: Array, p: Array) -> Array:
 
 
 def _pose(data: bytes, pos: int) -> tuple[Array, Array]:
-    """``(R, p)`` of the Pose at ``pos``: finite, the quaternion of norm 1 to 1e-3
-    (normalised)."""
+    """``(R, p)`` of the Pose at ``pos``: finite, the quaternion of norm 1 to 1e-3 (normalised)."""
     values = _POSE.unpack_from(data, pos)
-    if not _finite(values):
+    if not all(map(math.isfinite, values)):
         raise WireError('non-finite pose')
     q = values[3:]
     norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
@@ -244,15 +234,10 @@ def encode_pose_raw(t: float, frame_id: str, R: Array, p: Array) -> bytes:
 
 
 def decode_pose_raw(data: Data) -> tuple[float, Array, Array]:
-    """``(t, R, p)`` of a PoseStamped; the quaternion is normalised.
-
-    Raises:
-        WireError: malformed bytes, non-finite values or a quaternion far from unit norm.
-    """
-    data = _as_bytes(data)
-    t, pos = _fixed(data, 'PoseStamped', 7)
-    R, p = _pose(data, pos)
-    return t, R, p
+    """``(t, R, p)`` of a PoseStamped; the quaternion is normalised. WireError: malformed
+    bytes, non-finite values or a quaternion far from unit norm."""
+    data, t, pos = _fixed(data, 'PoseStamped', 7)
+    return (t, *_pose(data, pos))
 
 
 # ----------------------------------------------------------------------------- covariance
@@ -266,31 +251,23 @@ def encode_pose_covariance_raw(t: float, frame_id: str, R: Array, p: Array,
     return _with_doubles(t, frame_id, values)
 
 
-def decode_covariance_raw(data: Data) -> tuple[float, Array]:
-    """``(t, P)`` of a PoseWithCovarianceStamped (the pose is not read).
+def _covariance(data: bytes, pos: int) -> Array:
+    return checked_covariance(np.frombuffer(data, dtype=_F64, count=36, offset=pos + 56).copy())
 
-    Raises:
-        WireError: malformed bytes, or a covariance that is not finite, symmetric and positive
-            semi-definite.
-    """
-    data = _as_bytes(data)
-    t, pos = _fixed(data, 'PoseWithCovarianceStamped', 43)
-    return t, checked_covariance(np.frombuffer(data, dtype=_F64, count=36,
-                                               offset=pos + 56).copy())
+
+def decode_covariance_raw(data: Data) -> tuple[float, Array]:
+    """``(t, P)`` of a PoseWithCovarianceStamped (the pose is not read). WireError: malformed
+    bytes, or a covariance that is not finite, symmetric and positive semi-definite."""
+    data, t, pos = _fixed(data, 'PoseWithCovarianceStamped', 43)
+    return t, _covariance(data, pos)
 
 
 def decode_pose_covariance_raw(data: Data) -> tuple[float, Array, Array, Array]:
     """``(t, R, p, P)`` of a PoseWithCovarianceStamped: the pose checked as
-    :func:`decode_pose_raw`, the covariance as :func:`decode_covariance_raw`.
-
-    Raises:
-        WireError: as both.
-    """
-    data = _as_bytes(data)
-    t, pos = _fixed(data, 'PoseWithCovarianceStamped', 43)
+    :func:`decode_pose_raw`, the covariance as :func:`decode_covariance_raw` (WireError: both)."""
+    data, t, pos = _fixed(data, 'PoseWithCovarianceStamped', 43)
     R, p = _pose(data, pos)
-    P = np.frombuffer(data, dtype=_F64, count=36, offset=pos + 56).copy()
-    return t, R, p, checked_covariance(P)
+    return t, R, p, _covariance(data, pos)
 
 
 # ----------------------------------------------------------------------------- Vector3Stamped
@@ -300,17 +277,9 @@ def encode_vector3_raw(t: float, frame_id: str, v: Array) -> bytes:
 
 
 def decode_vector3_raw(data: Data) -> tuple[float, Array]:
-    """``(t, v)`` of a Vector3Stamped.
-
-    Raises:
-        WireError: malformed bytes or a non-finite vector.
-    """
-    data = _as_bytes(data)
-    t, pos = _fixed(data, 'Vector3Stamped', 3)
-    v = _VECTOR3.unpack_from(data, pos)
-    if not _finite(v):
-        raise WireError('non-finite vector')
-    return t, np.array(v)
+    """``(t, v)`` of a Vector3Stamped. WireError: malformed bytes or a non-finite vector."""
+    data, t, pos = _fixed(data, 'Vector3Stamped', 3)
+    return t, _vector3(data, pos, 'vector')
 
 
 # ----------------------------------------------------------------------------- Imu
@@ -332,17 +301,10 @@ def encode_imu_raw(t: float, agent: str, omega: Array) -> bytes:
 
 
 def decode_imu_raw(data: Data) -> tuple[float, Array]:
-    """``(t, omega)`` of an Imu (its ``angular_velocity``).
-
-    Raises:
-        WireError: malformed bytes or a non-finite angular velocity.
-    """
-    data = _as_bytes(data)
-    t, pos = _fixed(data, 'Imu', 37)
-    omega = _VECTOR3.unpack_from(data, pos + 8 * 13)
-    if not _finite(omega):
-        raise WireError('non-finite angular velocity')
-    return t, np.array(omega)
+    """``(t, omega)`` of an Imu (its ``angular_velocity``). WireError: malformed bytes or a
+    non-finite angular velocity."""
+    data, t, pos = _fixed(data, 'Imu', 37)
+    return t, _vector3(data, pos + 8 * 13, 'angular velocity')
 
 
 # ----------------------------------------------------------------------------- Odometry
@@ -359,13 +321,9 @@ def encode_odometry_raw(t: float, agent: str, v: Array, omega: Array,
     """nav_msgs/Odometry sample: the body twist in ``child_frame_id`` = ``<agent>/base_link``
     (REP-105), the dead-reckoned pose in ``header.frame_id`` = ``<agent>/odom``.
 
-    The sample stamped ``t`` = ``t_k`` is an interval average, like the Imu gyro samples: the
-    constant body twist ``(v_k, ω_k)`` that produces the true pose increment over
-    ``(t_{k-1}, t_k]``, i.e. the SE(3) logarithm of the relative pose
-    ``T_{k-1}⁻¹ T_k`` divided by ``h = t_k - t_{k-1}``. Its ``ω_k`` is the gyro sample of the
-    same interval. Integrating the samples piecewise constant, ``R_k = R_{k-1} exp(ω_k h)`` and
-    ``p_k = p_{k-1} + R_{k-1} J(ω_k h) v_k h`` (J: left Jacobian of SO(3)), is then exact from
-    stamp to stamp; holding a sampled instantaneous velocity over a step leaves an O(h) bias.
+    The sample stamped ``t`` = ``t_k`` is an interval average, like the Imu gyro samples (its
+    ``ω_k`` is the gyro sample of the same interval): the constant body twist whose SE(3)
+    exponential is the true pose increment over ``(t_{k-1}, t_k]`` (:mod:`core.odometry`).
 
     Args:
         v: body-frame linear velocity [m/s] (``twist.twist.linear``).
@@ -385,37 +343,25 @@ def encode_odometry_raw(t: float, agent: str, v: Array, omega: Array,
     values[46:49] = np.asarray(omega, dtype=float).reshape(3)
     values[[49, 56, 63]] = v_std ** 2
     values[[70, 77, 84]] = omega_std ** 2
-    head = _header_bytes(t, odom_frame(agent), 4)
-    child = _string_bytes(body_frame(agent), 'child_frame_id')
-    pad = bytes(-(len(head) + len(child) - 4) % 8)
-    return head + child + pad + values.tobytes()
+    return _padded(_header_bytes(t, odom_frame(agent), 4)
+                   + _string_bytes(body_frame(agent), 'child_frame_id'), 8) + values.tobytes()
 
 
 def decode_odometry_raw(data: Data,
                         child_frame: str | None = None) -> tuple[float, Array, Array]:
     """``(t, v, omega)`` of an Odometry (the pose and the covariances are not read).
-
-    Args:
-        child_frame: when given, the frame the twist must be expressed in (the agent's
-            ``msg_defs.body_frame``): a twist in another frame would be misread.
-
-    Raises:
-        WireError: malformed bytes, a ``child_frame_id`` other than ``child_frame``, or a
-            non-finite twist.
-    """
+    ``child_frame``: when given, the frame the twist must be expressed in (the agent's
+    ``msg_defs.body_frame``): a twist in another frame would be misread. WireError: malformed
+    bytes, a ``child_frame_id`` other than ``child_frame``, or a non-finite twist."""
     data = _as_bytes(data)
     sec, nanosec, _, pos = _header(data, 'Odometry')
     child, pos = _string(data, _align(pos, 4), 'Odometry', 'child_frame_id')
     pos = _align(pos, 8)
     _finish(data, pos + 8 * 85, 'Odometry')
     if child_frame is not None and child != child_frame:
-        raise WireError(f'Odometry twist is in child_frame_id {child!r}, '
-                        f'expected {child_frame!r}')
-    v = _VECTOR3.unpack_from(data, pos + 8 * 43)
-    omega = _VECTOR3.unpack_from(data, pos + 8 * 46)
-    if not (_finite(v) and _finite(omega)):
-        raise WireError('non-finite twist')
-    return sec + nanosec * 1e-9, np.array(v), np.array(omega)
+        raise WireError(f'Odometry twist is in child_frame_id {child!r}, expected {child_frame!r}')
+    return (sec + nanosec * 1e-9, _vector3(data, pos + 8 * 43, 'twist'),
+            _vector3(data, pos + 8 * 46, 'twist'))
 
 
 # ----------------------------------------------------------------------------- Clock
@@ -426,11 +372,8 @@ def encode_clock_raw(t: float) -> bytes:
 
 
 def decode_clock_raw(data: Data) -> float:
-    """The time [s] of a Clock (``msg_defs.from_stamp(msg.clock)``).
-
-    Raises:
-        WireError: malformed bytes.
-    """
+    """The time [s] of a Clock (``msg_defs.from_stamp(msg.clock)``). WireError: malformed
+    bytes."""
     data = _as_bytes(data)
     _check_encapsulation(data, 'Clock')
     _finish(data, _CLOCK.size, 'Clock')
@@ -444,15 +387,12 @@ def decode_clock_raw(data: Data) -> float:
 # bytes, count uint32; is_bigendian uint8, 3 bytes, point_step, row_step uint32; data: uint32
 # length, the bytes; is_dense uint8. Everything after frame_id is 4-aligned (the data and
 # is_dense are bytes), so the fields' bytes do not depend on the frame_id.
-_FIELDS_BYTES: dict[np.dtype, bytes] = {}   # the encoders' PointFields, by points dtype
 _SEEN_MAX = 32   # entries per cache of layouts; beyond, each new one is built anew
 
 
+@lru_cache(maxsize=_SEEN_MAX)
 def _fields_bytes(dtype: np.dtype) -> bytes:
     """The count and PointFields of points of the structured ``dtype`` (count 1 each)."""
-    cached = _FIELDS_BYTES.get(dtype)
-    if cached is not None:
-        return cached
     assert dtype.names is not None and dtype.fields is not None
     out = [_U32.pack(len(dtype.names))]
     for name in dtype.names:
@@ -463,10 +403,7 @@ def _fields_bytes(dtype: np.dtype) -> bytes:
                             f'PointField datatype')
         text = _string_bytes(name, 'point field name')
         out.append(text + bytes(-len(text) % 4) + _POINT_FIELD.pack(offset, datatype, 1))
-    cached = b''.join(out)
-    if len(_FIELDS_BYTES) < _SEEN_MAX:
-        _FIELDS_BYTES[dtype] = cached
-    return cached
+    return b''.join(out)
 
 
 def encode_cloud_raw(t: float, frame_id: str, points: np.ndarray) -> bytes:
@@ -481,12 +418,15 @@ def encode_cloud_raw(t: float, frame_id: str, points: np.ndarray) -> bytes:
                      np.ascontiguousarray(points).tobytes(), b'\x01'])
 
 
-def _packed(want: Mapping[str, int]) -> np.dtype:
-    """Packed points with the fields ``want`` (``{name: datatype}``), in this order."""
-    return np.dtype([(name, _FORMATS[datatype]) for name, datatype in want.items()])
+@lru_cache(maxsize=_SEEN_MAX)
+def _tagged(fields: tuple[str, ...]) -> dict[str, int]:
+    """The PointFields of values tagged with agent ids: ``fields`` FLOAT64, agent_id UINT32."""
+    return {**dict.fromkeys(fields, PointField.FLOAT64), 'agent_id': PointField.UINT32}
 
 
-_VECTOR_DTYPE = _packed(_VECTOR_FIELDS)
+@lru_cache(maxsize=_SEEN_MAX)
+def _tagged_dtype(fields: tuple[str, ...]) -> np.dtype:
+    return np.dtype([(name, _FORMATS[datatype]) for name, datatype in _tagged(fields).items()])
 
 
 # The PointFields of the clouds seen (their bytes, count included, and {name: (offset,
@@ -555,14 +495,10 @@ def _point_dtype(fields: Mapping[str, tuple[int, int, int]], want: Mapping[str, 
 def decode_cloud_raw(data: Data, want: Mapping[str, int]) -> tuple[float, np.ndarray]:
     """The stamp and the points of a PointCloud2 as a structured array (a read-only view of
     ``data``) of the fields ``want`` (``{name: PointField datatype}``), in any order and with
-    any padding (a user's detector, PCL): a FLOAT64 field may come as FLOAT32;
-    ``row_step`` and ``is_dense`` are not read.
-
-    Raises:
-        WireError: malformed bytes, missing or mistyped fields, fields that overlap each other
-            or the end of the point, a data length other than width x height x point_step, or
-            big-endian data.
-    """
+    any padding (a user's detector, PCL): a FLOAT64 field may come as FLOAT32; ``row_step``
+    and ``is_dense`` are not read. WireError: malformed bytes, missing or mistyped fields, fields
+    that overlap each other or the end of the point, a data length other than width x height x
+    point_step, or big-endian data."""
     what = 'PointCloud2'
     data = _as_bytes(data)
     sec, nanosec, _, pos = _header(data, what)
@@ -597,70 +533,13 @@ def decode_cloud_raw(data: Data, want: Mapping[str, int]) -> tuple[float, np.nda
     return sec + nanosec * 1e-9, np.frombuffer(data, dtype=dtype, count=n, offset=start)
 
 
-def _columns(points: np.ndarray, names: tuple[str, ...]) -> Array:
-    """The fields ``names`` of ``points`` as the columns of a float64 array."""
-    out = np.empty((len(points), len(names)))
-    for k, name in enumerate(names):
-        out[:, k] = points[name]
-    return out
-
-
-def encode_vectors_raw(t: float, frame_id: str, ids: NDArray[np.integer],
-                       vectors: Array) -> bytes:
-    """Vectors tagged with agent ids (one point per observed agent: unit bearings, relative
-    positions [m], bearing rates [1/s]) as a PointCloud2: x, y, z FLOAT64 at 0, 8, 16,
-    agent_id UINT32 at 24, point_step 28; little endian, dense, one row."""
-    vectors = np.asarray(vectors, dtype=float).reshape(-1, 3)
-    points = np.empty(len(vectors), dtype=_VECTOR_DTYPE)
-    points['x'], points['y'], points['z'] = vectors.T
-    points['agent_id'] = np.asarray(ids, dtype=np.uint32)
-    return encode_cloud_raw(t, frame_id, points)
-
-
-def decode_vectors_raw(data: Data) -> tuple[float, NDArray[np.uint32], Array]:
-    """``(t, ids, vectors)`` of a PointCloud2 with x, y, z (FLOAT64 or FLOAT32) and agent_id
-    (UINT32), in any order and with any padding. The values are not checked (finite, unit
-    norm): each receiver validates its points.
-
-    Raises:
-        WireError: as :func:`decode_cloud_raw`.
-    """
-    t, points = decode_cloud_raw(data, _VECTOR_FIELDS)
-    return t, points['agent_id'].astype(np.uint32), _columns(points, ('x', 'y', 'z'))
-
-
-def encode_scalars_raw(t: float, frame_id: str, ids: NDArray[np.integer], values: Array,
-                       field: str = 'range') -> bytes:
-    """Scalars tagged with agent ids (e.g. ranges [m]) as a PointCloud2: ``field`` FLOAT64 at
-    0, agent_id UINT32 at 8, point_step 12; little endian, dense, one row."""
-    values = np.asarray(values, dtype=float).reshape(-1)
-    points = np.empty(len(values), dtype=_packed({field: PointField.FLOAT64,
-                                                  'agent_id': PointField.UINT32}))
-    points[field] = values
-    points['agent_id'] = np.asarray(ids, dtype=np.uint32)
-    return encode_cloud_raw(t, frame_id, points)
-
-
-def decode_scalars_raw(data: Data,
-                       field: str = 'range') -> tuple[float, NDArray[np.uint32], Array]:
-    """``(t, ids, values)`` of a PointCloud2 with ``field`` (FLOAT64 or FLOAT32) and agent_id
-    (UINT32), in any order and with any padding; the values are not checked.
-
-    Raises:
-        WireError: as :func:`decode_cloud_raw`.
-    """
-    t, points = decode_cloud_raw(data, {field: PointField.FLOAT64,
-                                        'agent_id': PointField.UINT32})
-    return t, points['agent_id'].astype(np.uint32), points[field].astype(float)
-
-
 def encode_points_raw(t: float, frame_id: str, ids: NDArray[np.integer], values: Array,
                       fields: tuple[str, ...]) -> bytes:
     """One point per agent id: ``values`` ``(n, len(fields))`` as FLOAT64 ``fields``, then
-    agent_id UINT32 (a channel's per-listener values, msg_defs.encode_channels)."""
+    agent_id UINT32, packed (a channel's per-listener values, msg_defs.encode_channels);
+    little endian, dense, one row."""
     values = np.asarray(values, dtype=float).reshape(-1, len(fields))
-    points = np.empty(len(values), dtype=_packed({**{f: PointField.FLOAT64 for f in fields},
-                                                  'agent_id': PointField.UINT32}))
+    points = np.empty(len(values), dtype=_tagged_dtype(fields))
     for k, f in enumerate(fields):
         points[f] = values[:, k]
     points['agent_id'] = np.asarray(ids, dtype=np.uint32)
@@ -670,21 +549,48 @@ def encode_points_raw(t: float, frame_id: str, ids: NDArray[np.integer], values:
 def decode_points_raw(data: Data, fields: tuple[str, ...]
                       ) -> tuple[float, NDArray[np.uint32], Array]:
     """``(t, ids, values)`` of :func:`encode_points_raw`'s cloud (any field order, padding, or
-    FLOAT32), ``values`` ``(n, len(fields))``. The values are not checked, as
-    :func:`decode_vectors_raw`'s: each listener checks its own point and counts a rejection by
-    its cause (``non_finite``, ...), and one listener's bad point costs the others nothing.
+    FLOAT32), ``values`` ``(n, len(fields))``. The values are not checked (finite, unit norm):
+    each listener checks its own point and counts a rejection by its cause (``non_finite``,
+    ...), and one listener's bad point costs the others nothing. WireError: as
+    :func:`decode_cloud_raw`."""
+    t, points = decode_cloud_raw(data, _tagged(fields))
+    values = np.empty((len(points), len(fields)))
+    for k, name in enumerate(fields):
+        values[:, k] = points[name]
+    return t, points['agent_id'].astype(np.uint32), values
 
-    Raises:
-        WireError: as :func:`decode_cloud_raw`.
-    """
-    t, points = decode_cloud_raw(data, {**{f: PointField.FLOAT64 for f in fields},
-                                        'agent_id': PointField.UINT32})
-    return t, points['agent_id'].astype(np.uint32), _columns(points, fields)
+
+def encode_vectors_raw(t: float, frame_id: str, ids: NDArray[np.integer],
+                       vectors: Array) -> bytes:
+    """Vectors tagged with agent ids (one point per observed agent: unit bearings, relative
+    positions [m], bearing rates [1/s]) as a PointCloud2: x, y, z FLOAT64 at 0, 8, 16,
+    agent_id UINT32 at 24, point_step 28."""
+    return encode_points_raw(t, frame_id, ids, vectors, _XYZ)
+
+
+def decode_vectors_raw(data: Data) -> tuple[float, NDArray[np.uint32], Array]:
+    """``(t, ids, vectors)`` of a PointCloud2 with x, y, z and agent_id, as
+    :func:`decode_points_raw`."""
+    return decode_points_raw(data, _XYZ)
+
+
+def encode_scalars_raw(t: float, frame_id: str, ids: NDArray[np.integer], values: Array,
+                       field: str = 'range') -> bytes:
+    """Scalars tagged with agent ids (e.g. ranges [m]) as a PointCloud2: ``field`` FLOAT64 at
+    0, agent_id UINT32 at 8, point_step 12."""
+    return encode_points_raw(t, frame_id, ids, values, (field,))
+
+
+def decode_scalars_raw(data: Data,
+                       field: str = 'range') -> tuple[float, NDArray[np.uint32], Array]:
+    """``(t, ids, values)`` of a PointCloud2 with ``field`` and agent_id, as
+    :func:`decode_points_raw`."""
+    t, ids, values = decode_points_raw(data, (field,))
+    return t, ids, values[:, 0]
 
 
 def decode_position_raw(data: Data) -> tuple[float, Array]:
     """The stamp and position of a PoseWithCovarianceStamped (its covariance is read on its
     own, :func:`decode_covariance_raw`)."""
-    data = _as_bytes(data)
-    t, pos = _fixed(data, 'PoseWithCovarianceStamped', 43)
+    data, t, pos = _fixed(data, 'PoseWithCovarianceStamped', 43)
     return t, _pose(data, pos)[1]

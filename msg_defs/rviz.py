@@ -37,10 +37,8 @@ _WHITE = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
 def encode_transform(t: float, parent: str, child: str, R: Array, p: Array) -> TransformStamped:
     """The pose ``(R, p)`` of ``child`` in ``parent`` as a TF transform (REP-105: parent →
     child, e.g. ``world`` → ``agent_3/base_link``)."""
-    msg = TransformStamped()
-    msg.header.stamp = to_stamp(t)
-    msg.header.frame_id = parent
-    msg.child_frame_id = child
+    msg = TransformStamped(child_frame_id=child)
+    msg.header.stamp, msg.header.frame_id = to_stamp(t), parent
     tr, rot = msg.transform.translation, msg.transform.rotation
     tr.x, tr.y, tr.z = map(float, p)
     rot.x, rot.y, rot.z, rot.w = map(float, so3.to_quat(R))
@@ -49,9 +47,7 @@ def encode_transform(t: float, parent: str, child: str, R: Array, p: Array) -> T
 
 def _marker(t: float, frame: str, ns: str, k: int, kind: int, color: ColorRGBA) -> Marker:
     m = Marker(ns=ns, id=k, type=kind, action=Marker.ADD, color=color)
-    m.header.stamp = to_stamp(t)
-    m.header.frame_id = frame
-    m.pose.orientation.w = 1.0
+    m.header.stamp, m.header.frame_id = to_stamp(t), frame
     return m
 
 
@@ -82,8 +78,7 @@ def encode_fleet_markers(t: float, names: Sequence[str], estimate_frame: str, wo
             out.markers.append(_arrow(_marker(t, estimate_frame, 'estimate', k, Marker.ARROW,
                                               _BLUE), R, p))
             label = _marker(t, estimate_frame, 'label', k, Marker.TEXT_VIEW_FACING, _WHITE)
-            label.pose.position.x, label.pose.position.y = float(p[0]), float(p[1])
-            label.pose.position.z = float(p[2]) + 0.3
+            label.pose.position = _point(np.asarray(p, dtype=float) + (0.0, 0.0, 0.3))
             label.scale.z, label.text = 0.2, name
             out.markers.append(label)
         if name in truth:
@@ -102,7 +97,7 @@ def encode_fleet_markers(t: float, names: Sequence[str], estimate_frame: str, wo
             continue
         R, p = estimates[i]
         for j, b_ij in zip(seen, np.asarray(b, dtype=float)):
-            length = (float(np.linalg.norm(estimates[j][1] - p)) if j in estimates else 1.0)
+            length = float(np.linalg.norm(estimates[j][1] - p)) if j in estimates else 1.0
             rays.points += [_point(p), _point(p + length * (R @ b_ij))]
     out.markers += [lines, rays]
     return out

@@ -1,11 +1,8 @@
-"""``bearing-pose run``: start the processes of a run (:mod:`plan.processes`: one estimator
-per agent, the monitor and the simulator, as separate ROS 2 processes), wait for the monitor,
-and stop everything cleanly.
+"""``bearing-pose run``: start the processes of a run (:mod:`plan.processes`), wait for the
+monitor, and stop everything cleanly. No rclpy: usable and testable without a DDS stack.
 
-No rclpy here: this module only starts and stops processes, so it is usable (and testable)
-without a DDS stack. :class:`ProcessGroup` is the reusable part: a context manager that owns
-child processes, watches them, and stops them in reverse start order (SIGINT, then SIGTERM,
-then SIGKILL as a last resort) so that no process is left behind.
+:class:`ProcessGroup` owns child processes, watches them, and stops them in reverse start order
+(SIGINT, then SIGTERM, then SIGKILL as a last resort) so that no process is left behind.
 """
 from __future__ import annotations
 
@@ -33,7 +30,6 @@ TIMEOUT_TAIL_LINES = 8    # of every process's log, after a run that timed out
 POLL_S = 0.05
 
 
-# ----------------------------------------------------------------------------- processes
 @dataclass(frozen=True)
 class Failure:
     """Why a run stopped early, with the evidence."""
@@ -45,10 +41,8 @@ class Failure:
     timed_out: bool = False
 
     def format(self) -> str:
-        text = f'{self.label} {self.reason}'
-        if self.log is not None:
-            text += '; ' + quote_tail(self.log, self.log_tail)
-        return text
+        return f'{self.label} {self.reason}' + (
+            '' if self.log is None else '; ' + quote_tail(self.log, self.log_tail))
 
 
 @dataclass
@@ -74,10 +68,9 @@ def describe_exit(code: int) -> str:
 def log_tail(path: Path, n: int = LOG_TAIL_LINES) -> tuple[str, ...]:
     """The last lines of a log, for a failure report (empty if unreadable)."""
     try:
-        lines = path.read_text(errors='replace').splitlines()
+        return tuple(path.read_text(errors='replace').splitlines()[-n:])
     except OSError:
         return ()
-    return tuple(lines[-n:])
 
 
 def quote_tail(path: Path, lines: tuple[str, ...]) -> str:
@@ -101,12 +94,24 @@ def live_process_groups() -> dict[int, list[int]]:
 
 
 @contextlib.contextmanager
-def _signals_deferred(replay: bool) -> Iterator[None]:
-    """Hold SIGINT/SIGTERM while a critical section runs (starting a child, stopping all), so
-    an impatient Ctrl-C cannot orphan a process. ``replay`` re-delivers one afterwards."""
+def _handling(signals: tuple[signal.Signals, ...],
+              handler: Callable[[int, Any], None]) -> Iterator[None]:
+    """``handler`` for ``signals`` while the block runs (only the main thread can set one)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    old = {s: signal.signal(s, handler) for s in signals}
+    try:
+        yield
+    finally:
+        for s, previous in old.items():
+            signal.signal(s, previous)
+
+
+@contextlib.contextmanager
+def _signals_deferred(replay: bool) -> Iterator[None]:
+    """Hold SIGINT/SIGTERM while a critical section runs (starting a child, stopping all), so
+    an impatient Ctrl-C cannot orphan a process. ``replay`` re-delivers one afterwards."""
     received: list[int] = []
 
     def hold(signum: int, _frame: Any) -> None:
@@ -114,23 +119,18 @@ def _signals_deferred(replay: bool) -> Iterator[None]:
             print('bearing-pose: stopping processes, please wait...', file=sys.stderr)
         received.append(signum)
 
-    old = {s: signal.signal(s, hold) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        yield
+        with _handling((signal.SIGINT, signal.SIGTERM), hold):
+            yield
     finally:
-        for s, handler in old.items():
-            signal.signal(s, handler)
         if replay and received:
             signal.raise_signal(received[0])
 
 
 class ProcessGroup:
-    """Child processes with one lifecycle. Use as a context manager: leaving the block (also by
-    an exception or Ctrl-C) stops every child, in reverse start order.
-
-    Each child runs in its own session, so a terminal's Ctrl-C reaches only us and we stop the
-    children in order; signals go to the child's whole process group.
-    """
+    """Child processes with one lifecycle: leaving the ``with`` block (also by an exception or
+    Ctrl-C) stops every child, in reverse start order. Each child runs in its own session (a
+    terminal's Ctrl-C reaches only us); signals go to its whole process group."""
 
     def __init__(self, env: Mapping[str, str] | None = None, *,
                  stdout: IO[str] | None = None, stderr: IO[str] | None = None) -> None:
@@ -148,7 +148,6 @@ class ProcessGroup:
     def __exit__(self, *exc: object) -> None:
         self.shutdown()
 
-    # --------------------------------------------------------------- start and inspect
     def start(self, spec: ProcessSpec) -> subprocess.Popen:
         """Start one child; its output goes to ``spec.log`` (and ours if ``spec.forward``).
         A name whose process has stopped may be started again (a restart)."""
@@ -214,23 +213,19 @@ class ProcessGroup:
         return self._children[name].proc.poll()
 
     def hung_teardowns(self) -> list[str]:
-        """The children the teardown watchdog ended (TEARDOWN_HUNG): their participants'
-        files may stay in /dev/shm while another process still uses them (:func:`clean_shm`
-        removes them once none does)."""
+        """The children the teardown watchdog ended (TEARDOWN_HUNG)."""
         return [name for name, c in self._children.items() if c.proc.poll() == TEARDOWN_HUNG]
 
     def unclean(self) -> dict[str, int | None]:
-        """The children that did not end cleanly, with their codes (None: still running).
-        Clean is exit code 0, or the teardown watchdog's end (TEARDOWN_HUNG): the work was
-        done and :meth:`shutdown` removed what the hung participant left in /dev/shm."""
-        codes = {name: c.proc.poll() for name, c in self._children.items()}
-        return {name: code for name, code in codes.items() if code not in CLEAN_EXITS}
+        """The children that did not end cleanly (None: still running). Clean is 0, or the
+        teardown watchdog's end: the work was done, and :meth:`shutdown` cleans /dev/shm."""
+        return {name: code for name, c in self._children.items()
+                if (code := c.proc.poll()) not in CLEAN_EXITS}
 
     def failure(self, name: str, reason: str) -> Failure:
         spec = self._children[name].spec
         return Failure(spec.label, reason, spec.log, log_tail(spec.log))
 
-    # --------------------------------------------------------------- wait
     def wait_for(self, target: str, timeout: float,
                  watch: Collection[str] = ()) -> Failure | None:
         """Wait until ``target`` exits. None if it exited with 0; a Failure if it exited
@@ -254,7 +249,6 @@ class ProcessGroup:
                                timed_out=True)
             time.sleep(POLL_S)
 
-    # --------------------------------------------------------------- stop
     def _still_running(self, children: list[_Child]) -> list[_Child]:
         """Children whose leader runs, or whose process group still has live members."""
         groups = live_process_groups()
@@ -273,31 +267,23 @@ class ProcessGroup:
                 return children
             time.sleep(POLL_S)
 
-    def cpu_seconds(self) -> dict[str, float]:
-        """CPU time (user + system) used so far by each live child, from /proc (Linux)."""
-        tick = os.sysconf('SC_CLK_TCK')
-        out = {}
+    def _proc(self, file: str) -> Iterator[tuple[str, str]]:
+        """(name, /proc/<pid>/<file>) of each live child (Linux)."""
         for name, child in self._children.items():
-            try:
-                fields = Path(f'/proc/{child.proc.pid}/stat').read_text().rsplit(')', 1)[1].split()
-            except OSError:
-                continue  # already gone
-            out[name] = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
-        return out
+            with contextlib.suppress(OSError):   # already gone
+                text = Path(f'/proc/{child.proc.pid}/{file}').read_text()
+                yield name, text
+
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU time (user + system) used so far by each live child."""
+        tick = os.sysconf('SC_CLK_TCK')
+        return {name: sum(int(f) for f in stat.rsplit(')', 1)[1].split()[11:13]) / tick
+                for name, stat in self._proc('stat')}   # utime, stime
 
     def rss_mb(self) -> dict[str, float]:
-        """Resident memory [MB] of each live child, from /proc (Linux)."""
-        out = {}
-        for name, child in self._children.items():
-            try:
-                status = Path(f'/proc/{child.proc.pid}/status').read_text()
-            except OSError:
-                continue  # already gone
-            kib = next((line.split()[1] for line in status.splitlines()
-                        if line.startswith('VmRSS:')), None)
-            if kib is not None:
-                out[name] = int(kib) / 1024.0
-        return out
+        """Resident memory [MB] of each live child."""
+        return {name: int(line.split()[1]) / 1024.0 for name, status in self._proc('status')
+                for line in status.splitlines() if line.startswith('VmRSS:')}
 
     def stop(self, name: str, grace: float = 10.0, term_grace: float = 5.0) -> int | None:
         """Stop one child as :meth:`shutdown` does; return its exit code (0: clean)."""
@@ -308,9 +294,8 @@ class ProcessGroup:
         return self.returncode(name)
 
     def shutdown(self, grace: float = 10.0, term_grace: float = 5.0) -> list[str]:
-        """Stop every child: SIGINT in reverse start order, up to ``grace`` s in total; then
-        SIGTERM and ``term_grace`` s more; then SIGKILL, reported loudly. Returns the names
-        that needed SIGKILL. Safe to call more than once."""
+        """Stop every child (SIGINT in reverse start order, ``grace`` s in all; SIGTERM,
+        ``term_grace`` s; SIGKILL, loudly); return who needed SIGKILL. Safe to repeat."""
         with _signals_deferred(replay=False):
             killed = self._stop(list(reversed(self._children.values())), grace, term_grace)
             for child in self._children.values():
@@ -319,9 +304,8 @@ class ProcessGroup:
         return killed
 
     def _after_hung_teardowns(self) -> None:
-        """Say which children the teardown watchdog ended (once each), and remove the Fast
-        DDS files their participants left: created since this group started, used by no live
-        process."""
+        """Say which children the teardown watchdog ended (once each); remove the Fast DDS files
+        their participants left (:func:`clean_shm`)."""
         hung = [self._children[name] for name in self.hung_teardowns()
                 if name not in self._hung_reported]
         if not hung:
@@ -335,7 +319,6 @@ class ProcessGroup:
 
     def _stop(self, children: list[_Child], grace: float, term_grace: float) -> list[str]:
         err = self._stderr or sys.stderr
-        killed: list[str] = []
         alive = self._still_running(children)
         for child in alive:
             self._signal(child, signal.SIGINT)
@@ -351,13 +334,12 @@ class ProcessGroup:
                 self._signal(child, signal.SIGTERM)
             alive = self._wait_all(alive, term_grace)
         for child in alive:
-            killed.append(child.spec.name)
             print(f'WARNING: {child.spec.label} (pid {child.proc.pid}) ignored SIGINT and '
                   'SIGTERM; KILLING it with SIGKILL. A DDS process killed this way may '
                   'leave files in /dev/shm.', file=err)
             self._signal(child, signal.SIGKILL)
         self._wait_all(alive, 5.0)
-        return killed
+        return [c.spec.name for c in alive]
 
     @staticmethod
     def _release(child: _Child) -> None:
@@ -369,29 +351,18 @@ class ProcessGroup:
             child.tee_log = None
 
 
-@contextlib.contextmanager
-def sigterm_as_interrupt() -> Iterator[None]:
-    """Treat SIGTERM like Ctrl-C (KeyboardInterrupt), so ``kill <pid>`` also stops the
-    children cleanly instead of orphaning them."""
+def sigterm_as_interrupt() -> contextlib.AbstractContextManager[None]:
+    """Treat SIGTERM like Ctrl-C (KeyboardInterrupt): ``kill <pid>`` also stops the children."""
     def interrupt(_signum: int, _frame: Any) -> None:
         raise KeyboardInterrupt
 
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    old = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
+    return _handling((signal.SIGTERM,), interrupt)
 
 
-# ----------------------------------------------------------------------------- the run
 @dataclass
 class RunResult:
-    """ok: the monitor finished and wrote summary.json, every process then stopped with exit
-    code 0 (none needed SIGKILL), and nothing the run left in /dev/shm remains (what it
-    leaves is removed)."""
+    """ok: the monitor wrote summary.json, every process then stopped cleanly (none needed
+    SIGKILL), and nothing the run left in /dev/shm remains."""
 
     ok: bool
     wall_s: float
@@ -405,18 +376,13 @@ class RunResult:
 
 def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = None) -> RunResult:
     """Write the parameter files, start every process, wait for the monitor, stop the rest.
-    Ctrl-C (KeyboardInterrupt) stops everything and propagates.
-
-    Raises:
-        LaunchError: more processes than discovery on localhost connects
-            (:func:`fit_agents_per_process`), a missing executable, a failed start.
-    """
+    Ctrl-C stops everything and propagates. LaunchError: too many processes
+    (:func:`fit_agents_per_process`), a missing executable, a failed start."""
     fit_agents_per_process(len(scenario.agents), cfg.agents_per_process, cfg.rviz)
     needed = ('estimators' if cfg.agents_per_process > 1 else 'estimator', 'simulator', 'monitor',
               *([MARKERS] if cfg.rviz else []))
     exes = {name: find_executable(name, bin_dir) for name in needed}
-    cfg.out_dir.mkdir(parents=True, exist_ok=True)
-    cfg.logs_dir.mkdir(parents=True, exist_ok=True)
+    cfg.logs_dir.mkdir(parents=True, exist_ok=True)   # in out_dir
     params = write_params(scenario, cfg)
     specs = plan_processes(scenario, params, cfg.logs_dir, exes.__getitem__,
                            cfg.agents_per_process, cfg.fleet_namespace)
@@ -451,7 +417,9 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
     finally:
         result.wall_s = time.perf_counter() - wall
         left_in_shm = clean_shm(shm_before)
-    result.files = _fresh_files(cfg.out_dir, started)
+    # Top-level outputs this run modified (the slack: timestamps that lag the clock by a tick).
+    result.files = sorted(p for p in cfg.out_dir.iterdir()
+                          if p.is_file() and p.stat().st_mtime >= started - 0.05)
     if cfg.record and (cfg.bag_dir / 'metadata.yaml').exists():
         result.files.append(cfg.bag_dir)
     if result.failure is None:  # earlier failures were reported when they happened
@@ -464,8 +432,7 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
 
 def _failure_after_stop(cfg: RunConfig, specs: list[ProcessSpec], result: RunResult,
                         left_in_shm: list[str]) -> Failure | None:
-    """A run whose monitor finished is clean only if the monitor wrote its summary, every
-    process stopped with exit code 0 and nothing it left in /dev/shm remains."""
+    """Why a run whose monitor finished is not clean (see :class:`RunResult`), or None."""
     if cfg.out_dir / 'summary.json' not in result.files:
         return Failure('monitor', f'exited with code 0 but wrote no '
                        f'{cfg.out_dir / "summary.json"}')
@@ -483,10 +450,3 @@ def _failure_after_stop(cfg: RunConfig, specs: list[ProcessSpec], result: RunRes
         return Failure('the run', f'left {len(left_in_shm)} file(s) in /dev/shm that could '
                        'not be removed')
     return None
-
-
-def _fresh_files(out_dir: Path, since: float) -> list[Path]:
-    """Top-level outputs modified by this run (params/ and logs/ are listed separately)."""
-    # The slack covers file systems whose timestamps lag the wall clock by a tick.
-    return sorted(p for p in out_dir.iterdir()
-                  if p.is_file() and p.stat().st_mtime >= since - 0.05)

@@ -1,10 +1,7 @@
 """``bearing-pose``: check, simulate and generate scenarios, compare estimators, run Monte Carlo
-and noise studies, and run scenarios over DDS.
+and noise studies, and run scenarios over DDS. No file is overwritten without ``--force``.
 
-No file is ever overwritten without ``--force``.
-
-Exit codes: 0 success; 1 invalid scenario, failed check, or a file it refuses to overwrite;
-2 bad command line.
+Exit codes: 0 success; 1 invalid scenario, failed check or refused overwrite; 2 bad command line.
 """
 from __future__ import annotations
 
@@ -25,16 +22,16 @@ import yaml
 
 from .. import __version__, estimators
 from ..estimators.base import format_gains
-from ..plan.processes import BAG_DIR, MARKERS
-from ..scenario import (Scenario, ScenarioError, check_scenario, load_scenario,
-                        parse_scenario)
+from ..plan.processes import BAG_DIR, MARKERS, LaunchError
+from ..scenario import Scenario, ScenarioError, check_scenario, load_scenario, parse_scenario
 
 if TYPE_CHECKING:
     from .launch import RunResult
 
 
-def _load_checked(path: str) -> Scenario:
-    """Load and check; print warnings; raise ScenarioError listing every error."""
+def _load_checked(path: str, mode: str | None = None) -> Scenario:
+    """Load and check; print warnings; raise ScenarioError listing every error. ``mode``: the
+    formation controller's (None: as written)."""
     scenario = load_scenario(path)
     report = check_scenario(scenario)
     for w in report.warnings:
@@ -43,11 +40,6 @@ def _load_checked(path: str) -> Scenario:
         # main() prints the `error:` prefix once.
         raise ScenarioError('\n'.join(f'{path}: {str(e).removeprefix("error: ")}'
                                       for e in report.errors))
-    return scenario
-
-
-def _with_formation_mode(scenario: Scenario, mode: str | None) -> Scenario:
-    """``scenario`` with its formation controller in ``mode`` (None: as written)."""
     if mode is None or scenario.formation is None:
         return scenario
     print(f'formation control: {mode} mode', file=sys.stderr)
@@ -56,8 +48,8 @@ def _with_formation_mode(scenario: Scenario, mode: str | None) -> Scenario:
 
 
 def _out_dir(arg: str | Path, outputs: list[str], force: bool) -> Path:
-    """Create the output directory. Unless ``force``, refuse (ScenarioError) if it already
-    holds any of ``outputs`` (paths relative to it): no file is overwritten without --force."""
+    """Create the output directory; unless ``force``, refuse (ScenarioError) if it already holds
+    any of ``outputs`` (relative paths)."""
     out = Path(arg)
     if out.exists() and not out.is_dir():
         raise ScenarioError(f'{out}: --out must be a directory, and this is a file. '
@@ -74,14 +66,19 @@ def _out_dir(arg: str | Path, outputs: list[str], force: bool) -> Path:
 PLOT_FILES = ['fig2_attitude_error.png', 'fig3_position_error.png']
 
 
+def _done(text: str, wall: float, files: list[Path]) -> int:
+    print(text)
+    print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
+    return 0
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     report = check_scenario(scenario)
-    n_f = len(scenario.followers)
     print(f'{args.scenario}: {scenario.name}: {len(scenario.agents)} agents '
-          f'({n_f} followers), {sum(len(a.neighbours) for a in scenario.agents)} sensing edges')
-    text = report.format()
-    if text:
+          f'({len(scenario.followers)} followers), '
+          f'{sum(len(a.neighbours) for a in scenario.agents)} sensing edges')
+    if text := report.format():
         print(text)
     print(f'{len(report.errors)} error(s), {len(report.warnings)} warning(s)')
     return 0 if report.ok else 1
@@ -91,10 +88,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from ..sim.batch import BatchSimulator
     from ..studies.plots import CASCADE_PLOT, ROLES_CSV, ROLES_PLOT, TRAJECTORY_PLOT, \
         plot_cascade, plot_trajectories, write_plots, write_role_outputs
-    from ..studies.summary import (format_summary, summarize, write_metrics_csv,
-                                   write_summary_json)
+    from ..studies.summary import format_summary, summarize, write_metrics_csv, write_summary_json
 
-    scenario = _with_formation_mode(_load_checked(args.scenario), args.formation_mode)
+    scenario = _load_checked(args.scenario, args.formation_mode)
     if args.gains:
         from ..studies.compare import parse_gain_overrides
         try:
@@ -128,9 +124,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - wall
     summary = summarize(rec, scenario=scenario.name, source=scenario.source, mode='batch',
                         step_s=sim.h, wall_time_s=round(wall, 3))
-    write_metrics_csv(rec, out / 'metrics.csv')
-    write_summary_json(summary, out / 'summary.json')
     files = [out / 'metrics.csv', out / 'summary.json']
+    write_metrics_csv(rec, files[0])
+    write_summary_json(summary, files[1])
     if not args.no_plots:
         files += write_plots(rec, out)
     if TRAJECTORY_PLOT in plots and rec.trajectories is not None:
@@ -141,21 +137,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         files += [cascade] if cascade is not None else []
     files += write_role_outputs(rec, groups, out, title=f'{scenario.name}: errors by role',
                                 plot=not args.no_plots)
-    print(format_summary(summary))
-    print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
-    return 0
+    return _done(format_summary(summary), wall, files)
 
 
 def _method_scenarios(args: argparse.Namespace
                       ) -> tuple[Scenario, dict[str, tuple[dict, Scenario]]]:
-    """``compare``/``noise-study``: the checked scenario, and per method of ``--methods`` the
-    derived file content and scenario (``--gains`` applied); prints each method's own check
-    warnings (e.g. Tran et al.'s K_i) that the file's method did not already give."""
+    """The checked scenario, and per method the derived file content and scenario (``--gains``
+    applied); prints each method's own new check warnings (e.g. Tran et al.'s K_i)."""
     from ..scenario import read_scenario_data
     from ..studies.compare import method_scenarios
 
     mode = getattr(args, 'formation_mode', None)
-    scenario = _with_formation_mode(_load_checked(args.scenario), mode)
+    scenario = _load_checked(args.scenario, mode)
     data = read_scenario_data(args.scenario)
     if mode is not None and isinstance(data.get('formation_control'), dict):
         data['formation_control']['mode'] = mode
@@ -189,13 +182,12 @@ def cmd_compare(args: argparse.Namespace) -> int:
     if args.distributed:
         _refuse_paper_mode_over_dds(scenario)
         outputs += [f'{m}/{f}' for m in args.methods
-                    for f in ('scenario.yaml', 'metrics.csv', 'summary.json',
-                              'fleet.launch.xml')]
+                    for f in ('scenario.yaml', 'metrics.csv', 'summary.json', 'fleet.launch.xml')]
     out = _out_dir(args.out or f'results/{scenario.name}_compare', outputs, args.force)
     duration = args.duration if args.duration is not None else scenario.duration
-    modes = 'batch simulator, then over DDS' if args.distributed else 'batch simulator'
     print(f'comparing {", ".join(args.methods)} on {scenario.name}: {len(scenario.agents)} '
-          f'agents, {duration:g} s, {modes}', file=sys.stderr)
+          f'agents, {duration:g} s, batch simulator{", then over DDS" if args.distributed else ""}',
+          file=sys.stderr)
     wall = time.perf_counter()
     runs = compare.run_batch({m: s for m, (_, s) in derived.items()}, duration,
                              args.record_every)
@@ -203,8 +195,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
         method_dir = out / method
         method_dir.mkdir(exist_ok=True)
         scenario_file = method_dir / 'scenario.yaml'
-        scenario_file.write_text(f'# {method} on {args.scenario}, derived by bearing-pose '
-                                 'compare (method and gains changed)\n'
+        scenario_file.write_text(f'# {method} on {args.scenario}, derived by bearing-pose compare '
+                                 '(method and gains changed)\n'
                                  + yaml.safe_dump(data, sort_keys=False, width=100))
         result = _run_over_dds(method_scenario, scenario_file, method_dir, duration, args)
         if not result.ok:
@@ -219,12 +211,9 @@ def cmd_compare(args: argparse.Namespace) -> int:
     (out / 'compare.md').write_text(f'# {scenario.name}: {", ".join(args.methods)}\n\n' + text)
     files = [out / 'compare.csv', out / 'compare.md']
     if not args.no_plots:
-        files.append(write_compare_plot({r.label: r.rec for r in runs},
-                                        out / 'compare_errors.png',
+        files.append(write_compare_plot({r.label: r.rec for r in runs}, out / 'compare_errors.png',
                                         frozenset(r.label for r in runs if r.mode == 'dds')))
-    print(text)
-    print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
-    return 0
+    return _done(text, wall, files)
 
 
 def cmd_noise_study(args: argparse.Namespace) -> int:
@@ -242,17 +231,15 @@ def cmd_noise_study(args: argparse.Namespace) -> int:
     axis = (x, y, z)
     n = len(args.methods) * len(args.amplitudes_deg) * len(args.frequencies_hz)
     jobs = min(args.jobs or os.cpu_count() or 1, n)
-    print(f'noise study on {scenario.name}: bearings rot_X(θ0 sin 2πft) b, X = {list(axis)}, '
-          f'θ0 in {args.amplitudes_deg} deg, f in {args.frequencies_hz} Hz; '
-          f'{", ".join(args.methods)}; {n} runs of {duration:g} s on {jobs} process(es)',
-          file=sys.stderr)
+    print(f'noise study on {scenario.name}: bearings rot_X(θ0 sin 2πft) b, X = {list(axis)}, θ0 '
+          f'in {args.amplitudes_deg} deg, f in {args.frequencies_hz} Hz; {", ".join(args.methods)}'
+          f'; {n} runs of {duration:g} s on {jobs} process(es)', file=sys.stderr)
 
     def progress(done: int, total: int, r: ns.CaseResult) -> None:
         c, v = r.case, r.values
-        print(f'  {done}/{total}: {c.method}, θ0 = {c.amplitude_deg:g} deg, f = '
-              f'{c.frequency_hz:g} Hz: worst follower within '
-              f'{np.degrees(v["steady_attitude_error_max_rad"]):.3g} deg and '
-              f'{v["steady_position_error_max_m"]:.3g} m', file=sys.stderr, flush=True)
+        print(f'  {done}/{total}: {c.method}, θ0 = {c.amplitude_deg:g} deg, f = {c.frequency_hz:g}'
+              f' Hz: worst follower within {np.degrees(v["steady_attitude_error_max_rad"]):.3g} '
+              f'deg and {v["steady_position_error_max_m"]:.3g} m', file=sys.stderr, flush=True)
 
     wall = time.perf_counter()
     results = ns.run_study({m: s for m, (_, s) in derived.items()}, args.amplitudes_deg,
@@ -262,14 +249,11 @@ def cmd_noise_study(args: argparse.Namespace) -> int:
     ns.write_csv(results, out / 'noise_study.csv')
     (out / 'noise_study.md').write_text(
         f'# {scenario.name}: bearings rot_X(θ0 sin 2πft) b, X = {list(axis)}, {duration:g} s '
-        'runs; bounds and '
-        f'means over the last {ns.STEADY_FRACTION:.0%}\n\n' + text)
+        f'runs; bounds and means over the last {ns.STEADY_FRACTION:.0%}\n\n' + text)
     files = [out / 'noise_study.csv', out / 'noise_study.md']
     if not args.no_plots:
         files.append(ns.write_plot(results, out / 'noise_study.png'))
-    print(text)
-    print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
-    return 0
+    return _done(text, wall, files)
 
 
 def cmd_montecarlo(args: argparse.Namespace) -> int:
@@ -304,9 +288,7 @@ def cmd_montecarlo(args: argparse.Namespace) -> int:
     mc.write_runs_csv(results, files[0])
     write_summary_json(summary, files[1])
     mc.write_plot(results, files[2])
-    print(mc.format_table(summary))
-    print(f'wall time {wall:.2f} s; wrote ' + ', '.join(str(f) for f in files))
-    return 0
+    return _done(mc.format_table(summary), wall, files)
 
 
 def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: float,
@@ -321,11 +303,8 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
     if args.domain_id is None and os.environ.get('ROS_DOMAIN_ID'):
         how += f"; the caller's ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} is not used"
     rviz = getattr(args, 'rviz', False)
-    try:
-        per_process = processes.fit_agents_per_process(len(scenario.agents),
-                                                       args.agents_per_process, rviz)
-    except processes.LaunchError as exc:
-        raise ScenarioError(str(exc)) from exc
+    per_process = processes.fit_agents_per_process(len(scenario.agents), args.agents_per_process,
+                                                   rviz)
     if args.agents_per_process is None and per_process > 1:
         print(f'note: {len(scenario.agents)} agents run {per_process} per process, so that '
               f'the run needs at most {processes.MAX_PROCESSES} processes (DDS discovery on '
@@ -334,8 +313,7 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
         scenario_file=scenario_file.resolve(), out_dir=out.resolve(), duration=duration,
         domain_id=domain_id, real_time_factor=args.real_time_factor, plots=not args.no_plots,
         timeout=args.timeout, agents_per_process=per_process,
-        record=getattr(args, 'record', False), rviz=rviz,
-        fleet_namespace=args.fleet_namespace)
+        record=getattr(args, 'record', False), rviz=rviz, fleet_namespace=args.fleet_namespace)
     pace = (f'at most {cfg.real_time_factor:g}x real time' if cfg.real_time_factor > 0
             else 'as fast as the estimators keep up')
     print(f'running {scenario.name} ({scenario.method}) over DDS: {len(scenario.agents)} '
@@ -348,8 +326,6 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
         print(f'interrupted: all processes stopped; partial outputs (if any) and logs in {out}',
               file=sys.stderr)
         raise
-    except processes.LaunchError as exc:
-        raise ScenarioError(str(exc)) from exc
 
 
 def _refuse_paper_mode_over_dds(scenario: Scenario) -> None:
@@ -358,15 +334,14 @@ def _refuse_paper_mode_over_dds(scenario: Scenario) -> None:
         raise ScenarioError(f'{scenario.source}: formation_control.mode is paper (the '
                             'controller uses the estimated yaws), which a simulator node '
                             'cannot run. Fix: pass --formation-mode exogenous (the true yaws)')
-    problem = scenario.not_distributable()
-    if problem:
+    if problem := scenario.not_distributable():
         raise ScenarioError(f'{scenario.source}: {problem}')
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     from ..scenario import read_scenario_data
 
-    scenario = _with_formation_mode(_load_checked(args.scenario), args.formation_mode)
+    scenario = _load_checked(args.scenario, args.formation_mode)
     _refuse_paper_mode_over_dds(scenario)
     derived = args.formation_mode is not None and scenario.formation is not None
     processes = ([a.name for a in scenario.agents] + ['simulator', 'monitor']
@@ -397,10 +372,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     est_cpu = sum(v for k, v in result.cpu_s.items() if k not in ('simulator', 'monitor'))
     if est_cpu:
         per_agent = est_cpu / len(scenario.agents)
-        print(f'CPU: {per_agent:.1f} s per agent on average '
-              f'({100 * per_agent / result.wall_s:.0f} % of a core), '
-              f'simulator {result.cpu_s.get("simulator", float("nan")):.1f} s, over '
-              f'{result.wall_s:.1f} s wall for {duration:g} s simulated')
+        print(f'CPU: {per_agent:.1f} s per agent on average ({100 * per_agent / result.wall_s:.0f}'
+              f' % of a core), simulator {result.cpu_s.get("simulator", float("nan")):.1f} s, '
+              f'over {result.wall_s:.1f} s wall for {duration:g} s simulated')
     print(f'wall time {result.wall_s:.1f} s; wrote ' + ', '.join(str(f) for f in result.files)
           + f'; parameter files in {out.resolve() / "params"}; logs in {logs}')
     return 0
@@ -417,8 +391,7 @@ def cmd_export_tum(args: argparse.Namespace) -> int:
                             f'{existing[0].name}; refusing to overwrite them. Fix: pass --force, '
                             'or choose another --out')
     files = export_tum(run_dir / BAG_DIR, out)
-    print(f'wrote {len(files)} TUM trajectories into {out}; e.g. evo_ape tum {files[1]} '
-          f'{files[0]}')
+    print(f'wrote {len(files)} TUM trajectories into {out}; e.g. evo_ape tum {files[1]} {files[0]}')
     return 0
 
 
@@ -440,44 +413,37 @@ def cmd_generate(args: argparse.Namespace) -> int:
               f' --max-angle-deg {args.max_angle_deg:g}{moving}\n')
     out.write_text(header + yaml.safe_dump(data, sort_keys=False, default_flow_style=None,
                                            width=100))
-    print(f'wrote {out}: {args.agents} agents, '
-          f'{sum(len(a.neighbours) for a in scenario.agents)} sensing edges, '
-          f'{len(report.warnings)} warning(s)')
+    print(f'wrote {out}: {args.agents} agents, {sum(len(a.neighbours) for a in scenario.agents)}'
+          f' sensing edges, {len(report.warnings)} warning(s)')
     return 0
 
 
 def _add_method_options(p: argparse.ArgumentParser) -> None:
     """The scenario and the methods to run with their gains (``compare``, ``noise-study``)."""
     p.add_argument('scenario', help='scenario YAML file')
-    p.add_argument('--methods', nargs='+', default=None,
-                   choices=estimators.methods(),
-                   metavar='METHOD',
+    p.add_argument('--methods', nargs='+', choices=estimators.methods(), metavar='METHOD',
                    help='methods to run (default: every one the scenario can run, its own first; '
-                        f'registered: {", ".join(estimators.methods())})')
+                   f'registered: {", ".join(estimators.methods())})')
     p.add_argument('--gains', action='append', default=[], metavar='METHOD:GAIN=V[,GAIN=V]',
                    help='override gains of one method, e.g. tran_anderson_ahn:k_omega=3,k_c=2 '
-                   '(repeatable; k_ij stays per edge, from the scenario)')
+                   '(repeatable; k_ij stays per edge)')
 
 
 def _add_formation_option(p: argparse.ArgumentParser) -> None:
     p.add_argument('--formation-mode', choices=['paper', 'exogenous'],
-                   help='formation controller mode (scenarios with formation_control): paper, '
-                        'the closed loop on the estimated yaws; exogenous, the true yaws '
-                        '(default: the scenario\'s)')
+                   help='formation controller on the estimated (paper) or the true yaws '
+                   "(exogenous) (default: the scenario's)")
 
 
 def _add_output_options(p: argparse.ArgumentParser, suffix: str, per_run: bool = False,
                         jobs: bool = False, plots: bool = True) -> None:
-    """The options every study shares: ``--duration``, ``--out`` (default
-    ``results/<scenario name><suffix>``), ``--jobs`` (``jobs``), ``--no-plots`` (``plots``),
-    ``--force``."""
+    """The options every study shares (``--out`` defaults to results/<name><suffix>)."""
     p.add_argument('--duration', type=float, metavar='S', help=f'simulated time '
                    f'{"per run " if per_run else ""}[s] (default: the scenario\'s)')
     p.add_argument('--out', metavar='DIR',
                    help=f'output directory (default: results/<scenario name>{suffix})')
     if jobs:
-        p.add_argument('--jobs', type=int, metavar='J',
-                       help='worker processes (default: the number of cores)')
+        p.add_argument('--jobs', type=int, metavar='J', help='worker processes (default: cores)')
     if plots:
         p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
     p.add_argument('--force', action='store_true', help='overwrite outputs already in DIR')
@@ -488,19 +454,14 @@ def _add_dds_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--domain-id', type=int, metavar='N',
                    help='ROS_DOMAIN_ID, 0..232 (default: 1 + pid %% 101, private to this run)')
     p.add_argument('--real-time-factor', type=float, default=0.0, metavar='F',
-                   help='cap on simulated seconds per wall second; 0: no cap, as fast as the '
-                   'estimators keep up (default: 0)')
+                   help='cap on simulated seconds per wall second (default: 0, no cap)')
     p.add_argument('--agents-per-process', type=int, metavar='K',
-                   help='run K agents per process (one executor, one node each) with the '
-                   '`estimators` executable; 1: one `estimator` process per agent (default: '
-                   '1, or the fewest that keep the run within 32 processes, the most DDS '
-                   'discovery on localhost connects)')
+                   help='agents per `estimators` process, one node each (default: 1, or the '
+                   'fewest that keep the run within the 32 processes DDS discovery connects)')
     p.add_argument('--fleet-namespace', default='', metavar='NS',
-                   help='run every node and topic under /NS/ (/NS/<agent>/estimate, '
-                   '/NS/clock, ...), so that several fleets share a domain (default: none)')
-    p.add_argument('--timeout', type=float, metavar='S',
-                   help='wall-time safety net [s] (default: 10 x duration / F + 120 for F < 1, '
-                   'else 10 x duration + 120)')
+                   help='run every node and topic under /NS/, so that fleets share a domain')
+    p.add_argument('--timeout', type=float, metavar='S', help='wall-time safety net [s] '
+                   '(default: 10 x duration / F + 120 for F < 1, else 10 x duration + 120)')
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -509,25 +470,19 @@ def build_parser() -> argparse.ArgumentParser:
         description='Distributed bearing-based pose estimation (Boughellaba & Tayebi; Tran, '
                     'Anderson & Ahn; De Carli et al.; Presenza et al.): check, simulate and '
                     'generate scenarios, compare the estimators, run Monte Carlo and noise '
-                    'studies, and run scenarios over DDS. No file is overwritten without '
-                    '--force.')
+                    'studies, and run scenarios over DDS. No file is overwritten without --force.')
     parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
 
     p = sub.add_parser('check', help="check a scenario against the paper's Assumption 2",
-                       description='Check a scenario file: format, Assumption 2 (acyclic graph, '
-                       'reachability, >= 2 non-collinear neighbours, no collocated agents) and '
-                       'the M_i spectra of Lemma 1; a moving scenario also along its motion '
-                       '(close approaches, bearings becoming collinear, spectra), sampled over '
-                       'its duration. Exit 0 when valid, 1 otherwise.')
+                       description="Check a scenario file against its method's assumptions (a "
+                       'moving one also along its motion). Exit 0 when valid, 1 otherwise.')
     p.add_argument('scenario', help='scenario YAML file')
     p.set_defaults(func=cmd_check)
 
     p = sub.add_parser('simulate', help='run the batch simulator; write metrics, summary, plots',
                        description='Run all agents in one process (no ROS). Writes '
-                       'DIR/metrics.csv, DIR/summary.json, DIR/fig2_attitude_error.png and '
-                       'DIR/fig3_position_error.png (and DIR/trajectories.png for moving '
-                       'scenarios); refuses to overwrite any of them without --force.')
+                       'DIR/metrics.csv, DIR/summary.json and the plots.')
     p.add_argument('scenario', help='scenario YAML file')
     _add_output_options(p, '')
     p.add_argument('--step', type=float, help='step [s] (default: 1 / scenario frequency)')
@@ -541,32 +496,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser('compare', help='run several estimators on one scenario; table and plot',
-                       description='Run each method on the same scenario (same truth, initial '
-                       'estimates and noise; only `method` and the gains change: the file\'s '
-                       'gains where its method uses them, else the defaults, then --gains), in '
-                       'the batch simulator and, with --distributed, also over DDS (one '
-                       '`bearing-pose run` per method, in DIR/<method>/ with the derived '
-                       'scenario.yaml). Writes DIR/compare.csv (mean errors per run over '
-                       'time), DIR/compare.md (the table it prints) and DIR/compare_errors.png '
-                       '(overlaid errors); refuses to overwrite any of them without --force.')
+                       description='Run each method on the same truth, initial estimates and '
+                       'noise, in the batch simulator (and over DDS: --distributed). Writes '
+                       'DIR/compare.csv, DIR/compare.md and DIR/compare_errors.png.')
     _add_method_options(p)
     _add_output_options(p, '_compare')
     p.add_argument('--record-every', type=float, default=0.1,
                    help='row interval of compare.csv [s], at most 0.5 (default: 0.1)')
     _add_formation_option(p)
-    p.add_argument('--distributed', action='store_true',
-                   help='also run each method over DDS, one process per agent')
+    p.add_argument('--distributed', action='store_true', help='also run each method over DDS')
     _add_dds_options(p)
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser('noise-study', help="Tran et al.'s bearing perturbation, per method; "
-                       'error bounds', description='Run each method with every measured bearing '
-                       'perturbed as rot_X(θ0 sin 2πft) b (Tran, Anderson & Ahn 2020, Section '
-                       '5.1), for every θ0 and f, on all cores. Reports, over the last quarter '
-                       'of each run, the bound of the worst follower\'s errors (the radius of '
-                       'the neighbourhood the estimates stay in) and the mean errors. Writes '
-                       'DIR/noise_study.csv, DIR/noise_study.md (the table it prints) and '
-                       'DIR/noise_study.png; refuses to overwrite any of them without --force.')
+                       'error bounds', description='Run each method with bearings rot_X(θ0 sin '
+                       '2πft) b (Tran, Anderson & Ahn 2020, Section 5.1) for every θ0 and f. '
+                       'Writes DIR/noise_study.csv, DIR/noise_study.md and DIR/noise_study.png.')
     _add_method_options(p)
     p.add_argument('--amplitudes-deg', nargs='+', type=float, default=[2.0, 5.0, 10.0],
                    metavar='θ0', help='perturbation amplitudes [deg] (default: 2 5 10)')
@@ -578,11 +523,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_noise_study)
 
     p = sub.add_parser('montecarlo', help='many batch runs with different seeds; statistics',
-                       description='Run the batch simulator N times on all cores. Run i uses '
-                       'seed S + i for the noise and for random initial estimates (explicit '
-                       'ones stay), so any run can be replayed. Writes DIR/runs.csv (one row '
-                       'per run), DIR/summary.json (statistics) and DIR/montecarlo.png; '
-                       'refuses to overwrite any of them without --force.')
+                       description='Run i uses seed S + i (noise, random initial estimates). '
+                       'Writes DIR/runs.csv, DIR/summary.json and DIR/montecarlo.png.')
     p.add_argument('scenario', help='scenario YAML file')
     p.add_argument('--runs', type=int, required=True, metavar='N', help='number of runs (>= 1)')
     p.add_argument('--seed', type=int, metavar='S',
@@ -591,49 +533,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_montecarlo)
 
     p = sub.add_parser('run', help='run every agent as its own ROS 2 process over DDS',
-                       description='Start one estimator process per agent, the monitor and the '
-                       'simulator (DDS on localhost only, on a private ROS_DOMAIN_ID), wait '
-                       'until the monitor has written DIR/metrics.csv, DIR/summary.json and the '
-                       'plots, then stop everything. DIR/params/ holds one ROS 2 parameter '
-                       'file per process; DIR/logs/ one log per process.')
+                       description='The estimators, monitor and simulator over DDS on localhost. '
+                       'Writes DIR/metrics.csv, DIR/summary.json, plots, DIR/params/, DIR/logs/.')
     p.add_argument('scenario', help='scenario YAML file')
     _add_output_options(p, '_dds')
     _add_dds_options(p)
     _add_formation_option(p)
-    p.add_argument('--rviz', action='store_true',
-                   help='also run fleet_markers, which publishes /visualization_marker_array '
-                   '(estimated and true poses, sensing edges, bearing rays) for RViz')
-    p.add_argument('--record', action='store_true',
-                   help=f'also record every estimate, truth, measurement and channel topic into '
-                   f'DIR/{BAG_DIR}, a rosbag2 (MCAP); `bearing-pose export-tum DIR` turns it into '
-                   'TUM trajectories for evo')
+    p.add_argument('--rviz', action='store_true', help='also publish '
+                   '/visualization_marker_array (poses, sensing edges, bearings) for RViz')
+    p.add_argument('--record', action='store_true', help='also record every topic into '
+                   f'DIR/{BAG_DIR}, a rosbag2 (MCAP), for `bearing-pose export-tum`')
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser('export-tum', help='TUM trajectories (for evo) from a recorded run',
-                       description=f'Read DIR/{BAG_DIR} (written by `bearing-pose run --record`) '
-                       'and write, per agent, AGENT_estimate.tum and AGENT_truth.tum '
-                       '("t x y z qx qy qz qw" per line, t the message stamps in seconds), '
-                       'which evo reads: `evo_ape tum DIR/tum/AGENT_truth.tum '
-                       'DIR/tum/AGENT_estimate.tum`. Refuses to overwrite TUM files without '
-                       '--force.')
+                       description='Writes AGENT_estimate.tum and AGENT_truth.tum per agent: '
+                       '`evo_ape tum DIR/tum/AGENT_truth.tum DIR/tum/AGENT_estimate.tum`.')
     p.add_argument('dir', help='output directory of `bearing-pose run --record`')
     p.add_argument('--out', metavar='OUT', help='where to write the files (default: DIR/tum)')
     p.add_argument('--force', action='store_true', help='overwrite TUM files in OUT')
     p.set_defaults(func=cmd_export_tum)
 
     p = sub.add_parser('generate', help='write a random valid scenario',
-                       description='Generate a random scenario that satisfies Assumption 2 '
-                       '(reproducible from --seed); with --speed, a fleet that drifts and turns '
-                       'together without close approaches.')
+                       description='A random scenario that satisfies Assumption 2, reproducible '
+                       'from --seed; with --speed, a fleet that drifts without close approaches.')
     p.add_argument('--agents', type=int, required=True, help='number of agents (>= 3)')
     p.add_argument('--seed', type=int, default=0, help='random seed (default: 0)')
     p.add_argument('--out', required=True, help='output YAML file')
     p.add_argument('--max-angle-deg', type=float, default=90.0,
                    help='largest initial attitude error [deg] (default: 90)')
     p.add_argument('--speed', type=float, default=0.0, metavar='V',
-                   help='every agent drifts at V m/s in the world frame, turning at '
-                   '--turn-rate with a slow vertical oscillation, phases drawn so that no two '
-                   'agents come close (default: 0, a static fleet)')
+                   help='drift speed [m/s] of every agent (default: 0, a static fleet)')
     p.add_argument('--turn-rate', type=float, default=0.5, metavar='W',
                    help='turning rate of a moving fleet [rad/s] (default: 0.5)')
     p.add_argument('--force', action='store_true', help='overwrite --out if it exists')
@@ -653,11 +582,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error('--speed must be a number >= 0 [m/s] (0: a static fleet)')
         if not (np.isfinite(args.turn_rate) and args.turn_rate > 0):
             parser.error('--turn-rate must be a positive number [rad/s]')
-    if args.command == 'montecarlo':
-        if args.runs < 1:
-            parser.error('--runs must be at least 1')
-        if args.jobs is not None and args.jobs < 1:
-            parser.error('--jobs must be at least 1')
+    if args.command == 'montecarlo' and args.runs < 1:
+        parser.error('--runs must be at least 1')
     if args.command == 'noise-study':
         if any(not (np.isfinite(a) and 0 < a <= 90) for a in args.amplitudes_deg):
             parser.error('--amplitudes-deg must be in (0, 90] degrees')
@@ -665,8 +591,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error('--frequencies-hz must be positive')
         if not (np.all(np.isfinite(args.axis)) and np.linalg.norm(args.axis) > 1e-12):
             parser.error('--axis must be a finite, non-zero vector')
-        if args.jobs is not None and args.jobs < 1:
-            parser.error('--jobs must be at least 1')
+    if getattr(args, 'jobs', None) is not None and args.jobs < 1:   # montecarlo, noise-study
+        parser.error('--jobs must be at least 1')
     if args.command in ('compare', 'noise-study'):
         from ..studies.compare import compatible_methods, incompatible, parse_gain_overrides
         try:
@@ -680,15 +606,13 @@ def main(argv: list[str] | None = None) -> int:
             for method, why in skipped.items():
                 print(f'{args.scenario}: not running {method}: {why}', file=sys.stderr)
         for method in args.methods:
-            reason = incompatible(scenario, method)
-            if reason is not None:
+            if (reason := incompatible(scenario, method)) is not None:
                 parser.error(f'{method} cannot run on {args.scenario}: {reason}')
         try:
             args.gain_overrides = parse_gain_overrides(args.gains)
         except ValueError as exc:
             parser.error(str(exc))
-        stray = sorted(set(args.gain_overrides) - set(args.methods))
-        if stray:
+        if stray := sorted(set(args.gain_overrides) - set(args.methods)):
             parser.error(f'--gains sets gains of {stray[0]}, which is not in --methods')
     if getattr(args, 'agents_per_process', None) is not None and args.agents_per_process < 1:
         parser.error('--agents-per-process must be at least 1')
@@ -711,7 +635,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f'--{name.replace("_", "-")} must be a positive number')
     try:
         return args.func(args)
-    except ScenarioError as exc:
+    except (ScenarioError, LaunchError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -6,8 +6,7 @@ Notation: robot i measures the body bearings ``β_ij`` of its out-neighbours ``j
 angles are the cosines ``α_ijk = β_ijᵀ β_ik`` for every pair ``{j, k} ⊆ O_i``, ``j < k``. With
 ``𝔮_ij = q_ij/‖q_ij‖`` and ``χ_ijk = Π(𝔮_ij) 𝔮_ik / ‖q_ij‖``, the row of ``α_ijk`` in the
 rigidity matrix ``A = ∂α/∂q`` has the blocks ``-(χ_ijk + χ_ikj)ᵀ`` at i, ``χ_ijkᵀ`` at j and
-``χ_ikjᵀ`` at k (3).
-"""
+``χ_ikjᵀ`` at k (3)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -38,13 +37,6 @@ def chi(q: Array, triples: Index) -> tuple[Array, Array]:
     uj, uk = dj / rj, dk / rk
     c = np.sum(uj * uk, axis=1, keepdims=True)
     return (uk - c * uj) / rj, (uj - c * uk) / rk
-
-
-def cosines(q: Array, triples: Index) -> Array:
-    """The angle function ``α(q)`` ``(|𝒜|,)``: ``𝔮_ijᵀ 𝔮_ik``."""
-    i, j, k = triples.T
-    dj, dk = q[j] - q[i], q[k] - q[i]
-    return np.sum(dj * dk, axis=1) / (np.linalg.norm(dj, axis=1) * np.linalg.norm(dk, axis=1))
 
 
 def rigidity_matrix(q: Array, triples: Index) -> Array:

@@ -13,8 +13,7 @@ no rate before the second sample. With bearing noise σ a raw difference has noi
 price of a lag of about ``tau``. Measured on the paper's case 1 at 30 Hz (README), the lag
 costs more than the noise: with 1 mrad of bearing noise the free robots' attitude error over
 the last 5 of 20 s is 0.14 rad raw (``tau = 0``), 0.46 rad at ``tau = 0.1`` s, 1.2 rad at
-0.3 s, and at 1 s the positions diverge. Hence ``tau = 0`` by default.
-"""
+0.3 s, and at 1 s the positions diverge. Hence ``tau = 0`` by default."""
 from __future__ import annotations
 
 import numpy as np
@@ -24,12 +23,8 @@ Array = NDArray[np.float64]
 
 
 class BearingRateFilter:
-    """De-rotated bearing rates of ``n`` tracked bearings (rows), filtered.
-
-    Args:
-        n: how many bearings are tracked (one per sensing link).
-        tau: the low-pass filter's time constant [s]; 0: raw differences.
-    """
+    """De-rotated bearing rates of ``n`` tracked bearings (rows, one per sensing link),
+    low-pass filtered with time constant ``tau`` [s] (0: raw differences)."""
 
     def __init__(self, n: int, tau: float) -> None:
         if not tau >= 0.0:
@@ -43,9 +38,8 @@ class BearingRateFilter:
     def update(self, t: float, b: Array, delta_R: Array,
                rows: NDArray[np.bool_] | None = None) -> tuple[Array, NDArray[np.bool_]]:
         """The bearings ``b`` ``(n, 3)`` measured at ``t`` (only ``rows`` of them, default all),
-        with each body's rotation ``delta_R`` ``(n, 3, 3)`` since its previous sample. Returns
-        the filtered de-rotated rates ``(n, 3)`` [1/s] and which rows have one (a previous
-        sample); the others are zero."""
+        with each body's rotation ``delta_R`` ``(n, 3, 3)`` since its previous sample: the
+        filtered de-rotated rates ``(n, 3)`` [1/s] and which rows have one (others: zero)."""
         rows = np.ones(len(b), dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
         have = rows & ~np.isnan(self.t_prev)
         dt = np.where(have, t - np.nan_to_num(self.t_prev), 1.0)[:, None]

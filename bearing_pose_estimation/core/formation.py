@@ -12,8 +12,7 @@ missing: with it the formation is never reached) and (30) saturates μ instead o
 
 Modes: ``paper``, the closed loop of Sec. IV, with each robot's *estimated* yaw in ``R̂``;
 ``exogenous``, with the true yaws, so the motion is independent of the estimates (the world
-velocity is then ``sat(k_c Σ_k E_ik ((p*_a - p*_b) - (p_a - p_b)))``).
-"""
+velocity is then ``sat(k_c Σ_k E_ik ((p*_a - p*_b) - (p_a - p_b)))``)."""
 from __future__ import annotations
 
 import numpy as np
@@ -33,11 +32,10 @@ def saturate(x: Array, limit: float) -> Array:
 
 def body_velocity(p: Array, psi_used: Array, psi_true: Array, p_star: Array, tail: Index,
                   head: Index, k_c: float, nu_max: float, moving: NDArray[np.bool_]) -> Array:
-    """(30)-(31): the body-frame velocity ``(N, 3)`` [m/s] of every robot, from the true
-    positions ``p`` (the measurements ``ᵃp_ab = R_aᵀ (p_b - p_a)`` with the true yaws
-    ``psi_true``) and the yaws the controller uses, ``psi_used`` (the estimates in the paper's
-    mode, the truth in the exogenous one). Robots not ``moving`` (no formation position:
-    they hover) get 0."""
+    """(30)-(31): the body-frame velocity ``(N, 3)`` [m/s] of every robot, from the true positions
+    ``p`` (the measurements ``ᵃp_ab = R_aᵀ (p_b - p_a)`` with the true yaws ``psi_true``) and the
+    yaws the controller uses, ``psi_used`` (the estimates in the paper's mode, the truth in the
+    exogenous one). Robots not ``moving`` (no formation position: they hover) get 0."""
     measured = np.einsum('kba,kb->ka', rot_z(psi_true[tail]), p[head] - p[tail])
     r = p_star[tail] - p_star[head] + np.einsum('kab,kb->ka', rot_z(psi_used[tail]), measured)
     total = np.zeros_like(p)

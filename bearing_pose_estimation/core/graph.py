@@ -84,17 +84,12 @@ def widest_angles(b: NDArray[np.float64]) -> NDArray[np.float64]:
 def close_approaches(times: NDArray[np.float64], positions: NDArray[np.float64],
                      radius: float) -> tuple[NDArray[np.intp], NDArray[np.intp],
                                              NDArray[np.float64], NDArray[np.float64]]:
-    """Every pair of agents that comes closer than ``radius`` [m], with its closest approach.
-
-    ``positions`` ``(K, N, 3)`` are sampled at ``times`` ``(K,)``; between two samples each
-    agent moves on the straight line joining them, so an approach between samples is found
-    too. Per segment, a KD-tree of its first sample finds the pairs within ``radius`` plus twice
-    the farthest any agent moves over it (no pair closer on the segment can be farther at its
-    start); each pair's minimum on the segment is then exact for the straight lines.
-
-    Returns ``(i, j, distance, time)``, one entry per pair ``i < j`` (its closest approach, the
-    earliest of equal ones), sorted by ``(i, j)``.
-    """
+    """Every pair of agents that comes closer than ``radius`` [m]: ``(i, j, distance, time)``
+    of its closest approach (the earliest of equal ones), one entry per pair ``i < j``, sorted.
+    ``positions`` ``(K, N, 3)`` at ``times`` ``(K,)``, each agent moving on straight lines
+    between samples. Per segment, a KD-tree of its first sample finds the pairs within
+    ``radius`` plus twice the farthest any agent moves over it (no pair closer on the segment
+    can be farther at its start); each pair's minimum on the segment is then exact."""
     k_samples, n = positions.shape[:2]
     empty_i, empty_f = np.zeros(0, dtype=np.intp), np.zeros(0)
     if n < 2 or k_samples == 0:

@@ -1,22 +1,16 @@
 """Gyro sample buffer: exact body-frame rotation increments between any two times.
 
-Sample meaning (the convention of the simulator node, and of delta-angle IMUs): a sample
-stamped ``t_k`` with rate ``ω_k`` is the *interval average* over ``(t_{k-1}, t_k]``, i.e. the
-constant rate that produces the true rotation over that interval, ``R(t_{k-1})ᵀ R(t_k) =
-exp(ω_k (t_k - t_{k-1}))``. The buffer treats ω as piecewise constant on those intervals, so the
-increment between two sample stamps is exact, and between arbitrary times it is exact up to the
-split of one interval.
+A sample stamped ``t_k`` with rate ``ω_k`` is the *interval average* over ``(t_{k-1}, t_k]``
+(the simulator node's convention, and delta-angle IMUs'): ``R(t_{k-1})ᵀ R(t_k) =
+exp(ω_k (t_k - t_{k-1}))``. ω piecewise constant on those intervals is then exact between
+sample stamps, and between arbitrary times up to the split of one interval. Holding ω over a
+10 ms step instead leaves milliradians of steady-state error with the paper's ``sin 9t`` rates.
 
-Why it matters: holding ω constant over a 10 ms estimator step with the paper's ``sin 9t`` rates
-leaves a steady-state attitude error of milliradians; integrating every sample removes it.
-
-Lost samples: a sample that arrives more than :data:`GAP_FACTOR` sampling periods after the
-previous one means samples were lost in between. Its rate then covers only its own period, and
-the missing stretch gets the mean of the rates on either side: the midpoint of a linear
-interpolation, an error of order ``ω̈ Δ³`` per lost sample instead of ``ω̇ Δ²`` if the new rate
-were held over the gap (20 times smaller over 1 s of ``sin 9t`` rates at 200 Hz with every
-10th sample lost; ``test_agent.py``).
-"""
+Lost samples: a sample more than :data:`GAP_FACTOR` periods after the previous one covers only
+its own period; the missing stretch gets the mean of the rates on either side (the midpoint of
+a linear interpolation: an error of order ``ω̈ Δ³`` per lost sample instead of ``ω̇ Δ²``, 20
+times smaller over 1 s of ``sin 9t`` rates at 200 Hz with every 10th sample lost;
+``test_agent.py``)."""
 from __future__ import annotations
 
 import bisect
@@ -35,13 +29,9 @@ GAP_FACTOR = 1.5
 
 class IntervalBuffer:
     """Interval-average samples (vectors) of one agent over a sliding time window: sample k
-    holds over ``(t[k], t[k+1]]``. :class:`GyroBuffer` integrates rates into rotations,
-    :class:`core.odometry.OdometryBuffer` twists into displacements.
-
-    Args:
-        start: the time the first interval starts (the scenario's t = 0).
-        horizon: how much history to keep [s]; older samples are dropped.
-    """
+    holds over ``(t[k], t[k+1]]``, the first from ``start`` (the scenario's t = 0); samples
+    older than ``horizon`` [s] are dropped. :class:`GyroBuffer` integrates rates into
+    rotations, :class:`core.odometry.OdometryBuffer` twists into displacements."""
 
     def __init__(self, start: float, horizon: float = 2.0) -> None:
         self.horizon = horizon
@@ -49,8 +39,7 @@ class IntervalBuffer:
         self._w: list[NDArray[np.float64]] = []
         self._period: float | None = None  # the sampling period, from the last regular interval
         self.bridged = 0                   # gaps of lost samples bridged so far
-        # Increments over covered intervals never change (samples are only appended), and the
-        # node asks for the same ones repeatedly (all bearings of one message share a stamp).
+        # The node asks for the same increments repeatedly (a message's bearings share a stamp).
         self._cache: dict[tuple[str, float, float], NDArray[np.float64]] = {}
 
     @property
@@ -69,8 +58,7 @@ class IntervalBuffer:
         return self._t[-1]
 
     def add(self, stamp: float, omega: NDArray[np.float64]) -> bool:
-        """Append a sample. Returns False (and ignores it) unless ``stamp`` is newer than the
-        newest sample."""
+        """Append a sample; False (ignored) unless ``stamp`` is newer than the newest."""
         if not stamp > self._t[-1]:
             return False
         omega = np.asarray(omega, dtype=float)
@@ -84,9 +72,8 @@ class IntervalBuffer:
             self._period = interval
         self._t.append(float(stamp))
         self._w.append(omega)
-        cutoff = stamp - self.horizon
-        drop = bisect.bisect_right(self._t, cutoff) - 1
-        if drop > 0 and drop < len(self._w):
+        drop = bisect.bisect_right(self._t, stamp - self.horizon) - 1
+        if 0 < drop < len(self._w):
             del self._t[:drop]
             del self._w[:drop]
         return True
@@ -105,12 +92,8 @@ class IntervalBuffer:
                    compose: Callable[[list[tuple[NDArray[np.float64], float]]],
                                      NDArray[np.float64]],
                    what: str) -> NDArray[np.float64]:
-        """``compose(segments(t0, t1))`` for a covered ``[t0, t1]`` (``t0 <= t1``), cached:
-        increments over covered intervals never change (samples are only appended).
-
-        Raises:
-            ValueError: the buffer does not cover ``[t0, t1]`` (``what`` names the buffer).
-        """
+        """``compose(segments(t0, t1))`` (``t0 <= t1``), cached: samples are only appended.
+        ValueError naming the buffer (``what``) if it does not cover ``[t0, t1]``."""
         if not self.covers(t0, t1):
             raise ValueError(f'{what} buffer covers [{self.start:.6f}, {self.end:.6f}], '
                              f'not [{t0:.6f}, {t1:.6f}]')
@@ -141,11 +124,8 @@ class GyroBuffer(IntervalBuffer):
     """Interval-average gyro samples of one agent: exact rotation increments."""
 
     def increment(self, t0: float, t1: float) -> NDArray[np.float64]:
-        """``R(t0)ᵀ R(t1)``: the body-frame rotation from ``t0`` to ``t1`` (either order).
-
-        Raises:
-            ValueError: the buffer does not cover ``[t0, t1]``.
-        """
+        """``R(t0)ᵀ R(t1)``: the body-frame rotation from ``t0`` to ``t1`` (either order);
+        ValueError if the buffer does not cover ``[t0, t1]``."""
         if t1 < t0:
             return self.increment(t1, t0).T
         return self.integrated(t0, t1, _rotation, 'gyro')

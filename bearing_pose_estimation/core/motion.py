@@ -1,8 +1,7 @@
 """Motion profiles (angular and linear velocities) and their exact-enough integration.
 
 A profile is declarative (no ``eval``): each component is a constant plus a sum of sinusoids
-``amplitude · sin(frequency · t + phase)`` (a cosine is a sine with phase π/2).
-:class:`ProfileSet` evaluates all agents at once, and integrates them exactly.
+``amplitude · sin(frequency · t + phase)``; :class:`ProfileSet` evaluates all agents at once.
 
 - Rotation: :func:`magnus_increment` gives the body-frame increment ``ΔR = R(t)ᵀ R(t+h)`` of
   ``dR/dt = R [ω(t)]x`` with the 4th-order Magnus integrator (two Gauss points); its local
@@ -11,8 +10,7 @@ A profile is declarative (no ``eval``): each component is a constant plus a sum 
   agent has one or the other): the world part is integrated in closed form
   (:meth:`ProfileSet.integral`), the body part by 3-point Gauss-Legendre quadrature of
   ``∫ ΔR(τ) v_b(t + τ) dτ`` with ``ΔR(τ)`` from the Magnus increment to each node
-  (:func:`body_displacement`): O(h⁵) locally, like the rotation.
-"""
+  (:func:`body_displacement`): O(h⁵) locally, like the rotation."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -80,11 +78,8 @@ class LinearVelocity:
 
 class ProfileSet:
     """The vector profiles of N agents (e.g. their angular velocities), evaluated in one
-    vectorised call.
-
-    Sinusoid parameters are packed into ``(N, 3, T)`` arrays (T = most terms of any
-    component; unused slots have zero amplitude).
-    """
+    vectorised call: sinusoids packed into ``(N, 3, T)`` arrays (T = most terms of any
+    component; unused slots have zero amplitude)."""
 
     def __init__(self, profiles: Sequence[VectorProfile]) -> None:
         n = len(profiles)
@@ -100,11 +95,10 @@ class ProfileSet:
                     self.amplitude[i, axis, k] = term.amplitude
                     self.frequency[i, axis, k] = term.frequency
                     self.phase[i, axis, k] = term.phase
-        # Skip the trigonometry entirely for constant-rate fleets (common in large scenarios).
+        # No trigonometry for constant-rate fleets (common in large scenarios).
         self._has_terms = bool(np.any(self.amplitude != 0.0))
         self.is_zero = not self._has_terms and not bool(np.any(self.constant != 0.0))
-        # Term-major contiguous copies: a loop over the few terms beats a sum over a short
-        # last axis (numpy reduces length-1..3 axes slowly).
+        # Term-major contiguous copies: a loop over the few terms beats a short-axis sum.
         self._terms = [(np.ascontiguousarray(self.amplitude[..., k]),
                         np.ascontiguousarray(self.frequency[..., k]),
                         np.ascontiguousarray(self.phase[..., k])) for k in range(n_terms)]
@@ -149,13 +143,9 @@ _GL3_WEIGHTS = (5.0 / 18.0, 8.0 / 18.0, 5.0 / 18.0)
 
 def magnus_increment(omega: ProfileSet, t: float | NDArray[np.float64],
                      h: float) -> NDArray[np.float64]:
-    """Body-frame increment ``ΔR`` over ``[t, t+h]`` for every agent, shape ``(N, 3, 3)``
-    (over ``[t_k, t_k + h]`` for times ``t`` ``(K,)``: ``(K, N, 3, 3)``).
-
-    4th-order Magnus expansion for right-multiplied dynamics ``dR/dt = R [ω]x``:
-    ``ΔR = exp(h/2 (ω₁ + ω₂) + √3 h²/12 (ω₁ × ω₂))`` with ω₁, ω₂ at the Gauss points
-    ``t + (1/2 ∓ √3/6) h``.
-    """
+    """Body-frame increment ``ΔR`` over ``[t, t+h]`` for every agent, ``(N, 3, 3)`` (times
+    ``t`` ``(K,)``: ``(K, N, 3, 3)``), by the 4th-order Magnus expansion for ``dR/dt = R [ω]x``:
+    ``ΔR = exp(h/2 (ω₁ + ω₂) + √3 h²/12 (ω₁ × ω₂))``, ω₁, ω₂ at ``t + (1/2 ∓ √3/6) h``."""
     w1 = omega(t + (0.5 - _SQRT3 / 6.0) * h)
     w2 = omega(t + (0.5 + _SQRT3 / 6.0) * h)
     return so3.exp(0.5 * h * (w1 + w2) + (_SQRT3 / 12.0) * h * h * so3.cross(w1, w2))
@@ -177,9 +167,8 @@ def body_displacement(omega: ProfileSet, v_body: ProfileSet, t: float | NDArray[
 
 def held_body_displacement(omega: ProfileSet, t: float, h: float,
                            u: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``∫_0^h ΔR(τ) dτ · u`` ``(N, 3)``: the displacement over ``[t, t+h]`` of agents whose
-    body-frame velocity ``u`` ``(N, 3)`` is held, in their body frame at t (3-point
-    Gauss-Legendre with the Magnus increment to each node, as :func:`body_displacement`)."""
+    """``∫_0^h ΔR(τ) dτ · u`` ``(N, 3)``: the displacement over ``[t, t+h]``, in the body frame
+    at t, of agents holding the body-frame velocity ``u`` (as :func:`body_displacement`)."""
     if omega.is_zero:
         return h * u
     out = np.zeros_like(u)
@@ -188,7 +177,6 @@ def held_body_displacement(omega: ProfileSet, t: float, h: float,
     return out
 
 
-# ----------------------------------------------------------------------------- yaw-only motion
 @dataclass(frozen=True)
 class YawSpline:
     """A yaw trajectory ``ψ(t)``: the clamped cubic spline (``ψ̇ = 0`` at the first and last
@@ -200,10 +188,8 @@ class YawSpline:
 
 
 class YawSplines:
-    """The yaw splines of N agents, evaluated in one call: ``ψ(t)``, ``ψ̇(t)`` ``(N,)``, the
-    exact rotation increment ``R_z(ψ(t+h) - ψ(t))`` and the displacement of a body-frame
-    velocity held over a step. The piecewise cubics (scipy's clamped ``CubicSpline``) are
-    evaluated directly, vectorised over agents that share their knots."""
+    """The yaw splines of N agents, evaluated in one call (scipy's clamped ``CubicSpline``
+    pieces evaluated directly, vectorised over agents that share their knots)."""
 
     def __init__(self, splines: Sequence[YawSpline]) -> None:
         from scipy.interpolate import CubicSpline

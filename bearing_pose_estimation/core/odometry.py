@@ -1,14 +1,12 @@
 """Odometry sample buffer: exact body-frame displacements between any two times.
 
-Sample meaning (the simulator node's convention, the analogue of the gyro's,
-:mod:`core.gyro`): a sample stamped ``t_k`` with body twist ``(v_k, ω_k)`` is the *interval
-average* over ``(t_{k-1}, t_k]``, the constant twist whose SE(3) exponential is the true pose
-increment over that interval: ``R(t_{k-1})ᵀ R(t_k) = exp(ω_k Δ)`` and
+As for the gyro (:mod:`core.gyro`), a sample stamped ``t_k`` with body twist ``(v_k, ω_k)`` is
+the *interval average* over ``(t_{k-1}, t_k]``, the constant twist whose SE(3) exponential is
+the true pose increment: ``R(t_{k-1})ᵀ R(t_k) = exp(ω_k Δ)`` and
 ``R(t_{k-1})ᵀ (p(t_k) - p(t_{k-1})) = J(ω_k Δ) v_k Δ`` (``J`` the left Jacobian of SO(3),
-:func:`so3.jacobian_apply`). Integrating the samples piecewise constant is then exact between
-sample stamps, for any motion; holding a sampled instantaneous velocity over a step instead
-leaves an O(h) bias (``../shared/estimators/de-carli-2024.md``, section 7).
-"""
+:func:`so3.jacobian_apply`). Integrated piecewise constant, it is exact between sample stamps
+for any motion; holding a sampled instantaneous velocity over a step leaves an O(h) bias
+(``../shared/estimators/de-carli-2024.md``, section 7)."""
 from __future__ import annotations
 
 import numpy as np
@@ -50,20 +48,12 @@ class OdometryBuffer(IntervalBuffer):
 
     def displacement(self, t0: float, t1: float) -> Array:
         """``R(t0)ᵀ (p(t1) - p(t0))``: the displacement from ``t0`` to ``t1 >= t0`` in the body
-        frame at ``t0`` [m], composing the samples' SE(3) exponentials.
-
-        Raises:
-            ValueError: the buffer does not cover ``[t0, t1]``.
-        """
+        frame at ``t0`` [m]; ValueError if the buffer does not cover ``[t0, t1]``."""
         return self.integrated(t0, t1, _pose, 'odometry')[9:]
 
     def rotation(self, t0: float, t1: float) -> Array:
-        """``R(t0)ᵀ R(t1)`` from the samples' angular rates (``t0 <= t1``): the rotation of an
-        agent whose gyro this receiver does not see (a neighbour's odometry).
-
-        Raises:
-            ValueError: the buffer does not cover ``[t0, t1]``.
-        """
+        """``R(t0)ᵀ R(t1)`` (``t0 <= t1``) from the samples' rates: the rotation of an agent
+        whose gyro this receiver does not see (a neighbour's odometry); ValueError as above."""
         return self.integrated(t0, t1, _pose, 'odometry')[:9].reshape(3, 3)
 
 

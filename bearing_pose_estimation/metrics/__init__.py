@@ -1,3 +1,2 @@
-"""What a run is measured by: the pose errors after each estimate frame's alignment and the
-recording of a run (:mod:`.results`), below the simulators, the monitor and the studies that
-all measure with them. No rclpy."""
+"""What a run is measured by (:mod:`.results`): the pose errors after each estimate frame's
+alignment and a run's recording, for the simulators, the monitor and the studies. No rclpy."""

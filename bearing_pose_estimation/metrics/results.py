@@ -1,23 +1,21 @@
 """Pose errors, measured as each method's estimate frame requires, and the recording of a run.
 
-The one place that turns true poses and estimates into errors, for the batch simulator, netsim
-and the DDS monitor. Estimates are first mapped to the world frame (:func:`to_world`):
+The one place (batch simulator, netsim, DDS monitor) that turns true poses and estimates into
+errors. Estimates are first mapped to the world frame (:func:`to_world`):
 
 - ``EstimateFrame.WORLD``: they are world poses already;
-- ``EstimateFrame.COMMON_YAW_TRANSLATION`` (no anchor): the estimates live in a frame related
-  to the world by one unknown yaw ``a`` and translation ``t``, ``p̂_i ≈ R_z(a) p_i + t``. The
-  alignment is exact and closed form: ``a*`` is the circular mean of the yaw offsets
-  ``ψ̂_i - ψ_i`` (it minimises ``Σ_i |e^{ιψ̂_i} - e^{ι(ψ_i + a)}|²``) and
-  ``t* = mean_i (p̂_i - R_z(a*) p_i)``; the same ``a*`` serves attitudes and positions, so a
-  yaw/position inconsistency is not hidden;
-- ``EstimateFrame.ANCHOR_BODY``: the estimates are in the anchor's body frame,
-  ``q̂_i ≈ R_aᵀ (p_i - p_a)``, ``Q̂_i ≈ R_aᵀ R_i``; in the world: ``p_a + R_a q̂_i``, ``R_a Q̂_i``
-  with the anchor's true pose. No fitting: the anchor fixes the gauge.
+- ``EstimateFrame.COMMON_YAW_TRANSLATION`` (no anchor): in a frame related to the world by one
+  unknown yaw ``a`` and translation ``t``, ``p̂_i ≈ R_z(a) p_i + t``. Aligned exactly in closed
+  form: ``a*`` is the circular mean of the yaw offsets ``ψ̂_i - ψ_i`` (it minimises
+  ``Σ_i |e^{ιψ̂_i} - e^{ι(ψ_i + a)}|²``), ``t* = mean_i (p̂_i - R_z(a*) p_i)``; one ``a*`` for
+  attitudes and positions, so a yaw/position inconsistency is not hidden;
+- ``EstimateFrame.ANCHOR_BODY``: in the anchor's body frame, ``q̂_i ≈ R_aᵀ (p_i - p_a)``,
+  ``Q̂_i ≈ R_aᵀ R_i``; in the world ``p_a + R_a q̂_i``, ``R_a Q̂_i`` with the anchor's true pose
+  (no fitting: the anchor fixes the gauge).
 
 Then, per agent: ``att_err`` is the geodesic angle of ``R_i R̂_iᵀ`` [rad]; ``pos_err`` is
 ``‖p_i − p̂_i‖`` [m]; ``att_dist_I`` is Boughellaba & Tayebi's ``|R̃_i|_I`` (their Fig. 2) and
-``pos_err_paper`` their ``‖p̃_i‖ = ‖p_i − R̃_i p̂_i‖`` (Fig. 3).
-"""
+``pos_err_paper`` their ``‖p̃_i‖ = ‖p_i − R̃_i p̂_i‖`` (Fig. 3)."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -45,9 +43,8 @@ class PoseErrors(NamedTuple):
 
 def to_world(frame: EstimateFrame, R: Array, p: Array, R_hat: Array, p_hat: Array,
              anchor: int | None = None) -> tuple[Array, Array]:
-    """Estimates ``R_hat`` ``(N, 3, 3)``, ``p_hat`` ``(N, 3)`` of the whole fleet, expressed in
-    the world frame with the alignment ``frame`` calls for (module docstring; ``anchor``: the
-    anchor's row, for ``ANCHOR_BODY``)."""
+    """The fleet's estimates ``R_hat`` ``(N, 3, 3)``, ``p_hat`` ``(N, 3)`` in the world frame,
+    aligned as ``frame`` calls for (``anchor``: the anchor's row, for ``ANCHOR_BODY``)."""
     if frame is EstimateFrame.WORLD:
         return R_hat, p_hat
     if frame is EstimateFrame.COMMON_YAW_TRANSLATION:
@@ -78,10 +75,9 @@ def pose_errors(frame: EstimateFrame, R: Array, p: Array, R_hat: Array, p_hat: A
 
 @dataclass
 class Trajectories:
-    """Positions of the whole fleet at a recording's times: the truth ``p`` and the estimates
-    ``p_hat`` in the world frame (after :func:`to_world` with the method's frame), both
-    ``(K, N, 3)`` [m], rows in the order of ``agents``; ``leaders``: the agents that know their
-    pose (the others estimate theirs)."""
+    """Positions of the whole fleet at a recording's times, ``(K, N, 3)`` [m], rows in the order
+    of ``agents``: the truth ``p`` and the estimates ``p_hat`` (world frame, :func:`to_world`);
+    ``leaders``: the agents that know their pose."""
 
     agents: list[str]
     leaders: list[str]
@@ -96,11 +92,10 @@ class Trajectories:
 
 @dataclass
 class Recording:
-    """Errors of every estimating agent (``followers``) at the recorded times: arrays ``(K, F)``
-    for K records and F agents, as in :class:`PoseErrors`; for moving fleets, optionally the
-    :class:`Trajectories` of every agent at the same times (``None`` otherwise); ``extra``:
-    method- or motion-specific columns ``(K,)`` by name (De Carli et al.: each pair's
-    relative-yaw error ``rel_yaw_err_<a>_<b>``, each robot's ``formation_err_<agent>_m``)."""
+    """Errors of every estimating agent (``followers``) at the recorded times, ``(K, F)`` as in
+    :class:`PoseErrors`; moving fleets' :class:`Trajectories` (else None); ``extra``: method- or
+    motion-specific columns ``(K,)`` by name (De Carli et al.: each pair's relative-yaw error
+    ``rel_yaw_err_<a>_<b>``, each robot's ``formation_err_<agent>_m``)."""
 
     t: Array
     followers: list[str]
@@ -116,10 +111,8 @@ class Recording:
            agents: list[str] | None = None, leaders: Sequence[str] = (),
            p: Sequence[Array] | None = None, p_hat: Sequence[Array] | None = None,
            extra: Mapping[str, Array] | None = None) -> Recording:
-        """A recording from the errors at each time (the one place one is assembled); with
-        ``agents`` (all N names, in row order), ``leaders`` and the true and world-frame
-        estimated positions ``p``, ``p_hat`` ``(N, 3)`` at each time, also their
-        :class:`Trajectories`."""
+        """A recording from the errors at each time; with ``agents`` (all N, in row order),
+        ``leaders`` and the positions ``p``, ``p_hat`` ``(N, 3)`` at each, its trajectories."""
         att_err, pos_err, att_dist_I, pos_err_paper = (
             np.array([r[c] for r in rows]) for c in range(len(PoseErrors._fields)))
         times = np.array(t, dtype=float)

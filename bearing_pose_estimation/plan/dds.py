@@ -1,7 +1,6 @@
-"""The DDS environment of a run's processes, shared by the nodes (:mod:`ros`) and the
-launcher (:mod:`cli.launch`): the domain and environment they run in, how a node whose DDS
-teardown hung ends (:data:`TEARDOWN_WATCHDOG_SIGNAL`), and the Fast DDS shared-memory files a
-participant leaves in /dev/shm. No rclpy.
+"""The DDS environment of a run's processes, for the nodes (:mod:`ros`) and the launcher
+(:mod:`cli.launch`): domain, environment, how a hung DDS teardown ends, and the Fast DDS files
+a participant leaves in /dev/shm. No rclpy.
 """
 from __future__ import annotations
 
@@ -14,18 +13,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import IO
 
-# How a node ends whose DDS teardown hung after its work was done (ros.node_main's watchdog):
-# a Fast DDS deadlock in deleting the participant, eProsima/Fast-DDS#6502. Nothing else in a
-# run raises it, so the launcher (cli.launch) tells it from a crash; the participant's files
-# stay in /dev/shm and the launcher removes them (clean_shm).
+# How a node ends whose DDS teardown hung after its work was done (ros.node_main's watchdog;
+# a Fast DDS deadlock, eProsima/Fast-DDS#6502). Nothing else raises it, so the launcher tells
+# it from a crash, and removes the files the participant left in /dev/shm (clean_shm).
 TEARDOWN_WATCHDOG_SIGNAL = signal.SIGALRM
 TEARDOWN_HUNG = -TEARDOWN_WATCHDOG_SIGNAL
 CLEAN_EXITS = (0, TEARDOWN_HUNG)
 
 
 def private_domain_id() -> int:
-    """A per-run ROS_DOMAIN_ID in 1..101 (0, the default everyone uses, is avoided), so two
-    runs on one machine do not see each other."""
+    """A per-run ROS_DOMAIN_ID in 1..101 (not the default 0): runs do not see each other."""
     return 1 + os.getpid() % 101
 
 
@@ -66,10 +63,8 @@ def _shm_in_use() -> set[str]:
 
 
 def leaked_shm(before: set[str], lockless: bool = False) -> list[str]:
-    """Fast DDS files created since ``before`` that no live process uses: what a participant
-    killed without a clean shutdown leaves (with ``lockless``, also the port files Fast DDS
-    keeps after clean exits, :func:`_lockless_port`). Other processes' live files do not
-    count, so this works on a machine where other ROS programs (or test runs) are active."""
+    """Fast DDS files created since ``before`` that no live process uses (what a killed
+    participant leaves; with ``lockless``, also :func:`_lockless_port` files)."""
     new = shm_files() - before
     if not new:
         return []
@@ -80,11 +75,10 @@ def leaked_shm(before: set[str], lockless: bool = False) -> list[str]:
 
 
 def _lockless_port(path: str) -> bool:
-    """A shared port file without its ``_el`` lock. Fast DDS sometimes keeps one after every
-    process exited cleanly: rarely in runs (twice in ~40), but in one run out of two or three
-    with 20 to 34 processes of one domain (``bench/discovery_limit.py``, 2026-12-06), and
-    ``fastdds shm clean`` does not count it as a zombie. What a killed participant leaves is
-    its own segment and lock, which are still reported."""
+    """A shared port file without its ``_el`` lock, which Fast DDS sometimes keeps after clean
+    exits (twice in ~40 runs; one run in two or three with 20 to 34 processes of a domain,
+    ``bench/discovery_limit.py``, 2026-12-06) and ``fastdds shm clean`` keeps too. A killed
+    participant leaves its own segment and lock, which are still reported."""
     name = Path(path).name
     return name.startswith('fastrtps_port') and not name.endswith('_el') \
         and not Path(path + '_el').exists()
@@ -96,15 +90,10 @@ def _remove(path: str) -> None:
 
 
 def clean_shm(before: set[str], err: IO[str] | None = None) -> list[str]:
-    """Remove the Fast DDS files this run left in /dev/shm (created since ``before``, used by
-    no live process: what a participant that was never released leaves, e.g. after the
-    teardown watchdog ended a Fast DDS deadlock), saying so; return those that remain. The
-    lock-less port files Fast DDS keeps after clean exits go too, silently."""
+    """Remove the Fast DDS files this run left in /dev/shm (:func:`leaked_shm`), saying so
+    (lock-less port files silently); return those that remain."""
     err = err or sys.stderr
-    # One scan of /proc. Fast DDS's own lock-less port files (:func:`_lockless_port`), kept
-    # after clean exits, are not a failure, but litter once no process uses them (large fleets
-    # leave them often): removed without a word.
-    unused = leaked_shm(before, lockless=True)
+    unused = leaked_shm(before, lockless=True)   # one scan of /proc
     leaked = [f for f in unused if not _lockless_port(f)]
     for f in unused:
         _remove(f)

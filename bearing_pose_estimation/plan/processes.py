@@ -1,9 +1,6 @@
-"""The process plan of a run: which processes ``bearing-pose run`` starts (and
-``launch/fleet.launch.py`` and the ``fleet.launch.xml`` a run writes), with which command
-lines, namespaces and parameter files, decided before any process starts.
-
-:mod:`cli.launch` starts and supervises what is planned here; the nodes (:mod:`ros`) read the
-parameter files it writes. No rclpy, and nothing here starts a process.
+"""The process plan of a run: the processes ``bearing-pose run`` (and
+``launch/fleet.launch.py``, and the ``fleet.launch.xml`` a run writes) starts, with their
+command lines, namespaces and parameter files. :mod:`cli.launch` starts them. No rclpy.
 """
 from __future__ import annotations
 
@@ -20,8 +17,7 @@ from ..scenario.model import Scenario
 
 PACKAGE = 'bearing_pose_estimation'
 NODE_EXECUTABLES = ('estimator', 'estimators', 'simulator', 'monitor')
-# Overrides the executable lookup (a folder holding estimator, simulator, monitor): for tests
-# and for trying stand-in or locally modified nodes without reinstalling.
+# A folder of node executables that replaces the lookup (tests, stand-in or modified nodes).
 BIN_DIR_ENV = 'BEARING_POSE_BIN_DIR'
 
 
@@ -29,28 +25,21 @@ class LaunchError(RuntimeError):
     """The run cannot start or did not finish. The message names the cause and the fix."""
 
 
-# With ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (every run here), Fast DDS (rclpy 7.1.6's
-# rmw_fastrtps) finds the other participants of a domain at the ports of participant ids
-# 0-31: two processes that both got an id of 32 or more never discover each other (measured:
-# the 33rd and 34th processes of a domain never matched, the 32nd and 33rd did at once;
-# BENCHMARKS.md, "Discovery"). A run therefore uses at most this many processes, which also
-# leaves any number of observers (RViz, ros2 CLI) able to see the whole fleet.
+# With ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, Fast DDS (rclpy 7.1.6's rmw_fastrtps) looks
+# for participants at the ports of ids 0-31 only: two processes with ids >= 32 never discover
+# each other (measured: BENCHMARKS.md, "Discovery"). A run uses at most this many processes,
+# so observers (RViz, ros2 CLI) still see the whole fleet.
 MAX_PROCESSES = 32
 
 
 def processes_needed(n_agents: int, agents_per_process: int, rviz: bool = False) -> int:
-    """The processes of a run: the estimators', the monitor, the simulator (and
-    fleet_markers with ``rviz``)."""
+    """The estimators', the monitor, the simulator (and fleet_markers with ``rviz``)."""
     return -(-n_agents // max(1, agents_per_process)) + 2 + int(rviz)
 
 
 def fit_agents_per_process(n_agents: int, requested: int | None, rviz: bool = False) -> int:
-    """``requested`` agents per process, or for None the fewest that keep the run within
-    :data:`MAX_PROCESSES` (1 when one process per agent fits).
-
-    Raises:
-        LaunchError: ``requested`` needs more processes than discovery on localhost allows.
-    """
+    """``requested`` agents per process (LaunchError if that needs more than
+    :data:`MAX_PROCESSES`), or for None the fewest that keep the run within it."""
     fewest = next(k for k in range(1, max(n_agents, 1) + 1)
                   if processes_needed(n_agents, k, rviz) <= MAX_PROCESSES)
     if requested is None:
@@ -64,12 +53,10 @@ def fit_agents_per_process(n_agents: int, requested: int | None, rviz: bool = Fa
     return requested
 
 
-# ----------------------------------------------------------------------------- set-up
 def find_executable(name: str, bin_dir: Path | None = None) -> Path:
-    """Locate a node executable as ``ros2 run`` would: each ``AMENT_PREFIX_PATH`` prefix's
-    ``lib/<package>/`` (colcon install), then the running interpreter's ``bin/`` (pip editable
-    install into .venv). ``bin_dir`` (or ``$BEARING_POSE_BIN_DIR``) replaces both."""
-    bin_dir = bin_dir if bin_dir is not None else _env_path(BIN_DIR_ENV)
+    """A node executable as ``ros2 run`` finds it (``<AMENT_PREFIX_PATH>/lib/<package>/``),
+    else beside the interpreter (.venv); ``bin_dir`` (or ``$BEARING_POSE_BIN_DIR``) instead."""
+    bin_dir = bin_dir or (Path(os.environ[BIN_DIR_ENV]) if os.environ.get(BIN_DIR_ENV) else None)
     if bin_dir is not None:
         candidates = [Path(bin_dir) / name]
     else:
@@ -83,11 +70,6 @@ def find_executable(name: str, bin_dir: Path | None = None) -> Path:
     raise LaunchError(f"cannot find the node executable '{name}' (looked in: {looked}). "
                       'Fix: run scripts/dev.sh setup (installs it into .venv/bin), or '
                       '`colcon build` and `source install/setup.bash`')
-
-
-def _env_path(var: str) -> Path | None:
-    value = os.environ.get(var)
-    return Path(value) if value else None
 
 
 BAG_DIR = 'bag'   # `run --record`: the rosbag2 directory in the output directory
@@ -132,32 +114,28 @@ class RunConfig:
 
 
 def write_params(scenario: Scenario, cfg: RunConfig) -> dict[str, Path]:
-    """One standard ROS 2 parameter file per process (``/<ns>/<node>: ros__parameters:``),
-    so a real robot can be started with the same file. Returns process name -> file."""
+    """One standard ROS 2 parameter file per process (a real robot can start with it):
+    process name -> file."""
     cfg.params_dir.mkdir(parents=True, exist_ok=True)
-    scenario_file = str(cfg.scenario_file)
     ns = _fleet_ns(cfg.fleet_namespace)
-    files: dict[str, dict[str, Any]] = {
-        agent.name: {f'{ns}/{agent.name}/estimator': {'ros__parameters': {
-            'scenario_file': scenario_file, 'agent': agent.name, 'use_sim_time': True}}}
-        for agent in scenario.agents
-    }
-    files['simulator'] = {f'{ns}/simulator': {'ros__parameters': {
-        'scenario_file': scenario_file, 'duration': float(cfg.duration),
-        'real_time_factor': float(cfg.real_time_factor), 'use_sim_time': False,
-        **({'monitor_records': True} if cfg.record else {})}}}
-    files['monitor'] = {f'{ns}/monitor': {'ros__parameters': {
-        'scenario_file': scenario_file, 'duration': float(cfg.duration),
-        'out_dir': str(cfg.out_dir), 'plots': bool(cfg.plots), 'use_sim_time': True,
-        **({'bag': str(cfg.bag_dir)} if cfg.record else {})}}}
+
+    def node(path: str, **params: Any) -> dict[str, Any]:
+        return {f'{ns}/{path}': {'ros__parameters': {'scenario_file': str(cfg.scenario_file),
+                                                     **params}}}
+
+    files = {a.name: node(f'{a.name}/estimator', agent=a.name, use_sim_time=True)
+             for a in scenario.agents}
+    files['simulator'] = node('simulator', duration=float(cfg.duration),
+                              real_time_factor=float(cfg.real_time_factor), use_sim_time=False,
+                              **({'monitor_records': True} if cfg.record else {}))
+    files['monitor'] = node('monitor', duration=float(cfg.duration), out_dir=str(cfg.out_dir),
+                            plots=bool(cfg.plots), use_sim_time=True,
+                            **({'bag': str(cfg.bag_dir)} if cfg.record else {}))
     if cfg.rviz:
-        files[MARKERS] = {f'{ns}/{MARKERS}': {'ros__parameters': {
-            'scenario_file': scenario_file, 'use_sim_time': True}}}
-    paths = {}
+        files[MARKERS] = node(MARKERS, use_sim_time=True)
     for name, content in files.items():
-        paths[name] = cfg.params_dir / f'{name}.yaml'
-        paths[name].write_text(yaml.safe_dump(content, sort_keys=False))
-    return paths
+        (cfg.params_dir / f'{name}.yaml').write_text(yaml.safe_dump(content, sort_keys=False))
+    return {name: cfg.params_dir / f'{name}.yaml' for name in files}
 
 
 @dataclass(frozen=True)
@@ -181,8 +159,7 @@ def _fleet_ns(fleet: str) -> str:
 
 
 def estimator_groups(agents: Sequence[str], agents_per_process: int) -> dict[str, list[str]]:
-    """The ``estimators`` processes of :func:`plan_processes` for ``agents_per_process`` > 1:
-    name (``estimators_<g>``) -> its consecutive agents."""
+    """``estimators_<g>`` -> its consecutive agents (:func:`plan_processes`)."""
     return {f'estimators_{g}': list(agents[start:start + agents_per_process])
             for g, start in enumerate(range(0, len(agents), agents_per_process))}
 
@@ -190,10 +167,8 @@ def estimator_groups(agents: Sequence[str], agents_per_process: int) -> dict[str
 def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Path,
                    exe: Callable[[str], Path], agents_per_process: int = 1,
                    fleet: str = '') -> list[ProcessSpec]:
-    """Command lines in start order: estimators, monitor, simulator (the simulator waits for
-    every subscriber to match before it starts the clock at t = 0). With
-    ``agents_per_process`` > 1, consecutive agents share an ``estimators`` process. With a
-    ``fleet`` namespace, every node runs under it and reads its simulator's clock there."""
+    """Command lines in start order: estimators, monitor, simulator (which starts the clock
+    once every subscriber matched). With a ``fleet`` namespace, every node runs under it."""
     specs = []
     agents = [a.name for a in scenario.agents]
     ns = _fleet_ns(fleet)
@@ -210,9 +185,7 @@ def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Pat
         for name, group in estimator_groups(agents, agents_per_process).items():
             argv = [str(exe('estimators')), '--params-dir', str(params[group[0]].parent)]
             argv += ['--fleet-namespace', fleet.strip('/')] if ns else []
-            for agent in group:
-                if agent in scenario.leaders:
-                    argv += ['--leader', agent]
+            argv += [x for agent in group if agent in scenario.leaders for x in ('--leader', agent)]
             argv += group
             specs.append(ProcessSpec(name, 'estimators', tuple(argv), logs_dir / f'{name}.log'))
     for name in ('monitor', MARKERS, 'simulator'):
@@ -227,15 +200,13 @@ def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Pat
 
 
 LAUNCH_FILE = 'fleet.launch.xml'
-# The environment a run sets for its children that a launch file must set too.
 _LAUNCH_ENV = ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')
 
 
 @dataclass(frozen=True)
 class LaunchNode:
-    """One process of :func:`plan_processes` as a launch file starts it (``launch_ros``'s
-    ``Node`` arguments): its executable, node name and namespace (None: the process names
-    its own nodes), remappings, parameter files, ``-p`` parameters and other arguments."""
+    """A planned process as ``launch_ros``'s ``Node`` arguments (``name`` and ``namespace``
+    None: the process names its own nodes)."""
 
     executable: str
     name: str | None
@@ -247,8 +218,8 @@ class LaunchNode:
 
 
 def launch_nodes(specs: list[ProcessSpec]) -> list[LaunchNode]:
-    """The processes ``specs`` as launch-file nodes: what their command lines say, read back
-    (the one source for ``fleet.launch.xml`` and the installed ``launch/fleet.launch.py``)."""
+    """``specs`` read back from their command lines, for ``fleet.launch.xml`` and
+    ``launch/fleet.launch.py``."""
     nodes = []
     for spec in specs:
         rest = list(spec.argv[1:])
@@ -278,10 +249,8 @@ def launch_nodes(specs: list[ProcessSpec]) -> list[LaunchNode]:
 
 
 def launch_xml(specs: list[ProcessSpec], env: Mapping[str, str]) -> str:
-    """The processes ``specs`` (as :func:`plan_processes` plans them) as a ROS 2 XML launch
-    file: one ``<node>`` each (:func:`launch_nodes`), and the DDS environment of ``env``
-    (loopback discovery, the run's domain) set first. ``ros2 launch`` on a Jazzy install then
-    starts the same fleet as ``bearing-pose run``."""
+    """``specs`` as a ROS 2 XML launch file (the DDS environment of ``env``, then a ``<node>``
+    each): ``ros2 launch`` starts the same fleet as ``bearing-pose run``."""
     import xml.etree.ElementTree as ET
 
     root = ET.Element('launch')

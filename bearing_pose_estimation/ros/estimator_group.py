@@ -1,20 +1,16 @@
 """``estimators``: several agents' estimator nodes in one process, spun by one executor.
 
 Each agent keeps its own node (namespace ``/<agent>``, or ``/<fleet>/<agent>`` with
-``--fleet-namespace``), its own parameter file and its own
-remaps, exactly as a separate ``estimator`` process would have: only the process (a Python
-interpreter and a DDS participant) is shared.
+``--fleet-namespace``), its own parameter file and its own remaps, exactly as a separate
+``estimator`` process would have: only the process (a Python interpreter and a DDS
+participant) is shared. ``--params-dir DIR`` holds each agent's parameter file,
+``DIR/<agent>.yaml`` (what ``bearing-pose run`` writes); ``--leader A`` (repeatable) remaps
+agent A's ``known_pose`` to ``ground_truth`` (simulation).
 
-    estimators --params-dir DIR [--leader A ...] AGENT [AGENT ...] [--ros-args ...]
-
-``DIR/<agent>.yaml`` is each agent's parameter file (what ``bearing-pose run`` writes);
-``--leader A`` (repeatable) remaps agent A's ``known_pose`` to ``ground_truth`` (simulation).
-
-With ``use_sim_time``, the process reads ``/clock`` once: the first agent's time source drives
-every agent's clock (:func:`share_clock`). The first agent's ``use_sim_time`` then rules them
-all. The agents' steps run together, one call of the method's step for all those ready once
-the queued messages are handled (:mod:`.step_batch`; ``--separate-steps``: each agent on its
-own, for comparisons). With ``BEARING_POSE_CPU_SPLIT=1`` in its environment the process also
+With ``use_sim_time``, the process reads ``/clock`` once (:func:`share_clock`); the first
+agent's ``use_sim_time`` rules them all. The agents' steps run together, one call of the
+method's step for all those ready once the queued messages are handled (:mod:`.step_batch`;
+``--separate-steps``: each on its own). With ``BEARING_POSE_CPU_SPLIT=1`` the process also
 times its callbacks (~0.1 % of a core per agent) and its last log lines say where its CPU went
 (:meth:`.step_batch.StepBatch.cpu_split`; ``bench/cpu_split.py``).
 """

@@ -3,19 +3,17 @@ until rclpy's EventsExecutor measured cheaper (``node_main.EXECUTORS``, BENCHMAR
 as ``BEARING_POSE_EXECUTOR=draining``.
 
 rclpy's ``SingleThreadedExecutor`` rebuilds its wait set in Python on every wake-up and then
-runs *one* callback, wrapped in a Task; its cost per message grows with the number of entities
-in the process. Measured with ``bench/executor_ceiling.py`` (receiver CPU per message, all
-threads): 262 µs with one subscription, 436-553 µs with 8 (one agent), 1 644 µs with 40 (five
-agents), against 99-144 µs for a loop that waits once and then takes *every* queued message of
-each ready subscription. This is that loop, for the entities our nodes use. The messages taken
-in one go are handed to their callbacks in arrival order across subscriptions (DDS reception
-stamps), so a node sees the same sequence as with a one-message-at-a-time executor.
+runs *one* callback, wrapped in a Task; its cost per message grows with the entities in the
+process (``bench/executor_ceiling.py``, receiver CPU per message, all threads): 262 µs with one
+subscription, 436-553 µs with 8 (one agent), 1 644 µs with 40 (five agents), against 99-144 µs
+for this loop, which waits once and then takes *every* queued message of each ready
+subscription, handed to their callbacks in arrival order across subscriptions (DDS reception
+stamps): a node sees the same sequence as with a one-message-at-a-time executor.
 
-Semantics kept from rclpy: timers fire when ready (``call_timer`` then the callback), services
-answer (the parameter services), QoS event handlers (waitables) run, guard-condition callbacks
-run, ``wake()``/``shutdown()`` work. Not supported: clients (our nodes have none; adding a node
-with a client raises) and callback groups' mutual exclusion (irrelevant on one thread). Callbacks
-must be plain functions; a coroutine callback raises ``TypeError``.
+Kept from rclpy: timers (``call_timer`` then the callback), services (the parameter services),
+QoS event handlers (waitables), guard-condition callbacks, ``wake()``/``shutdown()``. Not
+supported: clients (adding a node with one raises) and callback groups' mutual exclusion
+(irrelevant on one thread). A coroutine callback raises ``TypeError``.
 """
 from __future__ import annotations
 
@@ -48,9 +46,8 @@ def _run_coroutine(coro: Any) -> None:
 
 
 class DrainingExecutor(Executor):
-    """Wait once on every entity of every node, then run everything that is ready: all queued
-    messages of every ready subscription, in the order they arrived, then timers, services,
-    QoS events and guard conditions."""
+    """Wait once on every entity of every node, then run everything ready: the queued messages
+    (in arrival order), then timers, services, QoS events and guard conditions."""
 
     def add_node(self, node: Node) -> bool:
         if any(True for _ in node.clients):  # a generator, always truthy itself
@@ -73,14 +70,11 @@ class DrainingExecutor(Executor):
         ws = _rclpy.WaitSet(len(subs), len(guards) + len(own_guards), len(timers), 0,
                             len(services), events, self._context.handle)
         ws.clear_entities()
-        for s in subs:
-            ws.add_subscription(s.handle)
-        for t in timers:
-            ws.add_timer(t.handle)
-        for srv in services:
-            ws.add_service(srv.handle)
-        for g in guards + own_guards:
-            ws.add_guard_condition(g.handle)
+        for add, entities in ((ws.add_subscription, subs), (ws.add_timer, timers),
+                              (ws.add_service, services),
+                              (ws.add_guard_condition, guards + own_guards)):
+            for entity in entities:
+                add(entity.handle)
         for w in waitables:
             w.add_to_wait_set(ws)
         ws.wait(timeout_sec_to_nsec(timeout_sec))

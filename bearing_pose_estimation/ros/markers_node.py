@@ -6,8 +6,6 @@ Reads every agent's ``estimate``, ``ground_truth`` (when a simulator publishes i
 true poses, the sensing graph's edges, the measured bearing rays) at ``rate`` [Hz] of its
 clock. In RViz: Fixed Frame = the scenario's ``world_frame``, add a MarkerArray display on that
 topic.
-
-Parameters: ``scenario_file``, ``rate`` [Hz].
 """
 from __future__ import annotations
 
@@ -47,8 +45,7 @@ class MarkersNode(Node):
                                      partial(self._on_pose, self.truth, name), wire.SIM_PUB_QOS,
                                      raw=True)
             self.create_subscription(wire.PointCloud2, wire.topic(name, wire.BEARINGS, fleet),
-                                     partial(self._on_bearings, name), wire.SENSOR_QOS,
-                                     raw=True)
+                                     partial(self._on_bearings, name), wire.SENSOR_QOS, raw=True)
         # Relative: /visualization_marker_array, or /<fleet>/visualization_marker_array.
         self.pub = self.create_publisher(rviz.MarkerArray, rviz.MARKERS.lstrip('/'), 1)
         self.timer = self.create_timer(1.0 / rate, self.publish_markers)

@@ -12,14 +12,12 @@ simulator.
 
 With ``bag`` set (``bearing-pose run --record``), it also records every estimate, truth,
 measurement and channel topic of the run into that new rosbag2 directory (:mod:`.recorder`).
-
-Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``out_dir``,
-``record_every`` [s], ``progress_every`` [s of sim time], ``plots``, ``bag``.
 """
 from __future__ import annotations
 
 import sys
 import time
+from array import array
 from collections import deque
 from functools import partial
 from pathlib import Path
@@ -44,35 +42,8 @@ from .node_main import declare, run_node, scenario_parameter, warn_unknown_param
 # After the last row, the bag keeps recording until no message came for BAG_QUIET_S [s of wall
 # time] (the simulator has stopped; what was in flight is in), BAG_DRAIN_MAX_S at most.
 BAG_QUIET_S, BAG_DRAIN_MAX_S = 0.5, 10.0
-
-
 # How many recorded instants the monitor remembers to ignore their repeats (25.6 s at 10 Hz).
 _RECENT = 256
-
-
-class _Rows:
-    """Rows of ``width`` doubles, appended one at a time, stored in chunks of ``chunk`` rows."""
-
-    def __init__(self, width: int, chunk: int = 1024) -> None:
-        self.width, self.chunk = width, chunk
-        self._chunks: list[np.ndarray] = []
-        self._n = 0
-
-    def __len__(self) -> int:
-        return self._n
-
-    def append(self, row: np.ndarray) -> None:
-        k = self._n % self.chunk
-        if k == 0:
-            self._chunks.append(np.empty((self.chunk, self.width)))
-        self._chunks[-1][k] = row
-        self._n += 1
-
-    def array(self) -> np.ndarray:
-        """``(n, width)``, a copy."""
-        if not self._chunks:
-            return np.empty((0, self.width))
-        return np.concatenate(self._chunks)[:self._n]
 
 
 def watched(scenario: Scenario) -> list[str]:
@@ -102,8 +73,8 @@ class MonitorNode(Node):
         self.followers = [a.name for a in s.followers]
         # Errors as the method's estimates require (the followers are every agent that
         # estimates; for methods without leaders, the whole fleet).
-        self.frame = s.estimator().frame
         self.method = s.estimator()
+        self.frame = self.method.frame
         # The method's margins on the whole fleet's estimates (Presenza et al.: angle
         # rigidity), on /diagnostics once per second of simulated time; min and last logged.
         self.pub_diag = self.create_publisher(DiagnosticArray, wire.DIAGNOSTICS, 10)
@@ -115,15 +86,15 @@ class MonitorNode(Node):
         self.tracks: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t, p, p̂ in world)
         # The instants recorded lately (older ones are below their minimum): bounded.
         self._recorded: deque[int] = deque(maxlen=_RECENT)
-        # t and the errors' four columns per record, as doubles in chunks: a long run's
-        # recording costs 8 bytes a value, not a Python object per row (issue 15's soak).
-        self.rows = _Rows(1 + len(PoseErrors._fields) * len(self.followers))
+        # t and the errors' four columns per record, as flat doubles: a long run's recording
+        # costs 8 bytes a value, not a Python object per row (issue 15's soak).
+        self.rows = array('d')
+        self.width = 1 + len(PoseErrors._fields) * len(self.followers)
         self._last_progress = -np.inf
         self.done = False
         self.finished = Future()  # completes once the outputs are written
         self.wall_start = time.monotonic()
         topic = partial(wire.topic, fleet=self.fleet)
-        # Poses as their serialised bytes (msg_defs/cdr.py): rclpy builds no message object.
         for k, name in enumerate(self.watched):
             self.create_subscription(wire.PoseStamped, topic(name, wire.GROUND_TRUTH),
                                      partial(self._on_pose, self._truth, k), wire.SIM_PUB_QOS,
@@ -167,14 +138,13 @@ class MonitorNode(Node):
         self._complete(ns)
 
     def _complete(self, ns: int) -> None:
-        n = len(self.followers)
+        n, s = len(self.followers), self.scenario
         truth, est = self._truth.get(ns, {}), self._est.get(ns, {})
         if len(truth) < len(self.watched) or len(est) < n:
             return
         R = np.stack([truth[k][0] for k in range(len(self.watched))])
         p = np.stack([truth[k][1] for k in range(len(self.watched))])
         t = ns * 1e-9
-        s = self.scenario
         if self.whole:  # every agent: the leaders know their pose, the anchor is its frame
             R_hat, p_hat = R.copy(), p.copy()
             if s.anchor_index is not None:
@@ -183,19 +153,15 @@ class MonitorNode(Node):
             for k, i in enumerate(rows):
                 R_hat[i], p_hat[i] = est[k]
             errors = pose_errors(self.frame, R, p, R_hat, p_hat, rows, anchor=s.anchor_index)
-            if s.moves:
-                self.tracks.append((t, p, to_world(self.frame, R, p, R_hat, p_hat,
-                                                   s.anchor_index)[1]))
         else:
             R_hat = np.stack([est[k][0] for k in range(n)])
             p_hat = np.stack([est[k][1] for k in range(n)])
             errors = pose_errors(self.frame, R, p, R_hat, p_hat, anchor=s.anchor_index)
             if n == len(s.agents):
                 self._fleet_margins(t, R_hat, p_hat)
-            if s.moves and n == len(s.agents):   # every agent estimates: the whole fleet
-                self.tracks.append((t, p, to_world(self.frame, R, p, R_hat, p_hat,
-                                                   s.anchor_index)[1]))
-        self.rows.append(np.concatenate([[t], *errors]))
+        if s.moves and (self.whole or n == len(s.agents)):   # the whole fleet's estimates
+            self.tracks.append((t, p, to_world(self.frame, R, p, R_hat, p_hat, s.anchor_index)[1]))
+        self.rows.frombytes(np.concatenate([[t], *errors]).tobytes())
         del self._truth[ns], self._est[ns]
         self._recorded.append(ns)
         att, pos = errors.att_err, errors.pos_err
@@ -207,9 +173,9 @@ class MonitorNode(Node):
             self.finish()
 
     def recording(self) -> Recording | None:
-        if not len(self.rows):
+        if not self.rows:
             return None
-        rows = self.rows.array()
+        rows = np.array(self.rows).reshape(-1, self.width)
         rows = rows[np.argsort(rows[:, 0], kind='stable')]
         times = rows[:, 0].tolist()
         errors = [PoseErrors(*np.split(r, len(PoseErrors._fields))) for r in rows[:, 1:]]
@@ -229,8 +195,7 @@ class MonitorNode(Node):
         if values and (len(self.margins[next(iter(values))]) - 1) % max(
                 1, int(round(1e9 / self.record_ns))) == 0:
             status = DiagnosticStatus(name=f'{self.fleet}/monitor/fleet'.lstrip('/'),
-                                      hardware_id='monitor',
-                                      message='margins on the estimates')
+                                      hardware_id='monitor', message='margins on the estimates')
             status.values = [KeyValue(key='t_s', value=f'{t:.3f}')] + [
                 KeyValue(key=k, value=f'{v:.4g}') for k, v in values.items()]
             msg = DiagnosticArray(status=[status])
@@ -242,7 +207,7 @@ class MonitorNode(Node):
         if self.done:
             self._close_bag()   # interrupted while the bag drained
             return
-        self.done = True
+        self.done, s = True, self.scenario
         rec = self.recording()
         if rec is None:
             print('monitor: nothing recorded', file=sys.stderr)
@@ -250,42 +215,32 @@ class MonitorNode(Node):
             self.finished.set_result(False)
             return
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        summary = summarize(rec, scenario=self.scenario.name, source=self.scenario.source,
-                            mode='dds', step_s=self.scenario.step,
+        summary = summarize(rec, scenario=s.name, source=s.source, mode='dds', step_s=s.step,
                             wall_time_s=round(time.monotonic() - self.wall_start, 3),
                             complete=bool(rec.t[-1] >= self.duration - 1e-9))
         write_metrics_csv(rec, self.out_dir / 'metrics.csv')
         write_summary_json(summary, self.out_dir / 'summary.json')
         from ..studies.plots import write_role_outputs
-        write_role_outputs(rec, self.method.agent_groups(self.scenario.fleet()), self.out_dir,
-                           title=f'{self.scenario.name} over DDS: errors by role',
-                           plot=self.plots)
+        write_role_outputs(rec, self.method.agent_groups(s.fleet()), self.out_dir,
+                           title=f'{s.name} over DDS: errors by role', plot=self.plots)
         if self.plots:
             from ..studies.plots import TRAJECTORY_PLOT, plot_trajectories, write_plots
             write_plots(rec, self.out_dir)
             if rec.trajectories is not None:
                 plot_trajectories(rec, self.out_dir / TRAJECTORY_PLOT,
-                                  title=f'{self.scenario.name} over DDS: true and estimated '
-                                  'trajectories')
+                                  title=f'{s.name} over DDS: true and estimated trajectories')
         print(format_summary(summary), flush=True)
         for key, series in self.margins.items():
             t_min, v_min = min(series, key=lambda tv: tv[1])
             print(f'{key} on the estimates: min {v_min:.4g} (t = {t_min:g} s), last '
                   f'{series[-1][1]:.4g}', flush=True)
-        if self.recorder is None or not interrupted:
-            self._close_bag_later()
-        else:
+        if self.recorder is None or interrupted:
             self._close_bag()
             self.finished.set_result(True)
-
-    def _close_bag_later(self) -> None:
-        """Done: the bag still takes what is in flight (the messages up to t = duration that
-        the recorder's readers have not yet handed over), until they stop coming."""
-        recorder = self.recorder
-        if recorder is None:
-            self.finished.set_result(True)
             return
-        start = time.monotonic()
+        # The bag still takes what is in flight (the messages up to t = duration that the
+        # recorder's readers have not yet handed over), until they stop coming.
+        recorder, start = self.recorder, time.monotonic()
 
         def close_when_quiet() -> None:
             now = time.monotonic()

@@ -1,17 +1,11 @@
-"""The life cycle shared by every node's ``main``: init, spin, clean shutdown on Ctrl-C.
+"""The life cycle shared by every node's ``main``: init, spin, clean shutdown on Ctrl-C; and
+their parameters (:func:`declare`, :func:`warn_unknown_parameters`).
 
 Clean shutdown matters: a node that dies without destroying its DDS participant leaves Fast DDS
 files in /dev/shm. SIGINT and SIGTERM only ask the spin loop to stop; everything after happens
 on the main thread, in order (see :class:`_StopRequest`). Configuration errors
 (:class:`ScenarioError`, and rclpy's parameter exceptions) are logged as fatal with their fix
 and give exit code 1, without a traceback.
-
-Parameters: :func:`declare` declares one read-only parameter with its type taken from the
-default. It accepts what a ROS user writes (``frequency: 100`` for a float, ``[2, 1]`` for a
-list of floats, ``[]`` for an empty list) and turns any other type or an out-of-range value
-into a one-line :class:`ScenarioError` naming the parameter and the fix.
-:func:`warn_unknown_parameters` warns about keys of a parameter file that no node declared
-(``neighbour_timout``), which rclpy otherwise ignores silently.
 """
 from __future__ import annotations
 
@@ -40,12 +34,10 @@ from ..plan.dds import TEARDOWN_WATCHDOG_SIGNAL
 from ..scenario.model import Scenario
 from ..scenario.parse import load_scenario
 
-# Which executor spins the nodes: 'draining' (ours, the default; see executor.py and
-# BENCHMARKS.md) or 'rclpy' (its SingleThreadedExecutor), kept for comparisons.
-EXECUTOR_ENV = 'BEARING_POSE_EXECUTOR'
 # The nodes' executor, chosen by measurement (BENCHMARKS.md, "The executor"): rclpy's
 # EventsExecutor (C++; experimental in Jazzy, in the pinned 7.1.6), 0.87x the CPU of our
-# DrainingExecutor on the paper fleet; `BEARING_POSE_EXECUTOR` picks another.
+# DrainingExecutor (executor.py) on the paper fleet; EXECUTOR_ENV picks another (comparisons).
+EXECUTOR_ENV = 'BEARING_POSE_EXECUTOR'
 EXECUTORS: dict[str, Callable[[], Executor]] = {
     'events': EventsExecutor, 'draining': DrainingExecutor, 'rclpy': SingleThreadedExecutor}
 DEFAULT_EXECUTOR = 'events'
@@ -71,6 +63,8 @@ _EXAMPLES = {_T.BOOL: 'true', _T.INTEGER: '1', _T.DOUBLE: '1.0', _T.STRING: 'tex
              _T.STRING_ARRAY: '[agent_1, agent_2]', _T.BOOL_ARRAY: '[true, false]'}
 _ITEM = {_T.INTEGER_ARRAY: _T.INTEGER, _T.DOUBLE_ARRAY: _T.DOUBLE, _T.STRING_ARRAY: _T.STRING,
          _T.BOOL_ARRAY: _T.BOOL}
+_PYTHON: dict[Parameter.Type, Any] = {  # the Python types of a value of each scalar kind
+    _T.BOOL: bool, _T.INTEGER: int, _T.DOUBLE: (int, float), _T.STRING: str}
 
 
 def parameter_overrides(node: Node) -> dict[str, Parameter]:
@@ -83,14 +77,9 @@ def parameter_overrides(node: Node) -> dict[str, Parameter]:
 
 def _item(kind: Parameter.Type, value: Any) -> Any:
     """``value`` as a scalar of type ``kind`` (an int is a float too), or raise TypeError."""
-    if isinstance(value, bool) != (kind == _T.BOOL):
+    if isinstance(value, bool) != (kind == _T.BOOL) or not isinstance(value, _PYTHON.get(kind, ())):
         raise TypeError
-    if kind == _T.DOUBLE and isinstance(value, (int, float)):
-        return float(value)
-    if (kind == _T.INTEGER and isinstance(value, int)) or (kind == _T.STRING and isinstance(
-            value, str)) or kind == _T.BOOL:
-        return value
-    raise TypeError
+    return float(value) if kind == _T.DOUBLE else value
 
 
 def _given(name: str, kind: Parameter.Type, given: Parameter) -> Any:
@@ -118,26 +107,23 @@ def declare(node: Node, name: str, default: Any, description: str = '',
     """Declare a parameter whose type is the default's, and return its value (read-only
     unless ``read_only`` is False: the node then validates changes, and rclpy the range).
 
-    Integers are accepted where numbers are expected, and ``[]`` for any list. Another type,
-    or a number outside ``[low, high]``, raises a :class:`ScenarioError` naming the parameter
-    and the fix (rclpy would raise with a traceback, or accept 100 only as 100.0)."""
+    It accepts what a ROS user writes (``frequency: 100`` for a float, ``[2, 1]`` for a list of
+    floats, ``[]`` for any list). Another type, or a number outside ``[low, high]``, raises a
+    one-line :class:`ScenarioError` naming the parameter and the fix (rclpy would raise with a
+    traceback, or accept 100 only as 100.0)."""
     kind = Parameter.Type.from_parameter_value(default)
     descriptor = ParameterDescriptor(description=description, read_only=read_only)
-    if low is not None and high is not None:
-        if kind == _T.INTEGER:
-            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high),
-                                                     step=0)]
-        else:
-            descriptor.floating_point_range = [FloatingPointRange(from_value=float(low),
-                                                                  to_value=float(high),
-                                                                  step=0.0)]
     given = parameter_overrides(node).get(name)
     value = default if given is None else _given(name, kind, given)
     if low is not None and high is not None:
-        numbers = value if isinstance(value, list) else [value]
-        if any(not low <= v <= high for v in numbers):
+        if any(not low <= v <= high for v in (value if isinstance(value, list) else [value])):
             raise ScenarioError(f'parameter {name} must be in [{low:g}, {high:g}], but '
                                 f'{value!r} was given. Fix: a value in that range')
+        if kind == _T.INTEGER:   # step 0 (the default): no step
+            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high))]
+        else:
+            descriptor.floating_point_range = [
+                FloatingPointRange(from_value=float(low), to_value=float(high))]
     if value == [] and kind in _ITEM:  # declared with its type, without a value
         node.declare_parameter(name, kind, descriptor, ignore_override=True)
         return []
@@ -145,15 +131,13 @@ def declare(node: Node, name: str, default: Any, description: str = '',
 
 
 def warn_unknown_parameters(node: Node) -> list[str]:
-    """Warn (one log line) about given parameters this node never declared: rclpy ignores
-    them, so a misspelt key would silently keep its default. Returns them."""
+    """Warn (one log line) about given parameters this node never declared (``neighbour_timout``):
+    rclpy ignores them, so a misspelt key would silently keep its default. Returns them."""
     unknown = sorted(k for k in parameter_overrides(node) if not node.has_parameter(k))
     if unknown:
         known = sorted(node.list_parameters([], 0).names)  # depth 0: all
-        hints = []
-        for key in unknown:
-            close = difflib.get_close_matches(key, known, n=1)
-            hints.append(f'{key} (did you mean {close[0]}?)' if close else key)
+        close = {key: difflib.get_close_matches(key, known, n=1) for key in unknown}
+        hints = [f'{key} (did you mean {c[0]}?)' if c else key for key, c in close.items()]
         node.get_logger().warning(
             f'unknown parameter(s) ignored: {", ".join(hints)}. Known parameters: '
             f'{", ".join(known)}')
@@ -213,6 +197,7 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
     faulthandler.register(signal.SIGUSR1, all_threads=True)
     stop = _StopRequest()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    log = rclpy.logging.get_logger(name)
     node: N | None = None
     nodes: list[N] = []
     executor = None
@@ -234,8 +219,7 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
             if after_spin is not None:
                 after_spin(executor)
         if stop.signal is not None:
-            rclpy.logging.get_logger(name).info(
-                f'{signal.Signals(stop.signal).name}: shutting down')
+            log.info(f'{signal.Signals(stop.signal).name}: shutting down')
             if on_interrupt is not None:
                 on_interrupt(node)
         elif future is not None:
@@ -244,12 +228,11 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
         if node is not None and on_interrupt is not None:
             on_interrupt(node)
     except ScenarioError as exc:
-        rclpy.logging.get_logger(name).fatal(str(exc))
+        log.fatal(str(exc))
         code = 1
     except ParameterException as exc:  # e.g. `use_sim_time: 1`, declared by rclpy itself
-        rclpy.logging.get_logger(name).fatal(
-            f'parameter error: {exc}. Fix: give the parameter the type and range '
-            'it is declared with (see `ros2 param describe`) in the parameter file or -p')
+        log.fatal(f'parameter error: {exc}. Fix: give the parameter the type and range it is '
+                  'declared with (see `ros2 param describe`) in the parameter file or -p')
         code = 1
     finally:
         watchdog = threading.Timer(TEARDOWN_TIMEOUT_S, _teardown_hung, (name, code))
@@ -267,7 +250,7 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
             try:
                 each.destroy_node()
             except Exception as exc:  # noqa: BLE001
-                rclpy.logging.get_logger(name).warning(f'destroy_node failed: {exc!r}')
+                log.warning(f'destroy_node failed: {exc!r}')
         rclpy.try_shutdown()  # releases the DDS participant: no files left in /dev/shm
         signal.setitimer(signal.ITIMER_REAL, 0.0)
         faulthandler.unregister(TEARDOWN_WATCHDOG_SIGNAL)

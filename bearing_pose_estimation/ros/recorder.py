@@ -30,8 +30,7 @@ class BagRecorder:
 
     def __init__(self, node: Node, path: Path, topics: list[tuple[str, type]]) -> None:
         typestore = get_typestore(Stores.ROS2_JAZZY)
-        self.path = path
-        self.node = node
+        self.path, self.node = path, node
         self.counts: Counter[str] = Counter()
         self.writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
         self.writer.open()

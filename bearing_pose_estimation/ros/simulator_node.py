@@ -6,8 +6,7 @@ frame) and ``/<agent>/ground_truth``, plus ``/clock``, from :class:`sim.world.Wo
 ``relative_positions``, ``bearing_rates``, ``ranges``), each at its own rate. It is the only
 clock publisher; every other node runs with ``use_sim_time``. Within one instant the gyro
 sample goes out first (it completes the step that ends there), then the other sensors (the
-next step uses them). Every message is built as its serialised bytes (:mod:`msg_defs.cdr`)
-and published as such; the estimates are taken as bytes too.
+next step uses them). Messages are built and read as serialised bytes (:mod:`msg_defs.cdr`).
 
 Start: it waits until every estimator and the monitor are matched (subscriptions to its
 topics, and the estimators' own topics to each other) and every estimator has announced its
@@ -19,12 +18,6 @@ the slowest estimator's published state, like Gazebo's lockstep: runs go as fast
 estimators can. (The results do not depend on the machine's load because each estimator's step
 waits for the inputs of fixed instants, ``fixed_exchange``, not because of the pacing.)
 ``real_time_factor`` > 0 also caps the clock at that multiple of wall time.
-
-Parameters: ``scenario_file``, ``duration`` [s] (0: the scenario's), ``lockstep``, ``max_lag``
-[s], ``real_time_factor``, ``wait_for_monitor``, ``monitor_records`` (the monitor records a bag:
-the start waits for its readers too), ``wait_for_estimators``, ``start_timeout`` [s],
-``publish_clock`` (default true; false when another node owns ``/clock``, e.g. a bag replay:
-the stamps are simulated time either way).
 """
 from __future__ import annotations
 
@@ -71,17 +64,15 @@ class SimulatorNode(Node):
         self.max_lag = p('max_lag', 3.0 / s.publish_rate, 'lockstep lead [s]', 0.0, 1e6)
         self.rtf = p('real_time_factor', 0.0, 'cap on sim seconds per wall second; 0: none',
                      0.0, 1e6)
-        self.wait_for_monitor = p('wait_for_monitor', True, 'start only once the monitor is '
-                                  'matched')
+        self.wait_for_monitor = p('wait_for_monitor', True,
+                                  'start only once the monitor is matched')
         # False: start without each estimator's t0 announcement (fault studies: late joiners,
         # a restarted simulator). Use it with lockstep off, or a silent agent stops the clock.
         self.wait_for_estimators = p('wait_for_estimators', True, 'start only once every '
                                      'estimator announced its t0 state')
-        # The monitor's bag recorder reads the simulator's topics too (run --record).
         records = p('monitor_records', False, 'the monitor records a bag: the start waits for '
                     "its readers of the simulator's topics too")
-        self.start_timeout = p('start_timeout', 120.0, 'give up starting after this [s]',
-                               0.0, 1e6)
+        self.start_timeout = p('start_timeout', 120.0, 'give up starting after this [s]', 0.0, 1e6)
         # False: another node owns /clock (a bag replay, Gazebo); the stamps stay sim time.
         self.publish_clock = p('publish_clock', True, 'publish /clock (the simulated time)')
 
@@ -90,8 +81,7 @@ class SimulatorNode(Node):
                                 'the estimated yaws) needs the estimates inside the truth, '
                                 'which a simulator node cannot have. Fix: mode: exogenous (or '
                                 'bearing-pose run --formation-mode exogenous)')
-        problem = s.not_distributable()
-        if problem:
+        if problem := s.not_distributable():
             raise ScenarioError(f'{s.source}: {problem}')
         self.world = World(s)
         self.monitor_watches = set(watched(s))   # the agents whose truth the monitor reads
@@ -101,35 +91,20 @@ class SimulatorNode(Node):
         # The topics the estimators exchange, from what the scenario's method sends (a
         # channel of a sensor's readings rides on that sensor's topic: counted there).
         method = s.estimator()
-        self.channel_topics = list(dict.fromkeys(c.topic for c in method.sends
-                                                 if c.sensor is None))
+        self.channel_topics = list(dict.fromkeys(c.topic for c in method.sends if c.sensor is None))
         self.uses_bearings = method.uses(Sensor.BEARINGS)
-        # How many subscriptions each (agent, topic) gets from the estimators of the other
-        # agents (the table of runtime.table, ros.wiring).
+        # Subscriptions each (agent, topic) gets from the other agents' estimators (ros.wiring).
         self.link_subs = listener_counts(s)
-        self.pub_imu, self.pub_bearings, self.pub_truth = [], [], []
-        for name in self.names:
-            topic = lambda t, n=name: wire.topic(n, t, self.fleet)  # noqa: E731
-            qos = wire.SIM_PUB_QOS
-            self.pub_imu.append(self.create_publisher(wire.Imu, topic(wire.IMU), qos))
-            self.pub_bearings.append(
-                self.create_publisher(wire.PointCloud2, topic(wire.BEARINGS), qos))
-            self.pub_truth.append(
-                self.create_publisher(wire.PoseStamped, topic(wire.GROUND_TRUTH), qos))
-        # The moving-robot sensors the scenario simulates, and those the estimators read (the
-        # start waits for their subscriptions).
-        self.pub_sensors = {
-            name: [self.create_publisher(wire.SENSOR_TYPES[name],
-                                         wire.topic(a, wire.SENSOR_TOPICS[name], self.fleet),
-                                         wire.SIM_PUB_QOS) for a in self.names]
-            for name in self.world.sensor_every}
+        self.pub_imu = self._per_agent(wire.Imu, wire.IMU)
+        self.pub_bearings = self._per_agent(wire.PointCloud2, wire.BEARINGS)
+        self.pub_truth = self._per_agent(wire.PoseStamped, wire.GROUND_TRUTH)
+        self.pub_sensors = {name: self._per_agent(wire.SENSOR_TYPES[name], wire.SENSOR_TOPICS[name])
+                            for name in self.world.sensor_every}
         # The sensors each agent's own estimator reads (the others' readers: link_subs).
         self.sensors_read = {name for name in self.pub_sensors if Sensor(name) in method.measures
                              or (name == 'odometry' and method.uses(Sensor.ODOMETRY))}
-        self.pub_clock = (self.create_publisher(ClockMsg,
-                                                wire.fleet_topic(wire.CLOCK, self.fleet),
-                                                wire.CLOCK_QOS)
-                          if self.publish_clock else None)
+        self.pub_clock = (self.create_publisher(ClockMsg, wire.fleet_topic(wire.CLOCK, self.fleet),
+                                                wire.CLOCK_QOS) if self.publish_clock else None)
         # Estimators' progress: the stamp of each agent's latest estimate (lockstep pacing).
         self.progress = np.full(len(self.names), -np.inf)
         for k, name in enumerate(self.names):
@@ -140,8 +115,7 @@ class SimulatorNode(Node):
         self.monitor_ready = False
         if self.wait_for_monitor:
             self.create_subscription(Empty, wire.fleet_topic(wire.MONITOR_READY, self.fleet),
-                                     self._on_monitor_ready,
-                                     wire.LATCHED_QOS)
+                                     self._on_monitor_ready, wire.LATCHED_QOS)
         self.state = 'waiting'
         # How far the slowest estimate trailed the clock at each tick: µs of sim time -> ticks
         # (a few distinct values on the step grid; a list would grow with the run).
@@ -163,6 +137,10 @@ class SimulatorNode(Node):
                                f'{"" if self.publish_clock else ", no /clock"}; '
                                f'waiting for {waiting}')
         warn_unknown_parameters(self)
+
+    def _per_agent(self, msg_type: type, name: str) -> list[Any]:
+        return [self.create_publisher(msg_type, wire.topic(a, name, self.fleet),
+                                      wire.SIM_PUB_QOS) for a in self.names]
 
     def _on_monitor_ready(self, _msg: Empty) -> None:
         self.monitor_ready = True
@@ -189,18 +167,16 @@ class SimulatorNode(Node):
                 missing.append(pub.topic_name)
 
         for k, name in enumerate(self.names):
-            monitored = 1 if self.wait_for_monitor and name in followers else 0
+            monitored = int(self.wait_for_monitor and name in followers)
             short(self.pub_imu[k], 1)
-            short(self.pub_bearings[k], 1 if self.uses_bearings else 0)
+            short(self.pub_bearings[k], int(self.uses_bearings))
             for sensor, pubs in self.pub_sensors.items():
                 # The agent's own estimator, and link neighbours that read it (odometry, a
                 # sensor whose readings are a channel).
-                topic = wire.SENSOR_TOPICS[sensor]
-                short(pubs[k], 1 + self.link_subs[(name, topic)]
+                short(pubs[k], 1 + self.link_subs[(name, wire.SENSOR_TOPICS[sensor])]
                       if sensor in self.sensors_read else 0)
-            short(self.pub_truth[k],
-                  (1 if self.wait_for_monitor and name in self.monitor_watches else 0)
-                  + (1 if name in s.leaders else 0))
+            short(self.pub_truth[k], int(self.wait_for_monitor and name in self.monitor_watches)
+                  + int(name in s.leaders))
             # Every listener subscribes to each channel topic of the agent (link methods: the
             # neighbours that read it); the simulator and the monitor to its estimate as well.
             wanted = {topic: self.link_subs[(name, topic)] for topic in self.channel_topics}
@@ -250,7 +226,6 @@ class SimulatorNode(Node):
             self._publish(clock=w.tick % self.steps_per_clock == 0)
         if self.lockstep and w.t < self.duration - 1e-9:
             self._warn_if_stalled()
-        # How far the slowest estimator's published state trails the clock (sim seconds).
         behind = w.t - float(self.progress.min())
         if np.isfinite(behind):   # not before every estimator has published (no lockstep)
             self.lags[int(round(behind * 1e6))] += 1
@@ -310,22 +285,17 @@ class SimulatorNode(Node):
             v, omega = w.odometry()
             for i, name in enumerate(self.names):
                 pubs[i].publish(cdr.encode_odometry_raw(t, name, v[i], omega[i], w.odom_R[i],
-                                                        w.odom_p[i], spec.std,
-                                                        spec.angular_std))
+                                                        w.odom_p[i], spec.std, spec.angular_std))
             return
+        encode = cdr.encode_scalars_raw if sensor == 'ranges' else cdr.encode_vectors_raw
         for i, name in enumerate(self.names):
             j, values = w.sensed(sensor, i)
-            if sensor == 'ranges':
-                msg = cdr.encode_scalars_raw(t, wire.body_frame(name), j + 1, values)
-            else:
-                msg = cdr.encode_vectors_raw(t, wire.body_frame(name), j + 1, values)
-            pubs[i].publish(msg)
+            pubs[i].publish(encode(t, wire.body_frame(name), j + 1, values))
 
 
 def main(args: list[str] | None = None) -> None:
     # Spins until Ctrl-C; exits 1 by itself only if start-up fails.
-    raise SystemExit(run_node(SimulatorNode, 'simulator', args,
-                              until=lambda node: node.failed))
+    raise SystemExit(run_node(SimulatorNode, 'simulator', args, until=lambda node: node.failed))
 
 
 if __name__ == '__main__':

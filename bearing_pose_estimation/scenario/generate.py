@@ -1,26 +1,17 @@
 """Random valid scenarios of any size, reproducible from a seed.
 
-Agents are scattered in a cube with a minimum spacing. The leaders are near the centre, at
-least ``LEADER_SEPARATION_M`` apart, and the others are placed outwards from them; each follower
-sees 2-3 of its nearest already-placed agents, so the sensing graph is local, acyclic and every
-follower is reachable from both leaders (it sees both leaders or at least one follower). Some pair of a
-follower's bearings is at least ``MIN_SPREAD_DEG`` from collinear, which keeps ``M_i`` well
-conditioned (with 15 deg its smallest non-zero eigenvalue is only 0.03, and convergence crawls).
-An agent with no valid set yet is deferred until more agents are placed.
+Agents fill a cube ``MIN_SPACING_M`` apart, the leaders near the centre. Each follower sees 2-3
+of its nearest placed agents (both leaders or a follower: acyclic, reachable from both leaders),
+one pair at least ``MIN_SPREAD_DEG`` from collinear (at 15 deg the smallest non-zero eigenvalue
+of ``M_i`` is 0.03: convergence crawls). An agent with no valid set waits for more agents.
 
-Moving fleets (``speed > 0``): every agent gets the world-frame velocity of the moving paper
-scenario (``config/paper_8_agents_moving.yaml``),
-``v_a(t) = V (cos(w t + φ_a), sin(w t + φ_a), 0.3 cos(0.6 w t + 2 φ_a))``: a drift at speed V
-that turns at w rad/s (a circle of radius ``R = V / w``) with a slow vertical oscillation. All
-agents share the turning pattern and their phases ``φ_a`` differ little: a common random
-phase plus one uniform in ``±δ`` per agent. Two agents then move relative to each other by at
-most ``2√2 R |φ_a - φ_b| <= 4√2 R δ`` (both the horizontal and the vertical part of
-``∫ (v_a - v_b) dt`` are at most ``2 R |φ_a - φ_b|``), so ``δ`` keeps that below
-:data:`MAX_RELATIVE_DRIFT_M` (0.15 m): no two
-agents, at least ``MIN_SPACING_M`` apart at t = 0, ever come within
-``graph.CLOSE_APPROACH_M`` (by construction, no re-draw), and the fleet drifts without
-dispersing. The static part (positions, graph, rates, attitudes) is the static fleet of the same
-seed; the phases are drawn after it, so ``speed = 0`` writes exactly the static file.
+Moving fleets (``speed > 0``, as ``config/paper_8_agents_moving.yaml``): ``v_a(t) = V (cos(w t
++ φ_a), sin(w t + φ_a), 0.3 cos(0.6 w t + 2 φ_a))`` in the world frame, a circle of radius
+``R = V / w`` with a slow vertical oscillation. The phases ``φ_a`` are a common one plus one in
+``±δ``, so two agents move apart by at most ``2√2 R |φ_a - φ_b| <= 4√2 R δ`` (each part of
+``∫ (v_a - v_b) dt`` is at most ``2 R |φ_a - φ_b|``), which ``δ`` keeps below
+:data:`MAX_RELATIVE_DRIFT_M`: no close approach, by construction. The phases are drawn last, so
+``speed = 0`` writes exactly the static file of the same seed.
 """
 from __future__ import annotations
 
@@ -68,8 +59,7 @@ def _spread_ok(p: np.ndarray, i: int, nbrs: list[int]) -> bool:
 
 
 def _valid(p: np.ndarray, i: int, pick: list[int]) -> bool:
-    # Reachable from both leaders (0 and 1): sees both, or sees a follower (which, by
-    # induction, is reachable from both).
+    # Reachable from both leaders (0, 1): sees both, or a follower (by induction).
     return (any(j >= 2 for j in pick) or {0, 1} <= set(pick)) and _spread_ok(p, i, pick)
 
 
@@ -80,8 +70,8 @@ def _choose_neighbours(p: np.ndarray, i: int, placed: np.ndarray, tree: cKDTree,
     near = [int(j) for j in np.atleast_1d(idx) if placed[j]][:_CANDIDATES]
     if len(near) < 2:  # sparse corner: the nearest placed agents, wherever they are
         cand = np.flatnonzero(placed)
-        near = [int(j) for j in cand[np.argsort(np.linalg.norm(p[cand] - p[i], axis=1))]]
-        near = near[:_CANDIDATES]
+        near = [int(j) for j in cand[np.argsort(np.linalg.norm(p[cand] - p[i], axis=1))]
+                ][:_CANDIDATES]
     for _ in range(20):
         m = min(int(rng.integers(2, 4)), len(near))
         pick = sorted(int(j) for j in rng.choice(near, size=m, replace=False))
@@ -95,11 +85,7 @@ def _choose_neighbours(p: np.ndarray, i: int, placed: np.ndarray, tree: cKDTree,
 
 
 def _build_graph(p: np.ndarray, rng: np.random.Generator) -> tuple[list[int], dict[int, list[int]]]:
-    """Placement order (leaders 0 and 1 first) and each follower's neighbours.
-
-    Agents are placed nearest-to-centre first; one with no valid neighbour set among the placed
-    agents yet is deferred and retried once more agents are placed.
-    """
+    """Placement order (leaders 0 and 1 first, then outwards) and each follower's neighbours."""
     n = len(p)
     tree = cKDTree(p)
     placed = np.zeros(n, dtype=bool)
@@ -110,26 +96,24 @@ def _build_graph(p: np.ndarray, rng: np.random.Generator) -> tuple[list[int], di
     while queue:
         i = queue.popleft()
         pick = _choose_neighbours(p, i, placed, tree, rng)
-        if pick is None:
-            deferred += 1
-            if deferred > 4 * n:
-                raise RuntimeError('no valid sensing graph for these positions')
+        if pick is not None:
+            placed[i] = True
+            order.append(i)
+            nbrs[i] = pick
+        elif (deferred := deferred + 1) > 4 * n:
+            raise RuntimeError('no valid sensing graph for these positions')
+        else:
             queue.append(i)
-            continue
-        placed[i] = True
-        order.append(i)
-        nbrs[i] = pick
     return order, nbrs
 
 
 def _omega(rng: np.random.Generator) -> list[Any]:
     comps: list[Any] = []
-    for _ in range(3):
+    for _ in range(3):   # a constant plus one sinusoid each, drawn in this order
         const = round(float(rng.uniform(-1.0, 1.0)), 3)
         kind = 'sin' if rng.uniform() < 0.5 else 'cos'
-        term = {kind: round(float(rng.uniform(0.5, 5.0)), 3),
-                'amplitude': round(float(rng.uniform(-1.0, 1.0)), 3)}
-        comps.append([const, term])
+        comps.append([const, {kind: round(float(rng.uniform(0.5, 5.0)), 3),
+                              'amplitude': round(float(rng.uniform(-1.0, 1.0)), 3)}])
     return comps
 
 
@@ -140,32 +124,22 @@ def _velocities(n: int, speed: float, turn_rate: float,
     # Phases are rounded to 1e-4 rad: keep the bound with that slack.
     spread = float(np.clip(MAX_RELATIVE_DRIFT_M / (4.0 * np.sqrt(2.0) * radius) - 1e-4,
                            0.0, np.pi))
-    common = float(rng.uniform(0.0, 2.0 * np.pi))
-    phases = common + rng.uniform(-spread, spread, size=n)
+    phases = float(rng.uniform(0.0, 2.0 * np.pi)) + rng.uniform(-spread, spread, size=n)
     v, w = float(speed), float(turn_rate)
-    out = []
-    for phi in phases:
-        phi = round(float(phi), 4)
-        out.append({'world': [{'cos': w, 'amplitude': v, 'phase': phi},
-                              {'sin': w, 'amplitude': v, 'phase': phi},
-                              {'cos': round(0.6 * w, 12), 'amplitude': round(0.3 * v, 12),
-                               'phase': round(2.0 * phi, 4)}]})
-    return out
+    return [{'world': [{'cos': w, 'amplitude': v, 'phase': phi},
+                       {'sin': w, 'amplitude': v, 'phase': phi},
+                       {'cos': round(0.6 * w, 12), 'amplitude': round(0.3 * v, 12),
+                        'phase': round(2.0 * phi, 4)}]}
+            for phi in (round(float(x), 4) for x in phases)]
 
 
 def generate_scenario(n_agents: int, seed: int = 0, max_angle_deg: float = 90.0,
                       position_std: float = 1.0, speed: float = 0.0,
                       turn_rate: float = 0.5) -> dict[str, Any]:
-    """A scenario as a YAML-ready dict (see :func:`scenario.parse_scenario`).
-
-    Args:
-        n_agents: number of agents, >= 3 (two leaders).
-        seed: seeds positions, graph, rates, true attitudes, initial estimates and phases.
-        max_angle_deg: initial attitude errors are uniform in ``[0, max_angle_deg]``.
-        position_std: initial position errors are ``N(0, position_std²)`` per axis [m].
-        speed: V [m/s]; 0: a static fleet, else every agent drifts at V and turns at
-            ``turn_rate`` [rad/s], > 0 (module docstring).
-    """
+    """A scenario of ``n_agents`` >= 3 as a YAML-ready dict, everything drawn from ``seed``:
+    initial attitude errors uniform in ``[0, max_angle_deg]``, position errors
+    ``N(0, position_std²)`` per axis [m]; with ``speed`` V > 0 [m/s], a fleet drifting at V and
+    turning at ``turn_rate`` [rad/s] (module docstring)."""
     if n_agents < 3:
         raise ValueError('n_agents must be at least 3 (two leaders and one follower)')
     if not (np.isfinite(speed) and speed >= 0):
@@ -188,12 +162,9 @@ def generate_scenario(n_agents: int, seed: int = 0, max_angle_deg: float = 90.0,
     quats /= np.linalg.norm(quats, axis=1, keepdims=True)
     agents = []
     for k, i in enumerate(order):
-        a: dict[str, Any] = {
-            'name': names[k],
-            'position': [round(float(x), 4) for x in p[i]],
-            'attitude': {'quaternion': [float(x) for x in quats[k]]},
-            'angular_velocity': _omega(rng),
-        }
+        a: dict[str, Any] = {'name': names[k], 'position': [round(float(x), 4) for x in p[i]],
+                             'attitude': {'quaternion': [float(x) for x in quats[k]]},
+                             'angular_velocity': _omega(rng)}
         if i in nbrs:
             a['neighbours'] = [names[rank[j]] for j in nbrs[i]]
         agents.append(a)
@@ -204,17 +175,10 @@ def generate_scenario(n_agents: int, seed: int = 0, max_angle_deg: float = 90.0,
         command += f' --speed {speed:g} --turn-rate {turn_rate:g}'
         for a, velocity in zip(agents, _velocities(n_agents, speed, turn_rate, rng)):
             a['velocity'] = velocity
-    return {
-        'name': name,
-        'description': f'generated by `{command}`',
-        'method': 'boughellaba_tayebi',
-        'world_frame': 'world',
-        'gains': {'k_R': 1.0, 'k_p': 1.0, 'k_ij': 1.0},
-        'frequency': 100.0,
-        'duration': 60.0,
-        'noise': {'gyro_std': 0.0, 'bearing_std': 0.0, 'seed': seed},
-        'initial_estimates': {'random': {'seed': seed, 'position_std': position_std,
-                                         'max_angle_deg': max_angle_deg}},
-        'leaders': names[:2],
-        'agents': agents,
-    }
+    return {'name': name, 'description': f'generated by `{command}`',
+            'method': 'boughellaba_tayebi', 'world_frame': 'world',
+            'gains': {'k_R': 1.0, 'k_p': 1.0, 'k_ij': 1.0}, 'frequency': 100.0, 'duration': 60.0,
+            'noise': {'gyro_std': 0.0, 'bearing_std': 0.0, 'seed': seed},
+            'initial_estimates': {'random': {'seed': seed, 'position_std': position_std,
+                                             'max_angle_deg': max_angle_deg}},
+            'leaders': names[:2], 'agents': agents}

@@ -1,7 +1,5 @@
-"""The scenario model: typed, validated dataclasses (built by :mod:`.parse` from YAML).
-
-Units are SI; positions and attitudes (body → world) are in the scenario's ``world_frame``.
-"""
+"""The scenario model: typed, validated dataclasses (built by :mod:`.parse` from YAML). Units
+are SI; positions and attitudes (body → world) are in the scenario's ``world_frame``."""
 from __future__ import annotations
 
 import dataclasses
@@ -43,11 +41,8 @@ class Agent:
 
 @dataclass(frozen=True)
 class RandomInit:
-    """Random initial estimates for followers that give none explicitly.
-
-    ``p̂(0) = p + N(0, position_std² I)``; ``R̂(0) = R exp(θ u)``, u uniform on the sphere,
-    θ uniform in ``[0, max_angle_deg]``.
-    """
+    """Random initial estimates for followers that give none: ``p̂(0) = p + N(0, position_std²
+    I)``; ``R̂(0) = R exp(θ u)``, u uniform on the sphere, θ uniform in ``[0, max_angle_deg]``."""
 
     seed: int = 0
     position_std: float = 1.0
@@ -67,21 +62,17 @@ class BearingPerturbation:
 
 @dataclass(frozen=True)
 class Noise:
-    """Measurement noise, all off by default; applied by :mod:`bearing_pose_estimation.noise`.
+    """Measurement noise, all off by default; applied by :mod:`sim.noise`.
 
-    - ``gyro_std`` [rad/s]: white noise on each gyro sample (at ``simulation.imu_rate``),
-      per axis; the batch simulator averages it over the samples its step spans.
-    - ``gyro_bias`` [rad/s]: constant body-frame gyro bias, the same for every agent, plus
-      ``gyro_bias_std`` [rad/s]: each agent's own constant bias, drawn once per axis from
-      ``N(0, gyro_bias_std²)``. Measured rate = true + bias + white noise.
+    - ``gyro_std`` [rad/s]: white noise on each gyro sample (at ``simulation.imu_rate``), per
+      axis; ``gyro_bias`` [rad/s]: constant body-frame bias, the same for every agent, plus
+      each agent's own, drawn once per axis from ``N(0, gyro_bias_std²)``.
     - ``bearing_std`` [rad]: each bearing is turned by a random rotation perpendicular to it,
-      whose two angular components each have this standard deviation (so the RMS angle is
+      each of whose two components has this standard deviation (the RMS angle is
       ``√2 · bearing_std``: 1° gives 1.41°).
-    - ``bearing_perturbation``: the deterministic ``rot_X(θ0 sin 2πft)`` of each bearing.
-    - ``outlier_probability``: chance that a bearing is replaced by a uniformly random unit
-      vector.
-    - ``seed``: seeds every random draw, so a scenario and seed give the same run.
-    """
+    - ``bearing_perturbation``: the deterministic ``rot_X(θ0 sin 2πft)`` of each bearing;
+      ``outlier_probability``: chance that a bearing is replaced by a random unit vector.
+    - ``seed``: seeds every random draw, so a scenario and seed give the same run."""
 
     gyro_std: float = 0.0
     gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -102,9 +93,8 @@ class SensorSpec:
     rate: float
     std: float = 0.0
     angular_std: float = 0.0
-    # Bearing rates only: no sensor, the robots estimate them from consecutive bearings
-    # (core.bearing_rates), low-pass filtered with time constant `tau` [s]; 0 (raw
-    # differences) is the default: on case 1 the filter's lag costs more than the noise.
+    # Bearing rates only: estimated from consecutive bearings (core.bearing_rates), filtered
+    # with time constant `tau` [s]; 0 (raw) by default: on case 1 the lag costs more than noise.
     from_bearings: bool = False
     tau: float = 0.0
 
@@ -144,8 +134,7 @@ class FormationControl:
 
 @dataclass(frozen=True)
 class SimulationRates:
-    """How the simulator node samples the world. Truth is integrated with ``internal_step``
-    [s]; every sensor period must be a whole number of internal steps."""
+    """How the simulator node samples the world: every period a whole number of steps [s]."""
 
     internal_step: float = 0.001
     imu_rate: float = 200.0          # gyro samples [Hz], interval averages
@@ -159,15 +148,11 @@ class SimulationRates:
 
 def noise_model_gains(noise: Noise, simulation: SimulationRates,
                       sensors: Sensors) -> dict[str, float]:
-    """The covariance noise model (gains ``bearing_std`` [rad], ``bearing_rate_std`` [1/s],
-    ``relative_position_std`` [m], ``gyro_noise_density`` [rad/√s], ``odometry_noise_density``
-    [m/√s]) a simulation's
-    ``noise:`` and ``sensors:`` imply (each method reads the ones its gains have): a random
-    walk's density is the per-sample std over the square root of the rate."""
+    """The covariance noise model gains a simulation's ``noise:`` and ``sensors:`` imply (stds
+    [rad], [1/s], [m]; densities [rad/√s], [m/√s]: a per-sample std over √rate)."""
     rates = sensors.bearing_rates
-    # Rates differenced from consecutive bearings (at simulation.bearing_rate f): each
-    # sample's noise is σ √2 f (time correlated, which the covariance does not model); a
-    # filter's smoothing is not counted.
+    # Differenced from bearings at f = simulation.bearing_rate: σ √2 f per sample (correlated
+    # in time, which the covariance does not model; a filter's smoothing is not counted).
     rate_std = (noise.bearing_std * float(np.sqrt(2.0)) * simulation.bearing_rate
                 if rates.from_bearings else rates.std)
     return {'bearing_std': noise.bearing_std,
@@ -186,8 +171,7 @@ class Scenario:
     anchor: str | None = None   # the agent whose body frame the estimates use (anchor methods)
     ranged: tuple[str, ...] = ()   # the agents whose relative position the anchor measures
     anchor_pinned: bool = False    # the anchor holds (I, 0) instead of estimating its pose
-    # The roles of other methods (`leaders`, `anchor`, as a scenario file writes them), for
-    # `bearing-pose compare`: the scenario's own method does not use them.
+    # Other methods' roles (as a file writes them), for `bearing-pose compare`: unused here.
     other_roles: dict[str, Any] = field(default_factory=dict, compare=False)
     method: str = estimators.DEFAULT_METHOD   # the registry key (`estimators.methods()`)
     gains: Any = None          # the method's own Gains dataclass; None: its defaults
@@ -220,9 +204,8 @@ class Scenario:
         return estimators.build(self.method, self.gains)
 
     def fleet(self) -> Fleet:
-        """What the method knows of this fleet (:class:`estimators.fleet.Fleet`: agents,
-        sensing graph, roles, true poses and :func:`initial_estimates` at t = 0), built once:
-        the initial estimates come from the scenario's own seed, so it is always the same."""
+        """What the method knows of this fleet (:class:`estimators.fleet.Fleet`), built once
+        (the initial estimates come from the scenario's own seed)."""
         if self._fleet is None:
             R0, p0 = initial_estimates(self)
             positions = np.stack([a.position for a in self.agents])
@@ -244,9 +227,8 @@ class Scenario:
         return self._fleet
 
     def with_method(self, method: str, **gains: float) -> Scenario:
-        """The same scenario run by ``method``: each of its gains is the value of this
-        scenario's gain of the same name if there is one, else the default; then ``gains``.
-        (Same truth, initial estimates and noise: how methods are compared.)"""
+        """The same scenario (truth, initial estimates, noise) run by ``method``: each gain is
+        this scenario's of that name, else the noise model's, else the default; then ``gains``."""
         gains_cls = estimators.get(method).Gains
         mine = dataclasses.asdict(self.gains)
         model = noise_model_gains(self.noise, self.simulation, self.sensors)
@@ -298,8 +280,7 @@ class Scenario:
                 or (sensor == 'odometry' and self.moves))
 
     def provides(self, sensor: str) -> bool:
-        """The robots have ``sensor``'s values: simulated, or (bearing rates) estimated from
-        their bearings."""
+        """The robots have ``sensor``'s values: simulated, or bearing rates from bearings."""
         return self.simulates(sensor) or (sensor == 'bearing_rates'
                                           and self.sensors.bearing_rates.from_bearings)
 
@@ -326,25 +307,22 @@ class Scenario:
         return [a.name for a in self.agents if any(n.name == name for n in a.neighbours)]
 
     def sensing_edges(self) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-        """``(tail, head)`` agent indices of every sensing edge (agent i measures its
-        neighbour j), agents in order, each one's neighbours in order."""
+        """``(tail, head)`` of every sensing edge (i measures its neighbour j), in file order."""
         edges = np.array([(i, self.index[nb.name]) for i, a in enumerate(self.agents)
                           for nb in a.neighbours], dtype=np.intp).reshape(-1, 2)
         return edges[:, 0].copy(), edges[:, 1].copy()
 
     def sensing_targets(self, name: str) -> list[str]:
-        """Agents that ``name`` measures bearings to: its neighbours and its listeners
-        (sensing is two-way on every edge), or its neighbours alone for a method whose sensing
-        is directed (Presenza et al.)."""
+        """Agents that ``name`` measures bearings to: its neighbours, and its listeners unless
+        the method's sensing is directed (Presenza et al.)."""
         targets = {n.name for n in self.agent(name).neighbours}
         if not estimators.get(self.method).directed_sensing:
             targets |= set(self.listeners(name))
         return sorted(targets, key=self.index.__getitem__)
 
     def sensor_targets(self, sensor: str, name: str) -> list[str]:
-        """Agents that ``name``'s ``sensor`` (``relative_positions``, ``bearing_rates``,
-        ``ranges``) measures: its :meth:`sensing_targets`, except that with an anchor the
-        relative positions are the anchor's of its ranged robots only."""
+        """Agents that ``name``'s ``sensor`` measures: its :meth:`sensing_targets`, except
+        relative positions with an anchor: the anchor's, of its ranged robots only."""
         if sensor == 'relative_positions' and self.anchor is not None:
             return list(self.ranged) if name == self.anchor else []
         return self.sensing_targets(name)
@@ -362,10 +340,8 @@ def initial_truth(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.f
 
 
 def initial_estimates(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``(R̂(0) (N,3,3), p̂(0) (N,3))`` for all agents, in the method's estimate frame
-    (:func:`initial_truth`): leaders exact, the anchor at ``(I, 0)`` unless given, followers
-    explicit or drawn from the scenario's seeded ``initial_estimates.random`` block."""
-    n = len(scenario.agents)
+    """``(R̂(0) (N,3,3), p̂(0) (N,3))`` in the method's estimate frame: leaders exact, the anchor
+    at ``(I, 0)`` unless given, followers explicit or drawn (seeded ``random_init``)."""
     R0, p0 = initial_truth(scenario)
     ri = scenario.random_init
     rng = np.random.default_rng(ri.seed if ri else 0)
@@ -383,5 +359,4 @@ def initial_estimates(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[
             theta = np.radians(ri.max_angle_deg) * rng.uniform()
             R0[i] = R0[i] @ so3.exp(theta * u)
             p0[i] = p0[i] + ri.position_std * rng.normal(size=3)
-    assert R0.shape == (n, 3, 3)
     return R0, p0

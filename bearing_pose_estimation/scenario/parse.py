@@ -1,10 +1,8 @@
 """Scenario files: YAML → validated, typed :class:`.model.Scenario`.
 
-The format is documented in the README ("Scenario format") and by ``config/paper_8_agents.yaml``.
-Every error names the file, the field (``agents[3] (agent_4).neighbours[1]``) and the fix.
-Structural checks live here; each method's graph assumptions live in its estimator's
-``check`` (run by :func:`.check.check_scenario`). The method's gains and roles come from the
-estimator registry.
+The format: the README ("Scenario format") and ``config/paper_8_agents.yaml``. Every error names
+the file, the field (``agents[3] (agent_4).neighbours[1]``) and the fix. Structural checks live
+here; each method's graph assumptions in its estimator's ``check`` (:func:`.check_scenario`).
 """
 from __future__ import annotations
 
@@ -22,8 +20,7 @@ from numpy.typing import NDArray
 from .. import estimators
 from ..core import so3
 from ..core.errors import ScenarioError
-from ..core.motion import (AngularVelocity, Component, LinearVelocity, Sinusoid, VectorProfile,
-                           YawSpline, rot_z)
+from ..core.motion import Component, LinearVelocity, Sinusoid, VectorProfile, YawSpline, rot_z
 from ..estimators.base import Estimator, parse_gains
 from .model import (Agent, BearingPerturbation, FormationControl, Neighbour, Noise, RandomInit,
                     Scenario, SensorSpec, Sensors, SimulationRates, noise_model_gains)
@@ -34,7 +31,6 @@ _NAME_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 EDGE_GAIN = 'k_ij'
 
 
-# ----------------------------------------------------------------------------- parsing helpers
 class _Ctx:
     """Where we are in the file, for error messages."""
 
@@ -74,6 +70,11 @@ def _number(ctx: _Ctx, value: Any, where: str, positive: bool = False,
     return x
 
 
+def _field(ctx: _Ctx, m: dict, where: str, key: str, default: Any, **kw: bool) -> float:
+    """``m[key]`` (or ``default``) as a :func:`_number` named ``where.key``."""
+    return _number(ctx, m.get(key, default), f'{where}.{key}', **kw)
+
+
 def _integer(ctx: _Ctx, value: Any, where: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise ctx.fail(where, f'expected an integer, got {value!r}', 'write a whole number')
@@ -111,33 +112,29 @@ def _attitude(ctx: _Ctx, value: Any, where: str) -> NDArray[np.float64]:
         from scipy.spatial.transform import Rotation
         return Rotation.from_quat(q).as_matrix()
     if 'axis' not in m or ('angle' in m) == ('angle_deg' in m):
-        raise ctx.fail(where, 'an axis-angle attitude needs `axis` and exactly one of '
-                       '`angle` [rad] or `angle_deg`',
-                       'write e.g. {axis: [1, 0, 0], angle_deg: 18}, `identity` or '
-                       '{quaternion: [x, y, z, w]}')
+        raise ctx.fail(where, 'an axis-angle attitude needs `axis` and exactly one of `angle` '
+                       '[rad] or `angle_deg`', 'write e.g. {axis: [1, 0, 0], angle_deg: 18}, '
+                       '`identity` or {quaternion: [x, y, z, w]}')
     axis = _vector(ctx, m['axis'], f'{where}.axis')
     if np.linalg.norm(axis) < 1e-12:
         raise ctx.fail(f'{where}.axis', 'axis is zero', 'give a non-zero rotation axis')
-    if 'angle' in m:
-        theta = _number(ctx, m['angle'], f'{where}.angle')
-    else:
-        theta = math.radians(_number(ctx, m['angle_deg'], f'{where}.angle_deg'))
+    theta = (_number(ctx, m['angle'], f'{where}.angle') if 'angle' in m
+             else math.radians(_number(ctx, m['angle_deg'], f'{where}.angle_deg')))
     return so3.axis_angle(axis, theta)
 
 
 def _term(ctx: _Ctx, value: Any, where: str) -> Sinusoid:
     m = _mapping(ctx, value, where, {'sin', 'cos', 'amplitude', 'phase'})
     if ('sin' in m) == ('cos' in m):
-        raise ctx.fail(where, 'a sinusoid term needs exactly one of `sin` or `cos` '
-                       '(its angular frequency in rad/s)',
-                       'write e.g. {sin: 9} for sin(9t) or {cos: 3, amplitude: -1} for -cos(3t)')
+        raise ctx.fail(where, 'a sinusoid term needs exactly one of `sin` or `cos` (its angular '
+                       'frequency in rad/s)', 'write e.g. {sin: 9} for sin(9t) or {cos: 3, '
+                       'amplitude: -1} for -cos(3t)')
     kind = 'sin' if 'sin' in m else 'cos'
     freq = _number(ctx, m[kind], f'{where}.{kind}')
-    amp = _number(ctx, m.get('amplitude', 1.0), f'{where}.amplitude')
-    phase = _number(ctx, m.get('phase', 0.0), f'{where}.phase')
-    if kind == 'cos':
-        phase += 0.5 * math.pi
-    return Sinusoid(amplitude=amp, frequency=freq, phase=phase)
+    amp = _field(ctx, m, where, 'amplitude', 1.0)
+    phase = _field(ctx, m, where, 'phase', 0.0)
+    return Sinusoid(amplitude=amp, frequency=freq,
+                    phase=phase + 0.5 * math.pi if kind == 'cos' else phase)
 
 
 def _component(ctx: _Ctx, value: Any, where: str) -> Component:
@@ -161,10 +158,6 @@ def _profile(ctx: _Ctx, value: Any, where: str) -> VectorProfile:
     return VectorProfile(x=x, y=y, z=z)
 
 
-def _angular_velocity(ctx: _Ctx, value: Any, where: str) -> AngularVelocity:
-    return _profile(ctx, value, where)
-
-
 def _velocity(ctx: _Ctx, value: Any, where: str) -> LinearVelocity:
     """``{world: [x, y, z]}`` (dp/dt = v), ``{body: [x, y, z]}`` (dp/dt = R v) or
     ``{anchor_estimate: [x, y, z]}`` (a velocity v wanted in the anchor's frame, applied as the
@@ -172,9 +165,8 @@ def _velocity(ctx: _Ctx, value: Any, where: str) -> LinearVelocity:
     m = _mapping(ctx, value, where, {'world', 'body', 'anchor_estimate'})
     if len(m) != 1:
         raise ctx.fail(where, 'give the velocity in exactly one frame, `world`, `body` or '
-                       '`anchor_estimate`',
-                       'write e.g. {world: [0.3, 0, {sin: 0.5, amplitude: 0.1}]} or '
-                       '{body: [1, 0, 0]}')
+                       '`anchor_estimate`', 'write e.g. {world: [0.3, 0, {sin: 0.5, amplitude: '
+                       '0.1}]} or {body: [1, 0, 0]}')
     (frame, raw), = m.items()
     return LinearVelocity(frame=frame, value=_profile(ctx, raw, f'{where}.{frame}'))
 
@@ -224,19 +216,18 @@ def _yaw(ctx: _Ctx, value: Any, where: str, knots: tuple[float, ...] | None) -> 
     return YawSpline(knots=knots, values=values)
 
 
-def _formation(ctx: _Ctx, value: Any) -> FormationControl:
+def _formation(ctx: _Ctx, value: Any, dt: float) -> FormationControl:
     m = _mapping(ctx, value, 'formation_control', {'k_c', 'nu_max', 'mode', 'rate'})
     d = FormationControl()
     mode = m.get('mode', d.mode)
     if mode not in FormationControl.MODES:
         raise ctx.fail('formation_control.mode', f'unknown mode {mode!r}',
                        f'use one of: {", ".join(FormationControl.MODES)}')
-    return FormationControl(
-        k_c=_number(ctx, m.get('k_c', d.k_c), 'formation_control.k_c', positive=True),
-        nu_max=_number(ctx, m.get('nu_max', d.nu_max), 'formation_control.nu_max',
-                       positive=True),
-        mode=mode,
-        rate=_number(ctx, m.get('rate', d.rate), 'formation_control.rate', positive=True))
+    formation = FormationControl(mode=mode, **{
+        k: _field(ctx, m, 'formation_control', k, getattr(d, k), positive=True)
+        for k in ('k_c', 'nu_max', 'rate')})
+    _check_period(ctx, formation.rate, dt, 'formation_control.rate')
+    return formation
 
 
 def _neighbours(ctx: _Ctx, value: Any, where: str, default_k: float) -> tuple[Neighbour, ...]:
@@ -259,26 +250,22 @@ def _neighbours(ctx: _Ctx, value: Any, where: str, default_k: float) -> tuple[Ne
 def _check_period(ctx: _Ctx, rate: float, dt: float, where: str) -> None:
     ticks = 1.0 / (rate * dt)
     if ticks < 1.0 - 1e-9 or abs(ticks - round(ticks)) > 1e-6:
-        raise ctx.fail(where, f'a period of 1/{rate:g} s is not a whole number '
-                       f'of internal steps ({dt:g} s)',
-                       'choose a rate that divides 1/internal_step (e.g. 200, 100, 50 Hz '
-                       'with a 1 ms step)')
+        raise ctx.fail(where, f'a period of 1/{rate:g} s is not a whole number of internal '
+                       f'steps ({dt:g} s)', 'choose a rate that divides 1/internal_step (e.g. '
+                       '200, 100, 50 Hz with a 1 ms step)')
 
 
 def _sensors(ctx: _Ctx, value: Any, dt: float) -> Sensors:
-    """``sensors: {odometry: {rate: 100, std: 0.01, angular_std: 0.0}, relative_positions:
-    {rate: 30, std: 0.01}, bearing_rates: {...}, ranges: {...}}``; ``{}`` lists a sensor with
-    its defaults."""
+    """``{odometry: {rate: 100, std: 0.01, angular_std: 0.0}, relative_positions: {...},
+    bearing_rates: {...}, ranges: {...}}``; ``{}`` lists a sensor with its defaults."""
     m = _mapping(ctx, value, 'sensors', set(Sensors.NAMES))
-    d = Sensors()
     specs = {}
     for name, raw in m.items():
         where = f'sensors.{name}'
         keys = ({'rate', 'std'} | ({'angular_std'} if name == 'odometry' else set())
                 | ({'from_bearings', 'tau'} if name == 'bearing_rates' else set()))
         raw = _mapping(ctx, {} if raw is None else raw, where, keys)
-        default = d.spec(name)
-        rate = _number(ctx, raw.get('rate', default.rate), f'{where}.rate', positive=True)
+        rate = _field(ctx, raw, where, 'rate', Sensors().spec(name).rate, positive=True)
         _check_period(ctx, rate, dt, f'{where}.rate')
         from_bearings = raw.get('from_bearings', False)
         if not isinstance(from_bearings, bool):
@@ -293,12 +280,10 @@ def _sensors(ctx: _Ctx, value: Any, dt: float) -> Sensors:
                            'from_bearings the rates come from the bearings (their rate and '
                            'noise)', 'remove rate and std')
         specs[name] = SensorSpec(
-            rate=rate, std=_number(ctx, raw.get('std', 0.0), f'{where}.std', non_negative=True),
-            angular_std=_number(ctx, raw.get('angular_std', 0.0), f'{where}.angular_std',
-                                non_negative=True),
-            from_bearings=from_bearings,
-            tau=_number(ctx, raw.get('tau', SensorSpec.tau), f'{where}.tau',
-                        non_negative=True))
+            rate=rate, std=_field(ctx, raw, where, 'std', 0.0, non_negative=True),
+            angular_std=_field(ctx, raw, where, 'angular_std', 0.0, non_negative=True),
+            from_bearings=from_bearings, tau=_field(ctx, raw, where, 'tau', SensorSpec.tau,
+                                                    non_negative=True))
     return Sensors(**specs, listed=frozenset(m))
 
 
@@ -306,13 +291,11 @@ def _simulation(ctx: _Ctx, value: Any) -> SimulationRates:
     m = _mapping(ctx, value, 'simulation',
                  {'internal_step', 'imu_rate', 'bearing_rate', 'ground_truth_rate'})
     d = SimulationRates()
-    dt = _number(ctx, m.get('internal_step', d.internal_step), 'simulation.internal_step',
-                 positive=True)
+    dt = _field(ctx, m, 'simulation', 'internal_step', d.internal_step, positive=True)
     rates = {}
     for key in ('imu_rate', 'bearing_rate', 'ground_truth_rate'):
-        rate = _number(ctx, m.get(key, getattr(d, key)), f'simulation.{key}', positive=True)
-        _check_period(ctx, rate, dt, f'simulation.{key}')
-        rates[key] = rate
+        rates[key] = _field(ctx, m, 'simulation', key, getattr(d, key), positive=True)
+        _check_period(ctx, rates[key], dt, f'simulation.{key}')
     return SimulationRates(internal_step=dt, **rates)
 
 
@@ -331,50 +314,45 @@ def _noise(ctx: _Ctx, value: Any) -> Noise:
                                        'bearing_perturbation', 'outlier_probability', 'seed'})
     perturbation = None
     if 'bearing_perturbation' in m:
-        bp = _mapping(ctx, m['bearing_perturbation'], 'noise.bearing_perturbation',
+        where = 'noise.bearing_perturbation'
+        bp = _mapping(ctx, m['bearing_perturbation'], where,
                       {'amplitude_deg', 'frequency_hz', 'axis'}, {'amplitude_deg', 'frequency_hz'})
-        where = 'noise.bearing_perturbation.amplitude_deg'
-        amplitude = _number(ctx, bp['amplitude_deg'], where)
+        amplitude = _field(ctx, bp, where, 'amplitude_deg', None)
         if not 0.0 <= amplitude <= 90.0:
-            raise ctx.fail(where, f'must be in [0, 90] degrees, got {amplitude:g}',
-                           'use an amplitude θ0 between 0 and 90 degrees')
-        frequency = _number(ctx, bp['frequency_hz'], 'noise.bearing_perturbation.frequency_hz',
-                            positive=True)
-        axis = _vector(ctx, bp.get('axis', [1.0, 0.0, 0.0]), 'noise.bearing_perturbation.axis')
+            raise ctx.fail(f'{where}.amplitude_deg', f'must be in [0, 90] degrees, got '
+                           f'{amplitude:g}', 'use an amplitude θ0 between 0 and 90 degrees')
+        frequency = _field(ctx, bp, where, 'frequency_hz', None, positive=True)
+        axis = _vector(ctx, bp.get('axis', [1.0, 0.0, 0.0]), f'{where}.axis')
         if np.linalg.norm(axis) < 1e-12:
-            raise ctx.fail('noise.bearing_perturbation.axis', 'axis is zero',
+            raise ctx.fail(f'{where}.axis', 'axis is zero',
                            'give a non-zero body axis, e.g. [1, 0, 0]')
         x, y, z = (float(c) for c in axis / np.linalg.norm(axis))
         perturbation = BearingPerturbation(amplitude_deg=amplitude, frequency_hz=frequency,
                                            axis=(x, y, z))
-    p_out = _number(ctx, m.get('outlier_probability', 0.0), 'noise.outlier_probability')
+    p_out = _field(ctx, m, 'noise', 'outlier_probability', 0.0)
     if not 0.0 <= p_out < 1.0:
         raise ctx.fail('noise.outlier_probability', f'must be in [0, 1), got {p_out:g}',
                        'give the probability that a bearing is an outlier, e.g. 0.01')
     bias = _vector(ctx, m.get('gyro_bias', [0.0, 0.0, 0.0]), 'noise.gyro_bias')
     return Noise(
-        gyro_std=_number(ctx, m.get('gyro_std', 0.0), 'noise.gyro_std', non_negative=True),
+        gyro_std=_field(ctx, m, 'noise', 'gyro_std', 0.0, non_negative=True),
         gyro_bias=(float(bias[0]), float(bias[1]), float(bias[2])),
-        gyro_bias_std=_number(ctx, m.get('gyro_bias_std', 0.0), 'noise.gyro_bias_std',
-                              non_negative=True),
-        bearing_std=_number(ctx, m.get('bearing_std', 0.0), 'noise.bearing_std',
-                            non_negative=True),
+        gyro_bias_std=_field(ctx, m, 'noise', 'gyro_bias_std', 0.0, non_negative=True),
+        bearing_std=_field(ctx, m, 'noise', 'bearing_std', 0.0, non_negative=True),
         bearing_perturbation=perturbation, outlier_probability=p_out,
         seed=_integer(ctx, m.get('seed', 0), 'noise.seed'))
 
 
-_TOP_KEYS = {'name', 'description', 'method', 'world_frame', 'gains', 'frequency',
-             'publish_rate', 'duration',
-             'noise', 'leaders', 'anchor', 'agents', 'initial_estimates', 'simulation',
-             'sensors', 'formation_control', 'yaw_knots', 'other_roles'}
+_TOP_KEYS = {'name', 'description', 'method', 'world_frame', 'gains', 'frequency', 'publish_rate',
+             'duration', 'noise', 'leaders', 'anchor', 'agents', 'initial_estimates',
+             'simulation', 'sensors', 'formation_control', 'yaw_knots', 'other_roles'}
 _AGENT_KEYS = {'name', 'position', 'attitude', 'angular_velocity', 'velocity', 'neighbours',
                'initial_estimate', 'yaw', 'formation_position'}
 
 
 def _other_roles(ctx: _Ctx, value: Any, cls: type[Estimator]) -> dict[str, Any]:
-    """``other_roles``: the roles the scenario's method does not use, for the methods
-    ``bearing-pose compare`` runs beside it (``leaders``: a list of names; ``anchor``: as the
-    top-level ``anchor``)."""
+    """The roles the scenario's method does not use, for the methods ``compare`` runs beside it
+    (``leaders``: a list of names; ``anchor``: as the top-level one)."""
     m = _mapping(ctx, value, 'other_roles', {'leaders', 'anchor'})
     own = {'leaders': cls.roles.leaders > 0, 'anchor': cls.roles.anchor}
     for key in m:
@@ -391,11 +369,8 @@ def _other_roles(ctx: _Ctx, value: Any, cls: type[Estimator]) -> dict[str, Any]:
 
 
 def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
-    """Validate a scenario already loaded from YAML (a dict) and build a :class:`Scenario`.
-
-    Raises:
-        ScenarioError: on the first problem, naming the field and the fix.
-    """
+    """Validate YAML data (a dict) into a :class:`Scenario` (ScenarioError: the first problem,
+    naming the field and the fix)."""
     ctx = _Ctx(source)
     top = _mapping(ctx, data, 'top level', _TOP_KEYS, {'name', 'agents'})
     name = _string(ctx, top['name'], 'name')
@@ -406,8 +381,7 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     try:
         cls = estimators.get(method)
     except ScenarioError as exc:
-        raise ctx.fail('method', str(exc).split('. Fix: ')[0],
-                       str(exc).split('. Fix: ', 1)[1]) from None
+        raise ctx.fail('method', *str(exc).split('. Fix: ', 1)) from None
     gain_names = {f.name for f in dataclasses.fields(cls.Gains)}
     raw_gains = _mapping(ctx, top.get('gains', {}), 'gains',
                          gain_names | ({EDGE_GAIN} if cls.edge_gains else set()))
@@ -431,27 +405,23 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     simulation = _simulation(ctx, top.get('simulation', {}))
     sensors = _sensors(ctx, top.get('sensors', {}), simulation.internal_step)
     gains = _noise_model(gains, raw_gains, noise, simulation, sensors)
-    formation = (_formation(ctx, top['formation_control']) if 'formation_control' in top
-                 else None)
-    if formation is not None:
-        _check_period(ctx, formation.rate, simulation.internal_step, 'formation_control.rate')
+    formation = (_formation(ctx, top['formation_control'], simulation.internal_step)
+                 if 'formation_control' in top else None)
     yaw_knots = (_numbers(ctx, top['yaw_knots'], 'yaw_knots', 2) if 'yaw_knots' in top
                  else None)
 
     random_init = None
     if 'initial_estimates' in top:
+        where = 'initial_estimates.random'
         ie = _mapping(ctx, top['initial_estimates'], 'initial_estimates', {'random'}, {'random'})
-        r = _mapping(ctx, ie['random'], 'initial_estimates.random',
-                     {'seed', 'position_std', 'max_angle_deg'})
+        r = _mapping(ctx, ie['random'], where, {'seed', 'position_std', 'max_angle_deg'})
         random_init = RandomInit(
-            seed=_integer(ctx, r.get('seed', 0), 'initial_estimates.random.seed'),
-            position_std=_number(ctx, r.get('position_std', 1.0),
-                                 'initial_estimates.random.position_std', non_negative=True),
-            max_angle_deg=_number(ctx, r.get('max_angle_deg', 180.0),
-                                  'initial_estimates.random.max_angle_deg', non_negative=True))
+            seed=_integer(ctx, r.get('seed', 0), f'{where}.seed'),
+            position_std=_field(ctx, r, where, 'position_std', 1.0, non_negative=True),
+            max_angle_deg=_field(ctx, r, where, 'max_angle_deg', 180.0, non_negative=True))
         if random_init.max_angle_deg > 180.0:
-            raise ctx.fail('initial_estimates.random.max_angle_deg', 'must be <= 180',
-                           'use an angle in [0, 180] degrees')
+            raise ctx.fail(f'{where}.max_angle_deg', 'must be <= 180', 'use an angle in [0, 180] '
+                           'degrees')
 
     n_leaders = cls.roles.leaders
     raw_agents = top['agents']
@@ -475,9 +445,9 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
     if (not isinstance(leaders, list) or len(leaders) != n_leaders
             or not all(isinstance(x, str) for x in leaders) or len(set(leaders)) != n_leaders):
         example = ', '.join(f'agent_{k + 1}' for k in range(n_leaders))
-        raise ctx.fail('leaders', f'expected the names of exactly {n_leaders} distinct agents '
-                       f'({cls.title} has {n_leaders} leaders), got {leaders!r}',
-                       f'write e.g. `leaders: [{example}]`')
+        raise ctx.fail('leaders', f'expected the names of exactly {n_leaders} distinct agents ('
+                       f'{cls.title} has {n_leaders} leaders), got {leaders!r}', f'write e.g. '
+                       f'`leaders: [{example}]`')
 
     agents: list[Agent] = []
     seen: dict[str, int] = {}
@@ -495,11 +465,9 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
                            f'{seen[aname]}])', 'give every agent a unique name')
         seen[aname] = idx
         where = f'agents[{idx}] ({aname})'
-        is_leader = aname in leaders
         position = _vector(ctx, m['position'], f'{where}.position')
         attitude = _attitude(ctx, m.get('attitude', 'identity'), f'{where}.attitude')
-        omega = _angular_velocity(ctx, m.get('angular_velocity', [0, 0, 0]),
-                                  f'{where}.angular_velocity')
+        omega = _profile(ctx, m.get('angular_velocity', [0, 0, 0]), f'{where}.angular_velocity')
         velocity = (_velocity(ctx, m['velocity'], f'{where}.velocity') if 'velocity' in m
                     else None)
         yaw = None
@@ -517,31 +485,27 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
         formation_position = None
         if 'formation_position' in m:
             if formation is None:
-                raise ctx.fail(f'{where}.formation_position', 'no `formation_control:` '
-                               'block moves the agents to it',
-                               'add a top-level `formation_control: {k_c: 1, nu_max: 1}` or '
-                               'remove `formation_position`')
+                raise ctx.fail(f'{where}.formation_position', 'no `formation_control:` block '
+                               'moves the agents to it', 'add a top-level `formation_control: '
+                               '{k_c: 1, nu_max: 1}` or remove `formation_position`')
             if velocity is not None:
-                raise ctx.fail(f'{where}.velocity', 'the formation controller sets the '
-                               'velocity of an agent with a formation_position',
-                               'remove `velocity` or `formation_position`')
+                raise ctx.fail(f'{where}.velocity', 'the formation controller sets the velocity '
+                               'of an agent with a formation_position', 'remove `velocity` or '
+                               '`formation_position`')
             formation_position = _vector(ctx, m['formation_position'],
                                          f'{where}.formation_position')
         neighbours: tuple[Neighbour, ...] = ()
         p0 = R0 = None
-        if is_leader:
+        if aname in leaders:
             for key in ('neighbours', 'initial_estimate'):
                 if key in m:
-                    what = 'neighbours' if key == 'neighbours' else 'initial estimate'
                     raise ctx.fail(f'{where}.{key}', 'a leader knows its pose and has no '
-                                   f'{what} (Assumption 2b)',
-                                   f'remove `{key}` from {aname}, or remove {aname} from '
-                                   '`leaders`')
+                                   f'{key.replace("_", " ")} (Assumption 2b)', f'remove `{key}` '
+                                   f'from {aname}, or remove {aname} from `leaders`')
         else:
             if 'neighbours' not in m and n_leaders:
-                raise ctx.fail(f'{where}.neighbours', 'a follower needs neighbours',
-                               'list at least two earlier agents, e.g. '
-                               '`neighbours: [agent_1, agent_2]`')
+                raise ctx.fail(f'{where}.neighbours', 'a follower needs neighbours', 'list at '
+                               'least two earlier agents, e.g. `neighbours: [agent_1, agent_2]`')
             neighbours = _neighbours(ctx, m.get('neighbours', []), f'{where}.neighbours', k_ij)
             if 'initial_estimate' in m:
                 ie = _mapping(ctx, m['initial_estimate'], f'{where}.initial_estimate',
@@ -577,8 +541,7 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
             raise ctx.fail(f'anchor.ranged[{k}]', f'{rname!r} is not an agent other than the '
                            'anchor', 'name two other agents from `agents`')
     for idx, a in enumerate(agents):
-        if (a.velocity is not None and a.velocity.frame == 'anchor_estimate'
-                and anchor is None):
+        if anchor is None and a.velocity is not None and a.velocity.frame == 'anchor_estimate':
             raise ctx.fail(f'agents[{idx}] ({a.name}).velocity.anchor_estimate', 'there is no '
                            'anchor frame', 'give it in the world or body frame')
     for lname in leaders:
@@ -596,30 +559,23 @@ def parse_scenario(data: Any, source: str = '<memory>') -> Scenario:
             if names.count(nb.name) > 1:
                 raise ctx.fail(w, f'{nb.name!r} is listed twice', 'list each neighbour once')
 
-    agent_names = {a.name for a in agents}
     named = [(f'other_roles.leaders[{k}]', x)
              for k, x in enumerate(other_roles.get('leaders', ()))]
     if 'anchor' in other_roles:
         named.append(('other_roles.anchor.agent', other_roles['anchor']['agent']))
     for where, agent in named:
-        if agent not in agent_names:
+        if agent not in seen:
             raise ctx.fail(where, f'{agent!r} is not an agent', 'use a name from `agents`')
     return Scenario(name=name, agents=tuple(agents), leaders=tuple(leaders), anchor=anchor,
-                    ranged=ranged, anchor_pinned=pinned, other_roles=other_roles,
-                    method=method,
+                    ranged=ranged, anchor_pinned=pinned, other_roles=other_roles, method=method,
                     gains=gains, description=str(top.get('description', '')),
                     frequency=frequency, publish_rate=publish_rate, duration=duration,
-                    world_frame=world_frame,
-                    noise=noise, random_init=random_init, simulation=simulation,
-                    sensors=sensors, formation=formation, source=source)
+                    world_frame=world_frame, noise=noise, random_init=random_init,
+                    simulation=simulation, sensors=sensors, formation=formation, source=source)
 
 
 def load_scenario(path: str | Path) -> Scenario:
-    """Read and validate a scenario file.
-
-    Raises:
-        ScenarioError: the file is missing, is not valid YAML, or is not a valid scenario.
-    """
+    """Read and validate a scenario file (ScenarioError if unreadable or invalid)."""
     return parse_scenario(read_scenario_data(path), source=str(path))
 
 
@@ -637,11 +593,9 @@ def read_scenario_data(path: str | Path) -> Any:
         mark = getattr(exc, 'problem_mark', None)
         at = f'line {mark.line + 1}, column {mark.column + 1}' if mark else 'somewhere'
         problem = getattr(exc, 'problem', None) or str(exc)
-        raise ScenarioError(f'{path}: YAML syntax error at {at}: {problem}. '
-                            'Fix: correct the YAML at that position (indentation, colons, '
-                            'brackets)') from exc
+        raise ScenarioError(f'{path}: YAML syntax error at {at}: {problem}. Fix: correct the '
+                            'YAML at that position (indentation, colons, brackets)') from exc
     if data is None:
-        raise ScenarioError(f'{path}: the file is empty (or only comments). Fix: write a '
-                            'scenario; see config/paper_8_agents.yaml and the README\'s '
-                            '"Scenario format"')
+        raise ScenarioError(f'{path}: the file is empty (or only comments). Fix: write a scenario;'
+                            ' see config/paper_8_agents.yaml and the README\'s "Scenario format"')
     return data

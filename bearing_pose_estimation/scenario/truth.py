@@ -1,31 +1,21 @@
 """The truth of a scenario, the one model behind the batch simulator, the simulator node and
 the check of a moving scenario (:func:`.check.sample_truth`).
 
-Every attitude follows ``dR_i/dt = R_i [ω_i(t)]x`` and every position
-``dp_i/dt = v_i(t)`` (world-frame velocity) or ``R_i(t) v_i(t)`` (body-frame), both advanced
-together over steps of ``dt`` (the estimator step in the batch simulator,
-``simulation.internal_step`` (1 ms) in the simulator node): the 4th-order Magnus increment for
-the rotation, the closed-form integral or 3-point Gauss-Legendre quadrature for the
-translation (:mod:`core.motion`). Static agents (the default) never move.
+``dR_i/dt = R_i [ω_i(t)]x`` and ``dp_i/dt = v_i(t)`` (world-frame velocity) or ``R_i(t) v_i(t)``
+(body-frame) are advanced together over steps of ``dt`` (the estimator step in the batch
+simulator, ``simulation.internal_step`` in the node): the 4th-order Magnus increment for the
+rotation, the closed-form integral or 3-point Gauss-Legendre quadrature for the translation
+(:mod:`core.motion`). Static agents (the default) never move.
 
 Yaw-only fleets (``yaw:`` splines, De Carli et al.) have ``R_i = R_z(ψ_i(t))`` exactly. Their
-formation controller (``formation_control:``, :mod:`core.formation`) is evaluated every
-``1/formation_control.rate`` and its body-frame velocity held in between (a sampled-data plant,
-the note's §7); the displacement of a held velocity is integrated by 3-point Gauss-Legendre.
-In the ``paper`` mode the controller uses the estimated yaws: the batch simulator sets
-:attr:`Truth.controller_yaws` before each step (unset, the true yaws are used).
-
-Agents with an ``anchor_estimate`` velocity (Presenza et al., case 2) apply the body command
-``u_i = Q̂_iᵀ v_i(t)`` with their attitude estimate ``Q̂_i`` in the anchor frame, evaluated at
-the step's start and held over it: the batch simulator calls :meth:`Truth.command` with the
-estimates before each step (otherwise the true ``Q_i = R_aᵀ R_i`` are used, the loop once
-converged).
-
-The sensors are defined from it (:meth:`Truth.body_bearings` and the methods below):
-bearings ``b^i_ij = R_iᵀ (p_j - p_i)/‖p_j - p_i‖``, relative positions
-``ⁱp_ij = R_iᵀ (p_j - p_i)``, ranges ``‖p_j - p_i‖``, bearing rates ``d b^i_ij/dt``, and
-odometry increments (body-frame rotation and displacement over a step).
-"""
+formation controller (:mod:`core.formation`) is evaluated every ``1/formation_control.rate``
+and its body-frame velocity held in between (a sampled-data plant, the note's §7). In the
+``paper`` mode it uses the estimated yaws: the batch simulator sets
+:attr:`Truth.controller_yaws` before each step (unset: the true yaws). Agents with an
+``anchor_estimate`` velocity (Presenza et al., case 2) apply ``u_i = Q̂_iᵀ v_i(t)`` with their
+attitude estimate in the anchor frame, held over the step: the batch simulator calls
+:meth:`Truth.command` before each step (else the true ``Q_i = R_aᵀ R_i``, the converged loop).
+The sensors' true values are defined by its methods (:meth:`Truth.world_bearings` and after)."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -33,8 +23,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core import so3
-from ..core import formation
+from ..core import formation, so3
 from ..core.motion import (ZERO, ProfileSet, YawSplines, body_displacement,
                            held_body_displacement, in_anchor_frame, magnus_increment,
                            rot_z)
@@ -46,14 +35,11 @@ Index = NDArray[np.intp]
 # Products of rotations drift off SO(3) by about one rounding error per step; re-orthonormalising
 # every 16 steps keeps ‖RᵀR - I‖ below 1e-14 at a sixteenth of the cost.
 REORTHONORMALIZE_EVERY = 16
-# Steps whose rotation increments (and body-velocity displacements) are computed in one call
-# (Truth.increment, Truth.displacement).
-INCREMENT_CHUNK = 50
+INCREMENT_CHUNK = 50   # steps whose increments (and body displacements) one call computes
 
 
 class _Chunk:
-    """The values of :data:`INCREMENT_CHUNK` consecutive steps, from step ``k0`` on, of a
-    function of time alone, computed in one call when a step outside them is asked for."""
+    """A function of time alone at :data:`INCREMENT_CHUNK` steps from ``k0``, in one call."""
 
     def __init__(self, compute: Callable[[Array], Array], dt: float) -> None:
         self.compute = compute   # start times (M,) -> values (M, ...)
@@ -63,8 +49,7 @@ class _Chunk:
 
     def at(self, k: int) -> Array:
         if self.values is None or not self.k0 <= k < self.k0 + len(self.values):
-            # The start times as Truth.t gives them, so the numbers are bit for bit those of
-            # one call per step.
+            # Start times as Truth.t gives them: bit for bit the numbers of one call per step.
             self.k0 = k
             self.values = self.compute(np.arange(k, k + INCREMENT_CHUNK, dtype=float) * self.dt)
         return self.values[k - self.k0]
@@ -127,8 +112,7 @@ class Truth:
 
     @property
     def reorthonormalizes(self) -> bool:
-        """The step just taken pulled the attitudes back onto SO(3) (every
-        :data:`REORTHONORMALIZE_EVERY` steps); an estimator stepped alongside can do the same."""
+        """The step just taken re-orthonormalised the attitudes (an estimator can follow)."""
         return self.k % REORTHONORMALIZE_EVERY == 0
 
     def increment(self) -> Array:
@@ -136,18 +120,16 @@ class Truth:
         if self._constant is not None:
             return self._constant
         if self.yaws is None:
-            # The next INCREMENT_CHUNK steps' increments in one call (ω is a function of time
-            # alone): the same numbers as one call per step, for a third of the world's cost
-            # per tick (bench/world_cost.py).
+            # ω is a function of time alone: a chunk of increments in one call, the same
+            # numbers for a third of the world's cost per tick (bench/world_cost.py).
             return self._increments.at(self.k)
         if self._next is None or self._next[0] != self.k:  # measured, then stepped: once
             self._next = (self.k, self.yaws.increment(self.t, self.dt))
         return self._next[1]
 
     def displacement(self) -> Array:
-        """``δ_i = R_i(t)ᵀ (p_i(t + dt) - p_i(t))`` of every agent, ``(N, 3)`` [m]: the
-        translation over the step in the body frame at its start (what odometry integrates).
-        Zero for static fleets."""
+        """``δ_i = R_i(t)ᵀ (p_i(t + dt) - p_i(t))`` ``(N, 3)`` [m]: the translation over the
+        step in the body frame at its start (what odometry integrates)."""
         if not self.moves:
             return np.zeros_like(self.p)
         if self._next_delta is None or self._next_delta[0] != self.k:
@@ -166,8 +148,7 @@ class Truth:
 
     def controller_velocity(self) -> Array:
         """The formation controller's body-frame velocities now ``(N, 3)`` [m/s]
-        (:func:`core.formation.body_velocity`), with :attr:`controller_yaws` in the paper
-        mode."""
+        (:func:`core.formation.body_velocity`)."""
         assert self.control is not None and self.yaws is not None
         psi = self.yaws(self.t)
         used = (self.controller_yaws if self.control.mode == 'paper'
@@ -187,8 +168,7 @@ class Truth:
         self._commanded_at = self.k
 
     def commands(self) -> Array:
-        """The held body commands ``(N, 3)`` [m/s] now (the true attitudes' unless
-        :meth:`command` set them for this step)."""
+        """The held body commands ``(N, 3)`` [m/s] now (:meth:`command`'s, else the truth's)."""
         if self._commanded_at != self.k:
             self.command()
         return self.u_command
@@ -235,8 +215,7 @@ class Truth:
         return v
 
     def relative_positions(self, owner: Index, target: Index) -> Array:
-        """``ⁱp_ij = R_iᵀ (p_j - p_i)`` from ``owner[m]`` to ``target[m]``, ``(M, 3)`` [m]
-        (body frame of the owner)."""
+        """``ⁱp_ij = R_iᵀ (p_j - p_i)`` from ``owner[m]`` to ``target[m]``, ``(M, 3)`` [m]."""
         return self.body_bearings(owner, self.p[target] - self.p[owner])
 
     def ranges(self, owner: Index, target: Index) -> Array:
@@ -257,14 +236,12 @@ class Truth:
         return self.body_bearings(owner, u_dot) - so3.cross(w, b)
 
     def world_bearings(self, owner: Index, target: Index) -> Array:
-        """Unit world bearings ``b_ij = (p_j - p_i)/‖p_j - p_i‖`` from ``owner[m]`` to
-        ``target[m]``, ``(M, 3)``."""
+        """World bearings ``b_ij = (p_j - p_i)/‖p_j - p_i‖``, ``owner[m]`` to ``target[m]``."""
         d = self.p[target] - self.p[owner]
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
     def body_bearings(self, owner: Index, b_world: Array) -> Array:
-        """What ``owner[m]`` measures of the world bearing ``b_world[m]``: ``R_iᵀ b``,
-        ``(M, 3)``."""
+        """What ``owner[m]`` measures of the world bearing ``b_world[m]``: ``R_iᵀ b``."""
         return np.einsum('eba,eb->ea', np.take(self.R, owner, axis=0), b_world)
 
 

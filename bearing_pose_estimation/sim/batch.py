@@ -1,33 +1,20 @@
 """Batch simulator: the whole network in one process, vectorised over agents and edges.
 
-The truth is :class:`.truth.Truth` stepped at the estimator step ``h``. Each step, every agent's
-estimator advances with the scenario's method (:meth:`estimators.base.Estimator.step`, the
-same function the estimator node calls for its one agent) on measurements taken at the step's
-start:
+The truth (:class:`scenario.truth.Truth`) is stepped at the estimator step ``h``; every agent's
+estimator advances with :meth:`estimators.base.Estimator.step` (what the estimator node calls
+for its one agent) on measurements taken at the step's start: own bearings
+``b^i_ij = R_iᵀ b_ij``, what each neighbour j sends i (:meth:`Estimator.outbox`, from j's state
+and its measurement ``b^j_ji = R_jᵀ b_ji`` at the same instant), the gyro increment
+``ΔR exp(h (bias + noise))`` over the step and, when the scenario simulates odometry, the
+displacement ``δ = R(t)ᵀ (p(t+h) - p(t))``, the exact integral of what the samples report.
+Noise comes from :class:`.noise.NoiseModel`, as in the simulator node's world. Leaders know
+their pose: their estimate is their truth.
 
-- own bearings ``b^i_ij = R_iᵀ b_ij`` (+ bearing noise);
-- what each neighbour j sends i (:meth:`Estimator.outbox`), formed from j's state and its own
-  measurement ``b^j_ji = R_jᵀ b_ji`` (+ noise) at the same instant;
-- the gyro increment ``ΔR exp(h (bias + noise))`` over the step;
-- for moving fleets (when the scenario simulates odometry), the odometry displacement over the
-  step ``δ = R(t)ᵀ (p(t+h) - p(t))`` (+ noise), the exact integral of what the samples report.
-
-Noise (all off by default) comes from :class:`.noise.NoiseModel`, the same models the
-simulator node's world uses; a scenario and its ``noise.seed`` give the same run.
-
-Leaders (for methods that have them) know their pose: their estimate is their truth.
-
-What a step reads comes from the method's declarations (:mod:`estimators.base`): its edges
-(:func:`estimators.base.edge_table`), each own point sensor on the edges it measures (noise drawn
-there only), the other end's measurement of each edge's agent by the method's
-``partner_sensor`` (what its per-edge channels are formed from, or what travels on its sensor
-topic), what every agent sends (round 1, then round 2 from what round 1 gave), the other ends'
-odometry or the anchor's. In the formation controller's ``paper`` mode the truth moves with the
-estimated yaws (a closed loop); agents with ``anchor_estimate`` velocities move with the
-commands their estimates give (:meth:`scenario.truth.Truth.command`). Recordings of methods with
-per-pair states add each pair's error (:meth:`Estimator.edge_errors`) and, under formation
-control, each robot's formation error (:func:`core.formation.formation_error`).
-"""
+What a step reads follows the method's declarations (:mod:`estimators.base`): its edges
+(:func:`estimators.base.edge_table`), its own point sensors on the edges that measure them
+(noise drawn there only), the other end's measurement by its ``partner_sensor``, what every
+agent sends (round 1, then round 2 from what round 1 gave), the other ends' or the anchor's
+odometry. The truth moves with the estimates where it depends on them (:mod:`scenario.truth`)."""
 from __future__ import annotations
 
 import dataclasses
@@ -52,12 +39,8 @@ Array = NDArray[np.float64]
 
 
 class BatchSimulator(OnTruth):
-    """Simulate a scenario with all agents' estimators in lock-step.
-
-    Args:
-        scenario: a parsed scenario (run :func:`scenario.check_scenario` first).
-        step: integration / estimator step [s]; default ``1 / scenario.frequency``.
-    """
+    """Simulate a parsed (and checked) scenario with all agents' estimators in lock-step;
+    ``step``: the integration and estimator step [s], default ``1 / scenario.frequency``."""
 
     def __init__(self, scenario: Scenario, step: float | None = None) -> None:
         self.scenario = scenario
@@ -108,14 +91,12 @@ class BatchSimulator(OnTruth):
         return in_anchor_frame(self.R, self.p, a)
 
     def reset(self) -> None:
-        """Back to t = 0: true attitudes, the scenario's initial estimates, and the noise
-        generators (and gyro biases) re-seeded, so a run after reset repeats exactly."""
+        """Back to t = 0, the initial estimates and re-seeded noise: a run repeats exactly."""
         self.noise = NoiseModel(self.scenario.noise, self.n, self.scenario.sensors)
         self.truth.reset()
         self.x: State = self.estimator.initial_state(*initial_estimates(self.scenario))
-        # Bearing rates estimated from consecutive bearings (sensors.bearing_rates
-        # .from_bearings), as each robot's node does: one filter row per link, and the
-        # previous step's gyro increments (the rotation between two bearings).
+        # Bearing rates from consecutive bearings (from_bearings), as each node does: one
+        # filter row per link, and the previous step's gyro increments.
         spec = self.scenario.sensors.bearing_rates
         self._rates: BearingRateFilter | None = (
             BearingRateFilter(len(self.edges), spec.tau)
@@ -150,8 +131,7 @@ class BatchSimulator(OnTruth):
         raise ValueError(f'the batch simulator cannot simulate {sensor.value} per edge')
 
     def inputs(self) -> StepInputs:
-        """What every agent's next step consumes, measured now (noise drawn): from the
-        method's declarations (module docstring)."""
+        """What every agent's next step consumes, measured now (module docstring)."""
         est = self.estimator
         cls = type(est)
         agent, other = self.edges.agent, self.edge_nbr
@@ -174,9 +154,8 @@ class BatchSimulator(OnTruth):
         values_agent: dict[str, Array] = {DELTA_R: delta_R}
         if self._rates is not None:   # (11) reads back this de-rotated one: β̇ = β̇° - ω × β
             bearings = edge[Sensor.BEARINGS.value]
-            senses = self._rows(cls.measures[Sensor.BEARING_RATES])
             sensing = np.zeros(n_edges, dtype=bool)
-            sensing[senses] = True
+            sensing[self._rows(cls.measures[Sensor.BEARING_RATES])] = True
             derotated, have = self._rates.update(self.t, bearings, self._prev_delta_R[agent],
                                                  sensing)
             omega = so3.log_small(delta_R) / self.h
@@ -211,9 +190,8 @@ class BatchSimulator(OnTruth):
                                                             for name, v in second.items()}})
 
     def extra_errors(self) -> dict[str, float]:
-        """The recording's columns beyond the pose errors, now: each pair's error (one
-        column per owned link, ``<label>_<a>_<b>``) and, under formation control, each robot's
-        formation error ``formation_err_<agent>_m``."""
+        """The recording's extra columns now: each owned link's pair error
+        ``<label>_<a>_<b>`` and, under formation control, ``formation_err_<agent>_m``."""
         out: dict[str, float] = {}
         names = [a.name for a in self.scenario.agents]
         per_edge = self.estimator.edge_errors(self.x, self.R, self.edges, self.edge_nbr)
@@ -262,27 +240,17 @@ class BatchSimulator(OnTruth):
     def run(self, duration: float, record_every: float = 0.1,
             progress: Callable[[float, Array, Array], None] | None = None,
             progress_every: float = 10.0) -> Recording:
-        """Run from the current state for ``duration`` seconds of simulated time.
-
-        Args:
-            duration: simulated time [s].
-            record_every: record interval [s], rounded to a whole number of steps.
-            progress: called as ``progress(t, att_err, pos_err)`` every ``progress_every``
-                simulated seconds.
-
-        When the fleet moves, the recording also holds every agent's true and estimated
-        positions at the record times (:class:`metrics.results.Trajectories`; the estimates in
-        the world frame, aligned as for the errors).
-        """
+        """Run from the current state for ``duration`` simulated seconds, recording every
+        ``record_every`` [s] (a whole number of steps) and calling ``progress(t, att_err, pos_err)``
+        every ``progress_every``. A moving fleet's recording also holds every agent's true and
+        (world-frame, aligned) estimated positions (:class:`metrics.results.Trajectories`)."""
         n_steps = int(round(duration / self.h))
         every = max(1, int(round(record_every / self.h)))
         prog_every = max(1, int(round(progress_every / self.h)))
         tracks = self.truth.moves
         extras = (self.estimator.edge_error_label != '' or self.truth.p_star is not None)
         extra: list[dict[str, float]] = []
-        t, rows = [], []
-        p: list[Array] = []
-        p_hat: list[Array] = []
+        t, rows, p, p_hat = [], [], [], []
         for s in range(n_steps + 1):
             if s % every == 0 or s == n_steps:
                 t.append(self.t)

@@ -1,42 +1,34 @@
-"""The distributed system without DDS: one agent runtime per agent
-(:class:`runtime.agent.AgentRuntime`, what the estimator node runs), the simulator node's
-world, and the links between agents, in one process and deterministic.
+"""The distributed system without DDS, in one process and deterministic: one agent runtime per
+agent (:class:`runtime.agent.AgentRuntime`, what the estimator node runs), the simulator node's
+world (:class:`.world.World`) and the links between agents.
 
-The agents are fed exactly as the simulator node feeds theirs (:class:`.world.World`:
-interval-average gyro, the point sensors, odometry, leaders' known pose) and read from each
-other what the one table of subscriptions says (:mod:`runtime.table`): channels, the others'
-point sensor readings and odometry, through the link faults. 'instant' channels go out at the
-``publish_rate``, 'exact' ones after each step that a neighbour's next step reads, a second
-round's as soon as its first is in. The world never waits for them (a simulator without
-lockstep): a step waits at most ``link_wait`` of its own sensors' time. A fault-free run pairs
-its inputs as a lockstep simulation does (:class:`runtime.buffers.Exchange`), so a DDS run
-equals it to rounding; netsim only drives the runtimes: every check, rejection and time rule
-is theirs. Faults:
+The agents are fed as the simulator node feeds theirs and read from each other what the one
+table of subscriptions says (:mod:`runtime.table`), through the link faults. 'instant' channels
+go out at the ``publish_rate``, 'exact' ones after each step that a neighbour's next step reads,
+a second round's as soon as its first is in. The world never waits for them: a step waits at
+most ``link_wait`` of its own sensors' time. A fault-free run pairs its inputs as a lockstep
+simulation does (:class:`runtime.buffers.Exchange`), so a DDS run equals it to rounding. Every
+check, rejection and time rule is the runtimes'. Faults:
 
 - :class:`LinkFaults`: each neighbour message is dropped with ``drop_rate`` and delivered
-  ``delay`` seconds late (what the node's ``inject_*`` parameters do, :mod:`runtime.faults`);
-- :class:`Outage`: an agent is cut off over ``[start, end)``. ``network_only=True`` is a
-  network partition: no neighbour message in or out, while its own sensors keep feeding it,
-  as on a robot whose IMU and camera are on board. Otherwise the process is down — no input
-  at all, no output — and comes back either as it was (``restart=False``: paused, e.g.
-  SIGSTOP; input sent meanwhile is lost) or as a fresh process from its initial estimate
-  (``restart=True``: killed and restarted). A process outage starting at 0 is a late joiner;
-- :class:`ClockJump`: the simulator restarts at a given run time: its clock, truth and noise go
-  back to t = 0, so every estimator sees stamps jump back;
-- :class:`Garbage`: a fraction of every incoming input (gyro sample, point sensor message,
-  neighbour message, leader's known pose) comes with a corrupted copy, or is replaced by it
-  (``replace=True``: the good input is lost): NaN/inf, zero-length or non-unit vectors,
-  unknown ids, stale, late or future stamps, absurd rates.
+  ``delay`` seconds late (the node's ``inject_*`` parameters, :mod:`runtime.faults`);
+- :class:`Outage`: an agent is cut off over ``[start, end)``. ``network_only``: a partition,
+  no neighbour message in or out while its own sensors keep feeding it. Otherwise no process,
+  no input or output; it comes back as it was (``restart=False``: paused, input sent meanwhile
+  is lost) or fresh from its initial estimate (``restart=True``). From 0: a late joiner;
+- :class:`ClockJump`: the simulator restarts: clock, truth and noise back to t = 0;
+- :class:`Garbage`: a fraction of every input (gyro sample, point sensor message, neighbour
+  message, leader's known pose) comes with a corrupted copy, or is replaced by it
+  (``replace=True``): NaN/inf, zero-length or non-unit vectors, unknown ids, stale, late or
+  future stamps, absurd rates.
 
-:func:`simulate_network` also counts what the estimators rejected (by cause), their time-rule
-events, and any non-finite estimate. Exceptions are not caught: a crash of the agent logic
-ends the run. :func:`fault_cases` is the one list of faults that ``bench/fault_matrix.py``
-measures and the tests test, with :func:`reconvergence_time` and :func:`convergence_cost` as
-their shared measures.
-"""
+:func:`simulate_network` also counts the estimators' rejections (by cause), time-rule events
+and non-finite estimates; a crash of the agent logic ends the run. :func:`fault_cases` is the
+one fault list of ``bench/fault_matrix.py`` and the tests, with their measures
+:func:`reconvergence_time` and :func:`convergence_cost`."""
 from __future__ import annotations
 
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -47,7 +39,7 @@ from numpy.typing import NDArray
 from ..core.errors import ScenarioError
 from ..estimators.base import Channel, Sensor
 from ..metrics.results import PoseErrors, Recording, pose_errors
-from ..runtime.agent import AgentRuntime, AgentSpec
+from ..runtime.agent import AgentRuntime
 from ..runtime.buffers import TIME_EVENTS, Limits
 from ..runtime.faults import FaultyLink, LinkFaults
 from ..runtime.table import ODOM_TOPIC, subscriptions
@@ -88,11 +80,9 @@ class Garbage:
     replace: bool = False  # the copy replaces the input (True) or follows it (False)
 
 
-# ----------------------------------------------------------------------------- the fault list
 @dataclass(frozen=True)
 class FaultCase:
-    """One row of the fault matrix: a short key, a label and the faults
-    :func:`simulate_network` injects."""
+    """One row of the fault matrix: a short key, a label and the faults to inject."""
 
     key: str
     label: str
@@ -114,15 +104,11 @@ class FaultCase:
 def fault_cases(at: float = 20.0, length: float = 5.0, late_join: float = 10.0,
                 garbage: float = 0.1, victim: str = 'agent_4', late: str = 'agent_7',
                 delay: float = 0.2) -> list[FaultCase]:
-    """The fault matrix, the reference (no fault) first; by default on the paper's 8-agent
-    scenario.
-
-    ``at``, ``length``: when the outages and the clock jump happen [s]; ``late_join``: when
-    ``late`` starts [s]; ``victim``: the agent cut off, paused or restarted; ``garbage``: the
-    fraction of inputs corrupted; ``delay``: how late the delayed rows' messages are [s]. The clock jump keeps the records aligned with the
-    estimators' steps when ``at`` is a multiple of the step. The bench uses the defaults; the
-    tests shrink the times to run fast.
-    """
+    """The fault matrix, the reference (no fault) first, for the paper's 8-agent scenario by
+    default (the bench's; the tests shrink the times). ``at``, ``length``: when the outages and
+    the clock jump happen [s] (``at`` a multiple of the step keeps the records aligned with the
+    steps); ``late_join``: when ``late`` starts [s]; ``victim``: the agent cut off, paused or
+    restarted; ``garbage``: the fraction of inputs corrupted; ``delay``: of the delayed rows [s]."""
     end = at + length
     return [
         FaultCase('reference', 'none (reference)'),
@@ -152,10 +138,8 @@ def fault_cases(at: float = 20.0, length: float = 5.0, late_join: float = 10.0,
     ]
 
 
-# ----------------------------------------------------------------------------- garbage
 class _Corruptor:
-    """Draws which inputs are garbage and how; builds the corrupted copies (never in place:
-    one neighbour message goes to several listeners)."""
+    """Draws which inputs are garbage and how; copies, never in place (messages are shared)."""
 
     GYRO = ('nan', 'inf', 'absurd_rate', 'late_stamp', 'future_stamp')
     BEARINGS = ('nan', 'inf', 'zero', 'not_unit', 'huge', 'unknown_id', 'own_id',
@@ -176,8 +160,7 @@ class _Corruptor:
         self.rng = np.random.default_rng(garbage.seed)
 
     def inputs(self, good: tuple, corrupt: tuple | None) -> list[tuple[tuple, bool]]:
-        """What arrives, each with whether it is garbage: the good input, its corrupted copy
-        instead, or both (the copy last)."""
+        """What arrives, each flagged garbage or not: the input, its copy instead, or both."""
         if corrupt is None:
             return [(good, False)]
         return [(corrupt, True)] if self.replace else [(good, False), (corrupt, True)]
@@ -192,12 +175,9 @@ class _Corruptor:
         if kind is None:
             return None
         w = w.copy()
-        if kind == 'nan':
-            w[0] = np.nan
-        elif kind == 'inf':
-            w[1] = np.inf
-        elif kind == 'absurd_rate':
-            w[2] = 100.0  # rad/s
+        bad = {'nan': (0, np.nan), 'inf': (1, np.inf), 'absurd_rate': (2, 100.0)}  # [rad/s]
+        if kind in bad:
+            w[bad[kind][0]] = bad[kind][1]
         # Within the 1 s that would read as a clock jump (a legitimate restart, not garbage).
         stamp += {'late_stamp': -0.1, 'future_stamp': 5.0}.get(kind, 0.0)
         return stamp, w
@@ -209,20 +189,14 @@ class _Corruptor:
         if kind is None:
             return None
         ids, b = ids.copy(), b.copy()
-        if kind == 'nan':
-            b[:, 0] = np.nan
-        elif kind == 'inf':
-            b[:, 0] = -np.inf
-        elif kind == 'zero':
-            b[:] = 0.0
+        if kind in ('nan', 'inf'):
+            b[:, 0] = np.nan if kind == 'nan' else -np.inf
+        elif kind in ('zero', 'huge'):
+            b[:] = 0.0 if kind == 'zero' else 1e300
         elif kind == 'not_unit':
             b *= 3.0
-        elif kind == 'huge':
-            b[:] = 1e300
-        elif kind == 'unknown_id':
-            ids[:] = 99
-        elif kind == 'own_id':
-            ids[:] = own_id
+        elif kind in ('unknown_id', 'own_id'):
+            ids[:] = 99 if kind == 'unknown_id' else own_id
         stamp += {'stale_stamp': -5.0, 'future_stamp': 5.0}.get(kind, 0.0)
         return stamp, ids, b
 
@@ -239,10 +213,8 @@ class _Corruptor:
         if kind is None:
             return None
         values = dict(values)
-        edge_shape = (self.channels[edge_channel].shape if edge_channel is not None
-                      else (3,))
+        edge_shape = self.channels[edge_channel].shape if edge_channel is not None else (3,)
         per_edge = dict(values.get(edge_channel, {})) if edge_channel is not None else {}
-        mine = per_edge.get(listener_id, np.eye(edge_shape[0])[0])
         if kind in ('nan_value', 'inf_value'):
             bad = np.nan if kind == 'nan_value' else np.inf
             if agent_channel is not None:
@@ -250,10 +222,9 @@ class _Corruptor:
                 values[agent_channel].ravel()[0 if kind == 'nan_value' else -1] = bad
             else:
                 per_edge[listener_id] = np.full(edge_shape, bad)
-        elif kind == 'zero':
-            per_edge[listener_id] = np.zeros(edge_shape)
-        elif kind == 'not_unit':
-            per_edge[listener_id] = 3.0 * mine
+        elif kind in ('zero', 'not_unit'):
+            per_edge[listener_id] = (np.zeros(edge_shape) if kind == 'zero' else
+                                     3.0 * per_edge.get(listener_id, np.eye(edge_shape[0])[0]))
         elif kind == 'unknown_sender':
             sender = 99
         elif kind == 'none_for_me':
@@ -272,7 +243,6 @@ class _Corruptor:
         return (R,)
 
 
-# ----------------------------------------------------------------------------- the run
 @dataclass
 class InputTally:
     """What became of the estimators' inputs, counted as the node counts them: rejections by
@@ -292,14 +262,12 @@ class InputTally:
         ``garbage`` how many of its values (points, for bearings) were corrupted."""
         self.garbage_injected += garbage
         for cause in causes:
-            if cause is None:
-                continue
             if cause in TIME_EVENTS:
                 self.events[cause] += 1
-                continue
-            self.rejected[cause] += 1
-            if garbage:
-                self.garbage_rejected[cause] += 1
+            elif cause is not None:
+                self.rejected[cause] += 1
+                if garbage:
+                    self.garbage_rejected[cause] += 1
 
 
 @dataclass
@@ -314,8 +282,7 @@ class NetRun:
 
 
 class _Network:
-    """The fleet, its world and links, with the faults of one run; :meth:`tick` advances
-    everything by one internal step of the world."""
+    """The fleet, its world and links, with one run's faults; :meth:`tick`: one world step."""
 
     def __init__(self, scenario: Scenario, links: LinkFaults, outages: tuple[Outage, ...],
                  garbage: Garbage, limits: Limits, batched: bool = True) -> None:
@@ -334,8 +301,7 @@ class _Network:
         self.channels = {c.name: c for c in self.method.sends}
         self.bad = _Corruptor(garbage, self.channels)
         self.names = [a.name for a in scenario.agents]
-        # A fault-free run pairs its inputs as a lockstep simulation does (so a DDS run
-        # equals it); with faults, as robots do (nothing waits for a fixed instant).
+        # Fault-free: paired as in lockstep; with faults, as robots do (nothing waits).
         self.exchange = (exchange_of(scenario) if not (links or outages or garbage.fraction)
                          else None)
         self.agents: dict[str, AgentRuntime] = {n: self._runtime(n) for n in self.names}
@@ -367,7 +333,6 @@ class _Network:
     def _runtime(self, name: str) -> AgentRuntime:
         return runtime_for(self.scenario, self.specs[name], self.limits, self.exchange)
 
-    # ------------------------------------------------------------------ who is cut off
     def offline(self, name: str, now: float) -> bool:
         """No neighbour messages in or out (any outage)."""
         return any(o.agent == name and o.start <= now < o.end for o in self.outages)
@@ -378,13 +343,11 @@ class _Network:
                    for o in self.outages)
 
     def restart(self, name: str, now: float) -> None:
-        """A restarted process: a fresh runtime from its initial estimate, announcing its
-        t0 state as a node does."""
+        """A fresh runtime from the initial estimate, announcing its t0 state as a node does."""
         self.agents[name] = self._runtime(name)
         self.sent_k[name] = -1
         self.publish(name, now, lambda n: True)
 
-    # ------------------------------------------------------------------ inputs
     def feed_gyro(self, now: float) -> None:
         world = self.world
         for name, w in zip(self.names, world.imu()):
@@ -430,10 +393,8 @@ class _Network:
                     self.tally.count([self.agents[name].add_known_pose(world.t, R, world.p[i])],
                                      bad)
 
-    # ------------------------------------------------------------------ links
     def send(self, name: str, topic: str, now: float, msg: tuple) -> None:
-        """``msg`` on ``name``'s ``topic`` to every agent that reads it, through the link
-        faults."""
+        """``msg`` on ``name``'s ``topic`` to every reader, through the link faults."""
         if self.offline(name, now):
             return
         for receiver in self.readers.get((name, topic), ()):
@@ -489,7 +450,6 @@ class _Network:
                     self.send(name, topic, now, ('channels', self.scenario.agent_id(name),
                                                  ag.t, content))
 
-    # ------------------------------------------------------------------ stepping
     def step(self, now: float) -> None:
         """Every running agent takes the steps its inputs allow, sending what its neighbours
         wait for, until none can go on; count any non-finite estimate."""
@@ -541,8 +501,8 @@ class _Network:
             self.link.release(now)
 
     def errors(self, followers: list[int]) -> PoseErrors:
-        """The followers' pose errors (:func:`metrics.results.pose_errors`), each estimate against
-        the truth at its estimator's state time (now, unless it waits for gyro data)."""
+        """The followers' pose errors (:func:`metrics.results.pose_errors`), each against the
+        truth at its estimator's state time (now, unless it waits for gyro data)."""
         R, p = self.world.R.copy(), self.world.p.copy()
         for i, name in enumerate(self.names):
             k = int(round(self.agents[name].t / self.scenario.step))
@@ -558,12 +518,10 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
                      links: LinkFaults = LinkFaults(), outages: tuple[Outage, ...] = (),
                      clock_jump: ClockJump | None = None, garbage: Garbage = Garbage(),
                      limits: Limits = Limits(), batched: bool = True) -> NetRun:
-    """Run the fleet for ``duration`` seconds of run time with the given faults; record the
-    followers' errors every ``record_every`` (run time, monotonic across a clock jump).
-    ``batched``: the agents' steps of one instant in one call of the method's step
-    (:func:`runtime.together.advance_together`, as an ``estimators`` process runs them): the
-    same results bit for bit (``test_runtime.py``), 20-30 % faster; False: each agent's own
-    ``advance``."""
+    """Run the fleet for ``duration`` s of run time with the given faults; record the followers'
+    errors every ``record_every`` (run time, monotonic across a clock jump). ``batched``: one
+    instant's steps in one call (:func:`runtime.together.advance_together`, as an
+    ``estimators`` process): bit for bit the same (``test_runtime.py``), 20-30 % faster."""
     net = _Network(scenario, links, outages, garbage, limits, batched)
     dt = net.world.dt
     per_record = int(round(record_every / dt))
@@ -610,7 +568,6 @@ def run_case(scenario: Scenario, case: FaultCase, duration: float,
                             garbage=case.garbage)
 
 
-# ----------------------------------------------------------------------------- measures
 def reconvergence_time(rec: Recording, ref: Recording, fault_end: float) -> float | None:
     """Time after ``fault_end`` until both mean errors of ``rec`` are at or below the
     fault-free run's (``ref``, same record times) at ``fault_end``: how long the fleet needs

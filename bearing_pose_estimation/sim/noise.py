@@ -1,25 +1,20 @@
-"""Measurement noise models, the one implementation used by the batch simulator
-(:mod:`.batch`) and the simulator node's world (:mod:`.world`). All are off by default; the
-scenario's ``noise:`` block (:class:`scenario.Noise`) switches them on.
+"""Measurement noise models of the batch simulator (:mod:`.batch`) and the simulator node's
+world (:mod:`.world`), all off unless the scenario's ``noise:`` (:class:`scenario.Noise`) says.
 
-- Gyro: measured rate = true rate + constant body-frame bias + white noise. The bias of agent i
-  is ``gyro_bias + N(0, gyro_bias_std² I)``, drawn once. In the batch simulator a step's gyro
-  increment is ``ΔR exp(h (bias + noise))``.
-- Bearings, in this order: the deterministic perturbation ``rot_X(θ0 sin(2π f t)) b`` (Tran,
-  Anderson & Ahn 2020; ``rot_X`` about the body axis ``X``, default x; t the measurement time),
-  a random rotation perpendicular to the bearing whose two components each have standard
-  deviation ``bearing_std`` (:func:`perturb_bearings`), and, with probability
+- Gyro: measured rate = true rate + constant body-frame bias + white noise; agent i's bias is
+  ``gyro_bias + N(0, gyro_bias_std² I)``, drawn once.
+- Bearings, in this order: the deterministic ``rot_X(θ0 sin(2π f t)) b`` (Tran, Anderson & Ahn
+  2020; ``rot_X`` about the body axis ``X``, default x; t the measurement time), a random
+  rotation perpendicular to the bearing (:func:`perturb_bearings`) and, with probability
   ``outlier_probability``, replacement by a uniformly random unit vector.
-
 - Moving-robot sensors (``sensors:``, :class:`scenario.Sensors`): white noise of the sensor's
   ``std`` on each component of odometry velocities (``angular_std`` on its rates), relative
-  positions, bearing rates and ranges. In the batch simulator a step's odometry displacement
-  gets ``h`` times the noise averaged over the samples the step spans.
+  positions, bearing rates and ranges.
 
-Reproducible: every draw comes from generators seeded by ``noise.seed``, with separate streams
-for the bias, the gyro white noise, the bearings and each moving-robot sensor, so the same
-scenario, seed and sequence of calls give the same measurements. No rclpy here.
-"""
+The batch simulator's step of ``h`` gets ``h`` times the noise averaged over the samples it
+spans (gyro increments ``ΔR exp(h (bias + noise))``, odometry displacements). Every draw comes
+from generators seeded by ``noise.seed``, one stream each for the bias, the gyro white noise,
+the bearings and each moving-robot sensor: same scenario, seed and calls, same measurements."""
 from __future__ import annotations
 
 import math
@@ -34,27 +29,14 @@ Array = NDArray[np.float64]
 
 
 def perturb_bearings(b: Array, std: float, rng: np.random.Generator) -> Array:
-    """Rotate each unit bearing by a small random rotation perpendicular to it.
-
-    The rotation vector is ``N(0, std² P_b)``: each of the two angular components
-    orthogonal to ``b`` has standard deviation ``std`` [rad].
-    """
+    """Rotate each unit bearing by a small random rotation perpendicular to it: the rotation
+    vector is ``N(0, std² P_b)``, each of its two components orthogonal to ``b`` of standard
+    deviation ``std`` [rad]."""
     if std == 0.0:
         return b
     phi = std * rng.normal(size=b.shape)
     phi -= b * np.sum(phi * b, axis=-1, keepdims=True)
     return np.einsum('eab,eb->ea', so3.exp(phi), b)
-
-
-def perturbation_angle(t: float, amplitude_deg: float, frequency_hz: float) -> float:
-    """``θ0 sin(2π f t)`` [rad] for the deterministic perturbation at time ``t`` [s]."""
-    return math.radians(amplitude_deg) * math.sin(2.0 * math.pi * frequency_hz * t)
-
-
-def random_unit_vectors(n: int, rng: np.random.Generator) -> Array:
-    """``n`` unit vectors uniform on the sphere, ``(n, 3)``."""
-    v = rng.normal(size=(n, 3))
-    return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
 def replace_outliers(b: Array, probability: float, rng: np.random.Generator) -> Array:
@@ -63,16 +45,14 @@ def replace_outliers(b: Array, probability: float, rng: np.random.Generator) -> 
         return b
     hit = rng.random(b.shape[0]) < probability
     out = b.copy()
-    out[hit] = random_unit_vectors(int(np.count_nonzero(hit)), rng)
+    v = rng.normal(size=(int(np.count_nonzero(hit)), 3))
+    out[hit] = v / np.linalg.norm(v, axis=1, keepdims=True)
     return out
 
 
 class NoiseModel:
-    """The scenario's noise for a fleet of ``n_agents`` (row i of any gyro array is agent i).
-
-    Attributes:
-        bias: ``(n_agents, 3)`` constant body-frame gyro bias [rad/s].
-    """
+    """The scenario's noise for a fleet of ``n_agents`` (row i of any gyro array is agent i);
+    ``bias`` ``(n_agents, 3)``: the constant body-frame gyro biases [rad/s]."""
 
     def __init__(self, noise: Noise, n_agents: int, sensors: Sensors = Sensors()) -> None:
         self.noise = noise
@@ -91,8 +71,7 @@ class NoiseModel:
         self.has_bias = bool(np.any(self.bias != 0.0))
 
     def _gyro_error(self, shape: tuple[int, ...], samples: float = 1.0) -> Array | None:
-        """bias + white noise averaged over ``samples`` IMU samples, or None when both are
-        zero."""
+        """bias + white noise averaged over ``samples`` IMU samples; None if both are zero."""
         std = self.noise.gyro_std / math.sqrt(samples)
         if std == 0.0:
             return self.bias if self.has_bias else None
@@ -113,9 +92,9 @@ class NoiseModel:
     def bearings(self, b: Array, t: float) -> Array:
         """Measured body bearings ``(n, 3)`` from true unit bearings ``b`` at time ``t`` [s]."""
         nz = self.noise
-        bp = nz.bearing_perturbation
+        bp = nz.bearing_perturbation   # θ0 sin(2π f t) [rad]
         if bp is not None:
-            angle = perturbation_angle(t, bp.amplitude_deg, bp.frequency_hz)
+            angle = math.radians(bp.amplitude_deg) * math.sin(2.0 * math.pi * bp.frequency_hz * t)
             b = b @ so3.axis_angle(bp.axis, angle).T
         b = perturb_bearings(b, nz.bearing_std, self.bearing_rng)
         return replace_outliers(b, nz.outlier_probability, self.bearing_rng)

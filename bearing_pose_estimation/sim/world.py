@@ -1,22 +1,16 @@
-"""The simulated world of the simulator node: the truth (:class:`.truth.Truth`) on a fine
-grid, sampled like sensors.
+"""The simulated world of the simulator node: the truth (:class:`scenario.truth.Truth`) stepped
+every ``simulation.internal_step`` (1 ms by default, far finer than any published rate),
+sampled like sensors, with the noise of :class:`.noise.NoiseModel` (as the batch simulator's):
 
-- Truth: stepped every ``simulation.internal_step`` (1 ms by default), far finer than any
-  published rate.
-- Gyro: each sample is the interval average over the last IMU period,
-  ``ω̄ = log(R(t_prev)ᵀ R(t)) / Δt`` (the constant rate that produces the true rotation), plus
-  the agent's constant bias and white noise. See :mod:`bearing_pose_estimation.core.gyro`.
-- Bearings: instantaneous ``R_i(t)ᵀ b_ij`` to every agent i senses (its neighbours and its
-  listeners: sensing is two-way), corrupted by the scenario's bearing noise models.
-- Moving-robot sensors, each at its own rate (``sensors:``) and only when the scenario
-  simulates it (:meth:`scenario.Scenario.simulates`): odometry, the interval-average body
-  twist over the last odometry period (the SE(3) logarithm of the true pose increment divided
-  by the period, :func:`core.odometry.twist_of`) plus white noise, with the pose dead-reckoned
-  from those twists; instantaneous relative positions, bearing rates and ranges to the agents
-  i senses, plus white noise.
-
-Noise comes from :class:`.noise.NoiseModel`, the same models as the batch simulator.
-"""
+- gyro: the interval average over the last IMU period, ``ω̄ = log(R(t_prev)ᵀ R(t)) / Δt`` (the
+  constant rate that produces the true rotation, :mod:`core.gyro`), plus bias and white noise;
+- bearings: instantaneous ``R_i(t)ᵀ b_ij`` to every agent i senses (its neighbours and its
+  listeners: sensing is two-way);
+- the moving-robot sensors the scenario simulates (:meth:`scenario.Scenario.simulates`), each
+  at its rate: odometry, the interval-average body twist over the last period (the SE(3)
+  logarithm of the pose increment over the period, :func:`core.odometry.twist_of`), with the
+  pose dead-reckoned from the twists; instantaneous relative positions, bearing rates and
+  ranges to the agents i senses."""
 from __future__ import annotations
 
 import numpy as np
@@ -32,8 +26,7 @@ Array = NDArray[np.float64]
 
 
 class World(OnTruth):
-    """Truth of a scenario on the internal time grid ``t = tick · internal_step``, and its
-    sensors."""
+    """Truth of a scenario on the grid ``t = tick · internal_step``, and its sensors."""
 
     def __init__(self, scenario: Scenario) -> None:
         self.scenario = scenario
@@ -80,27 +73,23 @@ class World(OnTruth):
         return self.tick % every == 0
 
     def imu(self) -> Array:
-        """Interval-average gyro samples of all agents, ``(N, 3)`` [rad/s], for the IMU period
-        ending now."""
+        """Gyro samples ``(N, 3)`` [rad/s]: interval averages over the IMU period ending now."""
         period = self.imu_every * self.dt
-        # One IMU period's increment: a small angle, whose closed form costs a tenth of the
-        # quaternion route (the simulator runs this 200 times a second).
+        # A small angle: its closed form costs a tenth of the quaternion route (at 200 Hz).
         omega = so3.log_small(np.swapaxes(self._R_last_imu, -1, -2) @ self.R) / period
         self._R_last_imu = self.R.copy()
         return self.noise.gyro_rate(omega)
 
     def bearings(self, i: int) -> tuple[NDArray[np.intp], Array]:
-        """Agent i's measured body bearings now: (0-based target indices, ``(n, 3)`` unit
-        vectors)."""
+        """Agent i's measured body bearings now: (0-based target indices, ``(n, 3)``)."""
         j = self.targets[i]
         owner = np.full(j.shape, i, dtype=np.intp)
         b_body = self.truth.body_bearings(owner, self.truth.world_bearings(owner, j))
         return j, self.noise.bearings(b_body, self.t)
 
     def odometry(self) -> tuple[Array, Array]:
-        """Interval-average body twists of all agents for the odometry period ending now:
-        ``(v (N, 3) [m/s], ω (N, 3) [rad/s])``, noise included; :attr:`odom_R`,
-        :attr:`odom_p` advance by them."""
+        """Interval-average body twists ``(v (N, 3) [m/s], ω (N, 3) [rad/s])`` over the odometry
+        period ending now, noise included; :attr:`odom_R`, :attr:`odom_p` advance by them."""
         period = self.sensor_every['odometry'] * self.dt
         R0, p0 = self._last_odometry
         v, omega = twist_of(np.swapaxes(R0, -1, -2) @ self.R,
@@ -112,9 +101,8 @@ class World(OnTruth):
         return v, omega
 
     def sensed(self, name: str, i: int) -> tuple[NDArray[np.intp], Array]:
-        """Agent i's measured ``relative_positions`` ``(n, 3)`` [m], ``bearing_rates``
-        ``(n, 3)`` [1/s] or ``ranges`` ``(n,)`` [m] now, to the agents it senses: (0-based
-        target indices, values)."""
+        """Agent i's ``relative_positions`` ``(n, 3)`` [m], ``bearing_rates`` ``(n, 3)`` [1/s]
+        or ``ranges`` ``(n,)`` [m] now: (0-based indices of the agents it senses, values)."""
         j = self.sensor_targets[name][i]
         owner = np.full(j.shape, i, dtype=np.intp)
         measure = {'relative_positions': self.truth.relative_positions,

@@ -1,17 +1,11 @@
 """Several estimators on one scenario, side by side (``bearing-pose compare``); no rclpy.
-
-Each method runs on the same scenario: same truth, same initial estimates, same noise seed.
-Only ``method`` and the gains change. :func:`method_data` derives, from the scenario file's
-content, one scenario per method: its ``gains:`` block holds the method's own gains, taken from
-the file where the file's method uses them, else the defaults, then ``--gains`` overrides. The
-batch runs and the optional distributed runs (one ``bearing-pose run`` per method, whose
-estimator nodes read the derived file) use that same derived scenario, so they can be compared
-row by row.
-"""
+Every method runs with the same truth, initial estimates and noise seed; only ``method`` and the
+gains change. :func:`method_data` derives one scenario per method from the file's content (its
+gains: the file's where its method has them, else the defaults, then ``--gains``). The batch
+runs and the optional distributed ones (``bearing-pose run`` on the derived file) share it."""
 from __future__ import annotations
 
 import copy
-import csv
 import dataclasses
 import math
 from collections.abc import Mapping
@@ -27,7 +21,7 @@ from ..metrics.results import Recording
 from ..scenario.model import Scenario
 from ..scenario.parse import EDGE_GAIN, parse_scenario
 from ..sim.batch import BatchSimulator
-from .summary import ATT_THRESHOLD_RAD, POS_THRESHOLD_M, quantities, when
+from .summary import ATT_THRESHOLD_RAD, POS_THRESHOLD_M, quantities, when, write_rows
 
 OUTPUT_FILES = ('compare.csv', 'compare.md', 'compare_errors.png')
 
@@ -47,11 +41,8 @@ class Run:
 
 
 def parse_gain_overrides(texts: list[str]) -> dict[str, dict[str, float]]:
-    """``['tran_anderson_ahn:k_omega=3,k_c=2', ...]`` → ``{method: {gain: value}}``.
-
-    Raises:
-        ValueError: naming the bad text and the fix.
-    """
+    """``['tran_anderson_ahn:k_omega=3,k_c=2', ...]`` → ``{method: {gain: value}}``, or
+    ValueError naming the bad text and the fix."""
     out: dict[str, dict[str, float]] = {}
     for text in texts:
         method, sep, assignments = text.partition(':')
@@ -81,8 +72,7 @@ def parse_gain_overrides(texts: list[str]) -> dict[str, dict[str, float]]:
 
 
 def incompatible(scenario: Scenario, method: str) -> str | None:
-    """Why ``method`` cannot run on ``scenario`` (its roles, or a sensor the scenario does not
-    simulate), or None."""
+    """Why ``method`` cannot run on ``scenario`` (roles, or a sensor not simulated), or None."""
     cls = estimators.get(method)
     roles = _roles(scenario)
     if cls.roles.leaders and cls.roles.leaders != len(roles.get('leaders', ())):
@@ -101,8 +91,7 @@ def incompatible(scenario: Scenario, method: str) -> str | None:
 
 
 def _roles(scenario: Scenario) -> dict[str, Any]:
-    """Every role the scenario gives, its method's and ``other_roles``, as a file writes
-    them."""
+    """Every role the scenario gives (its method's and ``other_roles``), as a file writes them."""
     roles = dict(scenario.other_roles)
     if scenario.leaders:
         roles['leaders'] = list(scenario.leaders)
@@ -113,36 +102,24 @@ def _roles(scenario: Scenario) -> dict[str, Any]:
 
 
 def compatible_methods(scenario: Scenario) -> tuple[list[str], dict[str, str]]:
-    """The registered methods that can run on ``scenario`` (its own first), and why each
-    other cannot."""
-    ok, why = [scenario.method], {}
-    for m in estimators.methods():
-        if m == scenario.method:
-            continue
-        reason = incompatible(scenario, m)
-        if reason is None:
-            ok.append(m)
-        else:
-            why[m] = reason
-    return ok, why
+    """The methods that can run on ``scenario`` (its own first), and why each other cannot."""
+    why = {m: incompatible(scenario, m) for m in estimators.methods() if m != scenario.method}
+    return ([scenario.method] + [m for m, r in why.items() if r is None],
+            {m: r for m, r in why.items() if r is not None})
 
 
 def method_data(data: Mapping[str, Any], scenario: Scenario, method: str,
                 overrides: Mapping[str, float] | None = None) -> dict[str, Any]:
-    """The scenario file's content (``data``; ``scenario`` is it parsed) with ``method``, its
-    roles (``leaders``, ``anchor``) at the top level and the others under ``other_roles``, and
-    a ``gains:`` block of that method: every gain it reads (the file's value where the file's
-    method has a gain of that name, else the default; then ``overrides``), and the file's
-    ``k_ij`` if any."""
+    """The file's content ``data`` (``scenario`` is it parsed) run by ``method``: the roles it
+    uses at the top level, the others under ``other_roles``, and a ``gains:`` block with every
+    gain it reads (as :meth:`Scenario.with_method`, then ``overrides``) and the file's ``k_ij``."""
     derived = copy.deepcopy(dict(data))
     derived['method'] = method
-    # The roles this method uses at the top level, the others under other_roles.
     cls = estimators.get(method)
     uses = {'leaders': cls.roles.leaders > 0, 'anchor': cls.roles.anchor}
     roles = _roles(scenario)
-    for key in ('leaders', 'anchor'):
+    for key in ('leaders', 'anchor', 'other_roles'):
         derived.pop(key, None)
-    derived.pop('other_roles', None)
     derived.update({k: v for k, v in roles.items() if uses[k]})
     others = {k: v for k, v in roles.items() if not uses[k]}
     if others:
@@ -184,18 +161,11 @@ def write_csv(runs: list[Run], path: Path) -> None:
     """``t`` then, per run, its mean attitude [rad] and position [m] errors, on the batch
     runs' time grid (DDS runs, recorded at the monitor's rows, are interpolated onto it)."""
     t = runs[0].rec.t
-    with path.open('w', newline='') as fh:
-        w = csv.writer(fh)
-        w.writerow(['t'] + [f'{_column(r)}_{q}' for r in runs
-                            for q in ('attitude_error_mean_rad', 'position_error_mean_m')])
-        series = [np.interp(t, r.rec.t, e.mean(axis=1), right=np.nan)
-                  for r in runs for e in (r.rec.att_err, r.rec.pos_err)]
-        for k, tk in enumerate(t):
-            w.writerow([f'{tk:.6f}'] + [f'{s[k]:.9e}' for s in series])
-
-
-def _column(run: Run) -> str:
-    return run.method if run.mode == 'batch' else f'{run.method}_dds'
+    series = [np.interp(t, r.rec.t, e.mean(axis=1), right=np.nan)
+              for r in runs for e in (r.rec.att_err, r.rec.pos_err)]
+    write_rows(path, ['t'] + [f'{r.method}{"" if r.mode == "batch" else "_dds"}_{q}' for r in runs
+                              for q in ('attitude_error_mean_rad', 'position_error_mean_m')],
+               ([f'{tk:.6f}'] + [f'{s[k]:.9e}' for s in series] for k, tk in enumerate(t)))
 
 
 def table(rows_: list[dict[str, Any]]) -> str:

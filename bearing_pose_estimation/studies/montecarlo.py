@@ -1,20 +1,12 @@
-"""Monte Carlo runs of the batch simulator (``bearing-pose montecarlo``).
+"""Monte Carlo runs of the batch simulator (``bearing-pose montecarlo``); no rclpy.
 
-Run ``i`` (0-based) of a study with first seed ``S`` is the scenario with ``noise.seed`` and, if
-it draws random initial estimates, ``initial_estimates.random.seed`` both set to ``S + i``
-(explicit initial estimates stay as they are), so ``bearing-pose simulate`` on a scenario with
-those seeds replays it exactly. Runs go to a process pool; each worker loads the scenario file
-itself and runs one :class:`simulator.BatchSimulator`.
-
-Per run: every quantity of :mod:`.summary` (final, steady-state and settling), with its one
-steady-state window and noise-robust settling rule.
-
-Outputs: ``runs.csv`` (one row per run), ``summary.json`` (statistics over runs) and
-``montecarlo.png``. No rclpy here.
-"""
+Run ``i`` (0-based) with first seed ``S`` is the scenario with ``noise.seed`` and, if it draws
+random initial estimates, ``initial_estimates.random.seed`` set to ``S + i``, so
+``bearing-pose simulate`` with those seeds replays it exactly. Each worker of the process pool
+loads the file itself. Per run: every quantity of :mod:`.summary`. Outputs: ``runs.csv`` (one
+row per run), ``summary.json`` (statistics over runs) and ``montecarlo.png``."""
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -29,8 +21,9 @@ from ..scenario.model import Scenario
 from ..scenario.parse import load_scenario
 from ..sim.batch import BatchSimulator
 from .parallel import run_all
+from .plots import log_axes, pyplot, save
 from .summary import (ATT_THRESHOLD_RAD, POS_THRESHOLD_M, QUANTITIES, SETTLE_FACTOR,
-                      STEADY_FRACTION, TIMES, quantities)
+                      STEADY_FRACTION, TIMES, quantities, write_rows)
 
 Array = NDArray[np.float64]
 
@@ -40,8 +33,7 @@ RUN_COLUMNS = ('run', 'seed') + QUANTITIES
 
 
 def reseed(scenario: Scenario, seed: int) -> Scenario:
-    """The scenario with every random draw seeded by ``seed``: ``noise.seed`` and, when the
-    scenario draws random initial estimates, ``initial_estimates.random.seed``."""
+    """The scenario with ``noise.seed`` and any ``initial_estimates.random.seed`` = ``seed``."""
     random_init = (replace(scenario.random_init, seed=seed)
                    if scenario.random_init is not None else None)
     return replace(scenario, noise=replace(scenario.noise, seed=seed), random_init=random_init)
@@ -77,14 +69,12 @@ def run_montecarlo(scenario_file: str | Path, runs: int, seed: int, duration: fl
                    jobs: int | None = None,
                    progress: Callable[[int, int, RunResult], None] | None = None
                    ) -> list[RunResult]:
-    """Run ``runs`` simulations with seeds ``seed .. seed + runs - 1`` on ``jobs`` processes
-    (default: every core); return them in run order. ``progress(done, runs, result)`` is
-    called as each run finishes."""
+    """``runs`` simulations with seeds ``seed .. seed + runs - 1`` on ``jobs`` processes
+    (:func:`.parallel.run_all`), in run order."""
     calls = [(str(scenario_file), i, seed + i, duration) for i in range(runs)]
     return run_all(run_one, calls, jobs, progress)
 
 
-# ----------------------------------------------------------------------------- statistics
 def statistics(values: list[float | None]) -> dict[str, Any]:
     """mean, std (population, ddof=0), p5, p50, p95 (numpy's linear interpolation) and max over
     the runs that have a finite value; ``n`` counts those runs, ``never_converged`` the None
@@ -105,27 +95,17 @@ def statistics(values: list[float | None]) -> dict[str, Any]:
 
 
 def summarize(results: list[RunResult], **extra: Any) -> dict[str, Any]:
-    """``summary.json``: ``extra`` (scenario, seeds, wall time ...), the statistics of every
-    quantity over the runs, and how many runs never converged."""
-    summary: dict[str, Any] = dict(extra)
-    summary['runs'] = len(results)
-    summary['statistics'] = {q: statistics([r.values[q] for r in results]) for q in QUANTITIES}
-    summary['runs_never_converged'] = {q: summary['statistics'][q]['never_converged']
-                                       for q in TIMES}
-    return summary
-
-
-def _csv_value(v: float | int | None) -> str:
-    # repr: the shortest text that reads back as the same float, so the CSV is exact.
-    return '' if v is None else repr(v)
+    """``summary.json``: ``extra`` (scenario, seeds, ...) and every quantity's statistics."""
+    stats = {q: statistics([r.values[q] for r in results]) for q in QUANTITIES}
+    return {**extra, 'runs': len(results), 'statistics': stats,
+            'runs_never_converged': {q: stats[q]['never_converged'] for q in TIMES}}
 
 
 def write_runs_csv(results: list[RunResult], path: Path) -> None:
-    with path.open('w', newline='') as fh:
-        w = csv.writer(fh)
-        w.writerow(RUN_COLUMNS)
-        for r in results:
-            w.writerow([r.run, r.seed] + [_csv_value(r.values[q]) for q in QUANTITIES])
+    # repr: the shortest text that reads back as the same float, so the CSV is exact.
+    write_rows(path, RUN_COLUMNS, ([r.run, r.seed] + ['' if r.values[q] is None
+                                                      else repr(r.values[q]) for q in QUANTITIES]
+                                   for r in results))
 
 
 def format_table(summary: dict[str, Any]) -> str:
@@ -153,12 +133,8 @@ def format_table(summary: dict[str, Any]) -> str:
 
 
 def write_plot(results: list[RunResult], path: Path) -> None:
-    """``montecarlo.png``: every run's mean errors over time (thin) with the median (bold) on
-    log scales, and histograms of the steady-state errors."""
-    import matplotlib
-    matplotlib.use('Agg')  # files only: works without a display
-    import matplotlib.pyplot as plt
-
+    """``montecarlo.png``: every run's mean errors (the median bold), steady-state histograms."""
+    plt = pyplot()
     floor = 1e-17  # a log axis cannot show exact zeros
     fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), constrained_layout=True)
     series = (('att_mean', 'mean attitude error [rad]', ATT_THRESHOLD_RAD,
@@ -174,12 +150,7 @@ def write_plot(results: list[RunResult], path: Path) -> None:
         ax.plot(results[0].t[:n], np.median(np.stack([c[:n] for c in curves]), axis=0), 'k',
                 lw=2.0, label=f'median of {len(results)} runs')
         ax.axhline(threshold, color='tab:red', ls='--', lw=1.0, label=f'threshold {threshold:g}')
-        ax.set_yscale('log')
-        ax.set_xlabel('time [s]')
-        ax.set_ylabel(label)
-        ax.grid(True, which='both', alpha=0.3)
-        ax.legend(fontsize=8)
-        ax.set_title(label.split(' [')[0] + ', every run')
+        log_axes(ax, label.split(' [')[0] + ', every run', 'time [s]', label)
 
         ax = axes[1, col]
         v = np.maximum(np.array([r.values[steady] for r in results], dtype=float), floor)
@@ -189,8 +160,7 @@ def write_plot(results: list[RunResult], path: Path) -> None:
             bins = np.logspace(lo - 0.05, hi + 0.05, max(5, min(30, len(v) // 2 + 1)))
             ax.hist(v, bins=bins, color='tab:blue', edgecolor='k', lw=0.5)
             ax.set_xscale('log')
-        ax.set_xlabel(f'steady-state {label} (last {STEADY_FRACTION:.0%} of the run)')
-        ax.set_ylabel('runs')
+        ax.set(xlabel=f'steady-state {label} (last {STEADY_FRACTION:.0%} of the run)',
+               ylabel='runs')
         ax.grid(True, which='both', alpha=0.3)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)

@@ -1,26 +1,13 @@
-"""The Tran, Anderson & Ahn (2020) noise experiment, for several methods
-(``bearing-pose noise-study``); no rclpy.
-
-Every measured bearing is ``rot_X(θ0 sin 2πft) · b`` (Section 5.1 of the paper: θ0 up to 10°,
-f from 1 to 25 Hz; ``rot_X`` about a body axis ``X``, x by default). For each method (derived
-from the scenario as ``compare`` does) and each (θ0, f), one batch run from the scenario's
-initial estimates; the perturbation replaces any ``bearing_perturbation`` of the file, the rest
-of its noise stays.
-
-The estimates do not converge but stay in a neighbourhood of the truth. Per run, over the
-steady-state window of :mod:`.summary` (the last quarter of the run):
-
-- ``steady_*_mean``: time average of the mean error over followers (what ``montecarlo``
-  reports);
-- ``steady_*_max``: the largest error of any follower at any recorded time: the radius of the
-  neighbourhood the estimates stay in.
-
-The batch simulator samples the bearings once per estimator step ``h``; the run refuses
-frequencies above a quarter of ``1/h`` (4 samples per period), which would alias.
-"""
+"""The Tran, Anderson & Ahn (2020) noise experiment for several methods (``noise-study``).
+Every measured bearing is ``rot_X(θ0 sin 2πft) · b`` (Section 5.1: θ0 up to 10°, f from 1 to
+25 Hz; ``rot_X`` about a body axis ``X``, x by default). For each method (derived as
+``compare`` does) and each (θ0, f), one batch run; the perturbation replaces the file's
+``bearing_perturbation``, the rest of its noise stays. The estimates stay in a neighbourhood of
+the truth: per run, the ``steady_*`` quantities of :mod:`.summary` (``*_max``: its radius).
+The bearings are sampled once per estimator step ``h``: frequencies above ``1/(4h)`` (fewer
+than 4 samples per period) would alias and are refused."""
 from __future__ import annotations
 
-import csv
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -32,7 +19,8 @@ import numpy as np
 from ..scenario.model import BearingPerturbation, Scenario
 from ..sim.batch import BatchSimulator
 from .parallel import run_all
-from .summary import STEADY_FRACTION, quantities
+from .plots import log_axes, pyplot, save
+from .summary import STEADY_FRACTION, quantities, write_rows
 
 OUTPUT_FILES = ('noise_study.csv', 'noise_study.md', 'noise_study.png')
 RECORD_EVERY = 0.01      # [s]; fine enough to catch the peaks of a 25 Hz perturbation
@@ -77,10 +65,8 @@ def check_frequencies(frequencies_hz: Sequence[float], scenario: Scenario) -> No
 
 def run_case(scenario: Scenario, case: Case, duration: float) -> CaseResult:
     """One run (in a worker process): simulate, then the steady-state quantities."""
-    rec = BatchSimulator(perturbed(scenario, case.amplitude_deg, case.frequency_hz,
-                                   case.axis)).run(
-        duration, record_every=max(RECORD_EVERY, scenario.step))
-    values = quantities(rec)
+    sim = BatchSimulator(perturbed(scenario, case.amplitude_deg, case.frequency_hz, case.axis))
+    values = quantities(sim.run(duration, record_every=max(RECORD_EVERY, scenario.step)))
     return CaseResult(case, {q: float(cast(float, values[q])) for q in QUANTITIES})
 
 
@@ -88,8 +74,7 @@ def run_study(scenarios: dict[str, Scenario], amplitudes_deg: Sequence[float],
               frequencies_hz: Sequence[float], duration: float, jobs: int | None = None,
               progress: Callable[[int, int, CaseResult], None] | None = None,
               axis: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> list[CaseResult]:
-    """Every (method, θ0, f) about ``axis`` on ``jobs`` processes (default: every core), in
-    that order."""
+    """Every (method, θ0, f) about ``axis`` on ``jobs`` processes, in that order."""
     cases = [Case(m, a, f, axis) for m in scenarios for a in amplitudes_deg
              for f in frequencies_hz]
     return run_all(run_case, [(scenarios[c.method], c, duration) for c in cases], jobs,
@@ -97,12 +82,9 @@ def run_study(scenarios: dict[str, Scenario], amplitudes_deg: Sequence[float],
 
 
 def write_csv(results: list[CaseResult], path: Path) -> None:
-    with path.open('w', newline='') as fh:
-        w = csv.writer(fh)
-        w.writerow(COLUMNS)
-        for r in results:
-            w.writerow([r.case.method, f'{r.case.amplitude_deg:g}', f'{r.case.frequency_hz:g}']
-                       + [f'{r.values[q]:.6e}' for q in QUANTITIES])
+    write_rows(path, COLUMNS, ([r.case.method, f'{r.case.amplitude_deg:g}',
+                                f'{r.case.frequency_hz:g}']
+                               + [f'{r.values[q]:.6e}' for q in QUANTITIES] for r in results))
 
 
 def table(results: list[CaseResult]) -> str:
@@ -127,14 +109,8 @@ def table(results: list[CaseResult]) -> str:
 
 
 def write_plot(results: list[CaseResult], path: Path) -> Path:
-    """Neighbourhood radius (worst follower over the window) against f, one line per method
-    and θ0, attitude and position side by side."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    from .plots import log_axes
-
+    """Neighbourhood radius (worst follower) against f, per method and θ0, attitude and position."""
+    plt = pyplot()
     fig, (att, pos) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
     methods = list(dict.fromkeys(r.case.method for r in results))
     amplitudes = list(dict.fromkeys(r.case.amplitude_deg for r in results))
@@ -153,6 +129,4 @@ def write_plot(results: list[CaseResult], path: Path) -> Path:
                               (pos, 'Position error bound', 'worst follower [m]')):
         log_axes(ax, title + window, 'perturbation frequency f [Hz]', ylabel, log_x=True,
                  legend_size=7)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)

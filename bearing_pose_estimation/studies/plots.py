@@ -1,20 +1,9 @@
-"""PNG plots of a run: the quantities of the paper's Fig. 2 and Fig. 3.
-
-Fig. 2 is the average attitude error norm ``(1/n_f) Σ |R̃_i|_I``; Fig. 3 the average position
-error norm ``(1/n_f) Σ ‖p̃_i‖`` with ``p̃_i = p_i − R̃_i p̂_i``. Each figure has the paper's linear
-view and a log view showing the convergence rate, with per-follower curves.
-
-Methods that keep per-pair states under formation control (De Carli et al.) add
-:func:`plot_cascade`: their Fig. 2's four panels, the relative-yaw error per pair, the yaw
-and position errors per robot and the formation error per robot, on log axes.
-
-Methods whose robots have roles (Presenza et al.: sensing and free robots) add
-:func:`write_role_outputs`: the errors per robot with the roles apart, as the paper's figures
-show them, and the roles' means as CSV.
-
-For moving fleets, :func:`plot_trajectories` draws the true and estimated (world-frame)
-trajectories in 3D next to each agent's position error, the distance between the two.
-"""
+"""PNG plots of a run: Boughellaba & Tayebi's Fig. 2, the average attitude error norm
+``(1/n_f) Σ |R̃_i|_I``, and Fig. 3, the average position error norm ``(1/n_f) Σ ‖p̃_i‖`` with
+``p̃_i = p_i − R̃_i p̂_i``, each in the paper's linear view and a log view, per follower.
+Also: De Carli et al.'s cascade (:func:`plot_cascade`), the errors by role of Presenza et al.
+(:func:`write_role_outputs`), the methods compared (:func:`write_compare_plot`) and a moving
+fleet's trajectories (:func:`plot_trajectories`)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -25,12 +14,24 @@ import numpy as np
 from ..metrics.results import Recording
 
 
+def pyplot() -> Any:
+    """``matplotlib.pyplot`` on the Agg backend (files only: works without a display)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def save(fig: Any, path: Path) -> Path:
+    """Write ``fig`` to ``path`` (110 dpi) and close it."""
+    fig.savefig(path, dpi=110)
+    pyplot().close(fig)
+    return path
+
+
 def _figure(t: np.ndarray, per_agent: np.ndarray, names: list[str], title: str, ylabel: str,
             path: Path) -> None:
-    import matplotlib
-    matplotlib.use('Agg')  # files only: works without a display
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     mean = per_agent.mean(axis=1)
     fig, (lin, lg) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
     for ax, log in ((lin, False), (lg, True)):
@@ -46,14 +47,12 @@ def _figure(t: np.ndarray, per_agent: np.ndarray, names: list[str], title: str, 
             ax.set_ylabel(ylabel)
             ax.set_title(title)
     lin.legend(fontsize=7, ncol=2)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
 
 
 def write_plots(rec: Recording, out_dir: Path) -> list[Path]:
     """Write ``fig2_attitude_error.png`` and ``fig3_position_error.png``; return their paths."""
-    att = out_dir / 'fig2_attitude_error.png'
-    pos = out_dir / 'fig3_position_error.png'
+    att, pos = out_dir / 'fig2_attitude_error.png', out_dir / 'fig3_position_error.png'
     # Floor at a tiny positive value so a log axis can show exact zeros (leaders, converged).
     _figure(rec.t, np.maximum(rec.att_dist_I, 1e-17), rec.followers,
             'Average attitude estimation error norm (Fig. 2)', r'$|\tilde R_i|_I$', att)
@@ -69,11 +68,9 @@ ROLES_CSV = 'errors_by_role.csv'
 
 def write_role_outputs(rec: Recording, groups: dict[str, list[str]], out_dir: Path,
                        title: str = '', plot: bool = True) -> list[Path]:
-    """For methods whose robots have roles (Presenza et al.: sensing and free robots), in
-    the style of the paper's figures: :data:`ROLES_CSV` (``t``, then per group its mean
-    position [m] and attitude [rad] errors) and :data:`ROLES_PLOT` (position and attitude
-    error per robot, log scale, one line style per group, each group's mean in bold). Nothing
-    when ``groups`` is empty."""
+    """Robots with roles (Presenza et al.: sensing, free), as the paper's figures: :data:`ROLES_CSV`
+    (``t``, then per group its mean position [m] and attitude [rad] errors) and
+    :data:`ROLES_PLOT` (per robot, a line style per group, its mean bold); nothing if no groups."""
     if not groups:
         return []
     cols = {g: [rec.followers.index(a) for a in names if a in rec.followers]
@@ -88,10 +85,7 @@ def write_role_outputs(rec: Recording, groups: dict[str, list[str]], out_dir: Pa
                fmt='%.9e')
     if not plot:
         return [csv_path]
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     styles = ['-', '--', ':', '-.']
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
     for ax, values, name, unit in ((axes[0], rec.pos_err, 'position error', 'm'),
@@ -106,26 +100,19 @@ def write_role_outputs(rec: Recording, groups: dict[str, list[str]], out_dir: Pa
         log_axes(ax, f'{name} per robot', 'time [s]', unit, legend_size=6)
     if title:
         fig.suptitle(title)
-    path = out_dir / ROLES_PLOT
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return [csv_path, path]
+    return [csv_path, save(fig, out_dir / ROLES_PLOT)]
 
 
 CASCADE_PLOT = 'cascade.png'
 
 
 def plot_cascade(rec: Recording, path: Path, title: str = '') -> Path | None:
-    """Write ``path`` (:data:`CASCADE_PLOT`): the errors of the cascade, one panel per stage
-    (pairs' relative yaw, robots' yaw, position, formation), per pair or robot with their mean;
-    None (nothing written) when the recording has no per-pair errors."""
+    """Write ``path`` (:data:`CASCADE_PLOT`): one panel per stage of the cascade (pairs'
+    relative yaw, yaw, position, formation); None (nothing written) without per-pair errors."""
     pairs = {k: v for k, v in rec.extra.items() if k.startswith('rel_yaw_err_')}
     if not pairs:
         return None
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     formation = {k: v for k, v in rec.extra.items() if k.startswith('formation_err_')}
     panels = [('(a) relative yaw per pair', r'$|\hat z_{ij} - e^{\iota\psi_{ij}}|$',
                np.array(list(pairs.values())).T, [k[len('rel_yaw_err_'):] for k in pairs]),
@@ -143,27 +130,18 @@ def plot_cascade(rec: Recording, path: Path, title: str = '') -> Path | None:
         mean = np.where(finite, values, 0.0).sum(axis=1) / np.maximum(finite.sum(axis=1), 1)
         ax.plot(rec.t, np.where(finite.any(axis=1), np.maximum(mean, 1e-17), np.nan), 'k',
                 lw=2.0, label='mean')
-        ax.set_yscale('log')
-        ax.set_title(name)
-        ax.set_ylabel(unit)
-        ax.set_xlabel('time [s]')
-        ax.grid(True, which='both', alpha=0.3)
+        log_axes(ax, name, 'time [s]', unit, legend_size=None)
     axes[0].legend(fontsize=6, ncol=2)
     if title:
         fig.suptitle(title)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def write_compare_plot(recs: dict[str, Recording], path: Path,
                        dashed: frozenset[str] = frozenset()) -> Path:
-    """Mean attitude and position errors of several runs (label -> recording), overlaid (log
-    scale); labels in ``dashed`` (the distributed runs) are drawn dashed over the others."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
+    """Mean attitude and position errors of several runs (label -> recording), overlaid, log
+    scale; labels in ``dashed`` (the distributed runs) dashed."""
+    plt = pyplot()
     fig, (att, pos) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
     colours: dict[str, str] = {}  # one per method: a method's DDS run shares its colour
     for label, rec in recs.items():
@@ -175,14 +153,12 @@ def write_compare_plot(recs: dict[str, Recording], path: Path,
         pos.plot(rec.t, np.maximum(rec.pos_err.mean(axis=1), 1e-17), label=label, **style)
     log_axes(att, 'Mean attitude error', 'time [s]', 'angle of $R_i \\hat R_i^T$ [rad]')
     log_axes(pos, 'Mean position error', 'time [s]', r'$\|p_i - \hat p_i\|$ [m]')
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def log_axes(ax: Any, title: str, xlabel: str, ylabel: str, log_x: bool = False,
-             legend_size: int = 8) -> None:
-    """Log-scale axes with titles, a grid and a legend: the look of every comparison plot."""
+             legend_size: int | None = 8) -> None:
+    """Log-scale axes with titles, a grid and a legend (``legend_size`` None: none)."""
     if log_x:
         ax.set_xscale('log')
     ax.set_yscale('log')
@@ -190,7 +166,8 @@ def log_axes(ax: Any, title: str, xlabel: str, ylabel: str, log_x: bool = False,
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.grid(True, which='both', alpha=0.3)
-    ax.legend(fontsize=legend_size)
+    if legend_size is not None:
+        ax.legend(fontsize=legend_size)
 
 
 TRAJECTORY_PLOT = 'trajectories.png'
@@ -198,8 +175,7 @@ MAX_TRAJECTORIES = 20  # beyond this many agents the picture is a tangle: draw a
 
 
 def _shown_agents(is_leader: np.ndarray, limit: int) -> np.ndarray:
-    """Rows to draw: every agent if at most ``limit``, else the leaders (up to ``limit``) and
-    followers evenly spread over the rest."""
+    """Rows to draw: all if at most ``limit``, else the leaders and followers spread evenly."""
     n = len(is_leader)
     if n <= limit:
         return np.arange(n)
@@ -224,34 +200,27 @@ def _agent_colours(n: int) -> list[Any]:
 
 
 def _equal_box(ax: Any, points: np.ndarray) -> None:
-    """Limits around the (finite) ``points`` ``(M, 3)`` with a small margin and a box aspect
-    equal to their ranges: one metre is as long on every axis."""
+    """Limits around the finite ``points`` ``(M, 3)``, one metre as long on every axis."""
     finite = points[np.isfinite(points).all(axis=1)]
     if not len(finite):
         return
     lo, hi = finite.min(axis=0), finite.max(axis=0)
-    span = hi - lo
     # A flat (or point-like) set still gets a visible box: at least 15 % of the largest range.
-    span = np.maximum(span, 0.15 * max(float(span.max()), 1e-3))
-    mid = (lo + hi) / 2
-    half = 0.52 * span
-    ax.set_xlim(mid[0] - half[0], mid[0] + half[0])
-    ax.set_ylim(mid[1] - half[1], mid[1] + half[1])
-    ax.set_zlim(mid[2] - half[2], mid[2] + half[2])
+    span = np.maximum(hi - lo, 0.15 * max(float((hi - lo).max()), 1e-3))
+    mid, half = (lo + hi) / 2, 0.52 * span
+    for k, set_lim in enumerate((ax.set_xlim, ax.set_ylim, ax.set_zlim)):
+        set_lim(mid[k] - half[k], mid[k] + half[k])
     ax.set_box_aspect(tuple(span), zoom=1.0)
 
 
 def plot_trajectories(rec: Recording, path: Path, title: str | None = None) -> Path:
-    """Write ``path``: the true (solid) and estimated (dashed, world frame) trajectories of the
-    recording's fleet in 3D, one colour per agent (at most :data:`MAX_TRAJECTORIES` of them),
-    with start markers (leaders as stars), next to each drawn follower's position error
-    ``‖p_i - p̂_i‖`` in the same colours. Raises ValueError if ``rec`` has no trajectories."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    """Write ``path``: the true (solid) and estimated (dashed, world frame) trajectories in 3D,
+    one colour per agent (at most :data:`MAX_TRAJECTORIES`), next to the followers' position
+    errors ``‖p_i - p̂_i‖``. ValueError if ``rec`` has no trajectories."""
     from matplotlib.lines import Line2D
     from matplotlib.ticker import MaxNLocator
 
+    plt = pyplot()
     tr = rec.trajectories
     if tr is None:
         raise ValueError('the recording has no trajectories (only moving fleets record them)')
@@ -259,7 +228,6 @@ def plot_trajectories(rec: Recording, path: Path, title: str | None = None) -> P
     is_leader = tr.is_leader
     shown = _shown_agents(is_leader, MAX_TRAJECTORIES)
     colours = dict(zip(shown.tolist(), _agent_colours(len(shown))))
-    per_agent_legend = len(shown) <= 12
 
     fig = plt.figure(figsize=(14, 6.2), constrained_layout=True)
     # The legend gets its own column: next to the 3D box it would cover the z tick labels.
@@ -278,12 +246,9 @@ def plot_trajectories(rec: Recording, path: Path, title: str | None = None) -> P
                        depthshade=False)
         ax.scatter(*p[0], color=c, marker='*' if lead else 'o', s=110 if lead else 26,
                    edgecolors='k', linewidths=0.5, depthshade=False, zorder=5)
-    drawn = np.concatenate([tr.p[:, shown].reshape(-1, 3),
-                            tr.p_hat[:, shown[~is_leader[shown]]].reshape(-1, 3)])
-    _equal_box(ax, drawn)
-    ax.set_xlabel('x [m]')
-    ax.set_ylabel('y [m]')
-    ax.set_zlabel('z [m]')
+    _equal_box(ax, np.concatenate([tr.p[:, shown].reshape(-1, 3),
+                                   tr.p_hat[:, shown[~is_leader[shown]]].reshape(-1, 3)]))
+    ax.set(xlabel='x [m]', ylabel='y [m]', zlabel='z [m]')
     ax.tick_params(labelsize=8)
     for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
         axis.set_major_locator(MaxNLocator(6, steps=[1, 2, 5, 10]))
@@ -299,7 +264,7 @@ def plot_trajectories(rec: Recording, path: Path, title: str | None = None) -> P
                   label='start (estimate)'),
            Line2D([], [], color='0.25', marker='*', ls='', ms=10, mec='k', mew=0.5,
                   label='leader (knows its pose)')]
-    if per_agent_legend:
+    if len(shown) <= 12:   # a key per agent
         key += [Line2D([], [], color=colours[i], lw=2.4 if is_leader[i] else 1.6,
                        label=tr.agents[i] + (' (leader)' if is_leader[i] else ''))
                 for i in shown.tolist()]
@@ -315,13 +280,9 @@ def plot_trajectories(rec: Recording, path: Path, title: str | None = None) -> P
         err.plot(rec.t, np.maximum(rec.pos_err.mean(axis=1), 1e-17), 'k', lw=2.0,
                  label=f'average ({rec.pos_err.shape[1]} followers)')
         err.legend(handles=err.get_lines()[-1:], fontsize=8)  # agents' colours: centre key
-    err.set_yscale('log')
-    err.set_xlabel('time [s]')
-    err.set_ylabel(r'$\|p_i - \hat p_i\|$ [m] (world frame)')
+    err.set(yscale='log', xlabel='time [s]', ylabel=r'$\|p_i - \hat p_i\|$ [m] (world frame)')
     err.set_title('Position error: the gap between dashed and solid', fontsize=11)
     err.grid(True, which='major', alpha=0.35)
     err.grid(True, which='minor', alpha=0.12)
     fig.suptitle(title or 'True and estimated trajectories', fontsize=12)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)

@@ -1,44 +1,30 @@
-"""What a run is summed up by, with one name per quantity and one steady-state rule, for every
-output: ``bearing-pose simulate`` and ``run`` (``summary.json``), ``compare`` (its table and
-CSV), ``montecarlo`` (``runs.csv`` and statistics) and ``noise-study``.
+"""What a run is summed up by, one name per quantity and one steady-state rule, for every
+output (``simulate``, ``run``, ``compare``, ``montecarlo``, ``noise-study``).
 
-Quantities of a :class:`metrics.results.Recording` (:func:`quantities`; "mean" is over the
-estimating agents at one time, errors as in :mod:`metrics.results`):
+The quantities of a :class:`metrics.results.Recording` (:data:`QUANTITIES`; "mean" is over the
+estimating agents at one time): ``final_*`` at the last record; ``steady_*_mean_*``, the time
+average of the mean error over the steady-state window (the last :data:`STEADY_FRACTION` of the
+run), ``steady_*_max_*`` the worst agent at any record of it (the radius of the neighbourhood
+the estimates stay in); ``*_below_*_from_s``, :func:`settling_time` of the mean errors to the
+fixed thresholds (None: never); ``*_settled_from_s``, the noise-robust convergence time: to
+``max(fixed threshold, SETTLE_FACTOR × steady mean)``.
 
-- ``final_attitude_error_mean_rad``, ``final_position_error_mean_m``,
-  ``final_attitude_error_max_rad``, ``final_position_error_max_m``: at the last record;
-- ``steady_attitude_error_mean_rad``, ``steady_position_error_mean_m``: the time average of the
-  mean error over the steady-state window, the last :data:`STEADY_FRACTION` of the run;
-  ``steady_attitude_error_max_rad``, ``steady_position_error_max_m``: the worst agent at any
-  record of that window, the radius of the neighbourhood the estimates stay in;
-- ``attitude_below_1e-3_rad_from_s``, ``position_below_1e-2_m_from_s``: :func:`settling_time`
-  of the mean errors to the fixed thresholds (None if they never stay below);
-- ``attitude_settled_from_s``, ``position_settled_from_s``: the noise-robust convergence time,
-  :func:`settling_time` of the mean error to ``max(fixed threshold, SETTLE_FACTOR × its steady
-  mean)``: when the error stays within a factor 3 of the floor it settles on, or below the
-  fixed threshold if that floor is lower.
+Why: with noise the errors settle on a floor (about 3.4e-3 rad and 2.2e-2 m with 1° bearing
+noise on the paper scenario) above the fixed thresholds, which then say "never"; a threshold
+relative to the run's own floor dates when it got there. Why 3: after converging, the mean
+attitude error still fluctuates up to 2.3 times its floor (20 runs of
+``config/paper_noisy.yaml``, after 20 s); with 2, two of them "settle" at 41 and 42 s instead
+of about 12 s. As the error decays exponentially, the factor only shifts the time by the log
+of its ratio in time constants. The run must be long enough for the window to hold the floor.
 
-Why the noise-robust time: with measurement noise the errors settle on a noise floor (about
-3.4e-3 rad and 2.2e-2 m with 1° bearing noise on the paper scenario), above 1e-3 rad and
-1e-2 m, so the fixed-threshold times say "never" for every noisy run. A threshold relative to
-the run's own floor measures when it got there, whatever the noise level. Why 3: after
-converging, the mean attitude error still fluctuates, up to 2.3 times its floor in the 20 runs
-of ``config/paper_noisy.yaml`` (after 20 s); a factor at or below that dates the last
-fluctuation rather than the convergence (with 2, two of those runs "settle" at 41 and 42 s
-instead of about 12 s). As the error decays exponentially, the factor only shifts the time by
-the log of its ratio in time constants. Without noise the floor is far below the fixed
-thresholds, which then apply. The time is meaningful when the run is long enough to reach its
-floor (the window must hold the floor, not a still-decaying error).
-
-Files: ``metrics.csv`` has columns ``t``, ``attitude_error_mean_rad``,
-``position_error_mean_m``, then ``att_<agent>`` for every estimating agent, then
-``pos_<agent>``; ``summary.json`` holds the run's description, every quantity above and the
-per-agent final errors and settling times.
-"""
+Files: ``metrics.csv``: ``t``, ``attitude_error_mean_rad``, ``position_error_mean_m``, then
+``att_<agent>`` per estimating agent, then ``pos_<agent>``, then the extra columns;
+``summary.json``: the run's description, every quantity, per agent final errors and times."""
 from __future__ import annotations
 
 import csv
 import json
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -72,16 +58,10 @@ def settling_time(t: Array, err: Array, threshold: float) -> float | None:
     return round(float(t[above[-1] + 1]), 9)  # 14.7, not 14.700000000000001
 
 
-def steady_window(rec: Recording) -> NDArray[np.bool_]:
-    """The records of the steady-state window: ``t >= end - STEADY_FRACTION × duration``."""
-    duration = rec.t[-1] - rec.t[0]
-    return rec.t >= rec.t[-1] - STEADY_FRACTION * duration - 1e-9
-
-
 def quantities(rec: Recording) -> dict[str, float | None]:
     """Every quantity of the module docstring, in :data:`QUANTITIES` order."""
     att, pos = rec.mean_errors()
-    window = steady_window(rec)
+    window = rec.t >= rec.t[-1] - STEADY_FRACTION * (rec.t[-1] - rec.t[0]) - 1e-9
     steady_att, steady_pos = float(att[window].mean()), float(pos[window].mean())
     return {
         'final_attitude_error_mean_rad': float(att[-1]),
@@ -101,29 +81,32 @@ def quantities(rec: Recording) -> dict[str, float | None]:
     }
 
 
-# Recordings' extra columns (Recording.extra) summed up by their mean over the group: the
-# prefix -> the quantity's name in summary.json.
-EXTRA_GROUPS = {'rel_yaw_err_': 'relative_yaw_error_mean', 'formation_err_': 'formation_error_mean_m'}
+# Recordings' extra columns summed up by their mean over the group: prefix -> summary.json name.
+EXTRA_GROUPS = {'rel_yaw_err_': 'relative_yaw_error_mean',
+                'formation_err_': 'formation_error_mean_m'}
+
+
+def write_rows(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> None:
+    """A CSV file: ``header``, then ``rows``."""
+    with path.open('w', newline='') as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        w.writerows(rows)
 
 
 def write_metrics_csv(rec: Recording, path: Path) -> None:
-    with path.open('w', newline='') as fh:
-        w = csv.writer(fh)
-        w.writerow(['t', 'attitude_error_mean_rad', 'position_error_mean_m']
-                   + [f'att_{n}' for n in rec.followers] + [f'pos_{n}' for n in rec.followers]
-                   + list(rec.extra))
-        att_mean, pos_mean = rec.mean_errors()
-        extra = list(rec.extra.values())
-        for k in range(rec.t.size):
-            w.writerow([f'{rec.t[k]:.6f}', f'{att_mean[k]:.9e}', f'{pos_mean[k]:.9e}']
-                       + [f'{x:.9e}' for x in rec.att_err[k]]
-                       + [f'{x:.9e}' for x in rec.pos_err[k]]
-                       + [f'{column[k]:.9e}' for column in extra])
+    att_mean, pos_mean = rec.mean_errors()
+    extra = list(rec.extra.values())
+    write_rows(path, ['t', 'attitude_error_mean_rad', 'position_error_mean_m']
+               + [f'att_{n}' for n in rec.followers] + [f'pos_{n}' for n in rec.followers]
+               + list(rec.extra),
+               ([f'{rec.t[k]:.6f}', f'{att_mean[k]:.9e}', f'{pos_mean[k]:.9e}']
+                + [f'{x:.9e}' for x in rec.att_err[k]] + [f'{x:.9e}' for x in rec.pos_err[k]]
+                + [f'{column[k]:.9e}' for column in extra] for k in range(rec.t.size)))
 
 
 def read_metrics_csv(path: Path) -> Recording:
-    """A ``metrics.csv`` back as a :class:`Recording`. The file holds only the geodesic and
-    position errors; the paper's Fig. 2/3 quantities are NaN."""
+    """A ``metrics.csv`` back as a :class:`Recording` (the paper's Fig. 2/3 quantities NaN)."""
     with path.open(newline='') as fh:
         reader = csv.reader(fh)
         header = next(reader)
@@ -138,11 +121,8 @@ def read_metrics_csv(path: Path) -> Recording:
 
 
 def summarize(rec: Recording, **extra: Any) -> dict[str, Any]:
-    """``summary.json``: ``extra`` (scenario, wall time, ...), the run's duration, every
-    quantity, and per agent its final errors and fixed-threshold settling times."""
-    summary: dict[str, Any] = dict(extra)
-    summary['duration_s'] = float(rec.t[-1])
-    summary.update(quantities(rec))
+    """``summary.json``: ``extra``, the duration, every quantity, per agent errors and times."""
+    summary: dict[str, Any] = {**extra, 'duration_s': float(rec.t[-1]), **quantities(rec)}
     for prefix, name in EXTRA_GROUPS.items():
         group = [v for k, v in rec.extra.items() if k.startswith(prefix)]
         if group:

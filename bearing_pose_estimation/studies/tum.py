@@ -1,15 +1,9 @@
-"""TUM trajectories from a run's bag (``bearing-pose export-tum DIR``), what evo reads.
-
-For each agent, ``<agent>_estimate.tum`` (its ``estimate``: the method's estimate frame, the
-world for the leader-follower methods) and ``<agent>_truth.tum`` (its ``ground_truth``, in
-the world frame), one pose per line: ``t x y z qx qy qz qw``, t in seconds of simulated time
-(the message stamps, not the bag's receive times). A stamp sent twice (the t = 0 state is
-announced until the clock starts) is written once. Then::
-
-    evo_ape tum DIR/tum/agent_3_truth.tum DIR/tum/agent_3_estimate.tum
-
-gives the agent's position errors; add ``--align`` for estimates that are not world poses.
-"""
+"""TUM trajectories from a run's bag (``bearing-pose export-tum DIR``), what evo reads: per
+agent, ``<agent>_estimate.tum`` (its ``estimate``, in the method's estimate frame) and
+``<agent>_truth.tum`` (its ``ground_truth``, world frame), one pose per line
+``t x y z qx qy qz qw``, t the message stamp [s] (a stamp sent twice, as the t = 0 state until
+the clock starts, once). ``evo_ape tum DIR/tum/agent_3_truth.tum DIR/tum/agent_3_estimate.tum``
+gives the agent's position errors (``--align`` for estimates that are not world poses)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -49,14 +43,8 @@ def read_tracks(bag: Path) -> dict[tuple[str, str], NDArray[np.float64]]:
     return {key: np.array([by_ns[ns] for ns in sorted(by_ns)]) for key, by_ns in rows.items()}
 
 
-def tum_files(agents: list[str], out_dir: Path) -> list[Path]:
-    """The files :func:`export_tum` writes for ``agents``."""
-    return [out_dir / f'{agent}_{suffix}.tum' for agent in agents for suffix in TRACKS.values()]
-
-
 def export_tum(bag: Path, out_dir: Path) -> list[Path]:
-    """Write every agent's estimate and truth trajectories found in ``bag`` into
-    ``out_dir``; returns the files written."""
+    """Write every agent's trajectories found in ``bag`` into ``out_dir``; the files written."""
     tracks = read_tracks(bag)
     if not tracks:
         raise ScenarioError(f'{bag}: no estimate or ground_truth topic in it')
