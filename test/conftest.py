@@ -33,10 +33,24 @@ def repo_root() -> Path:
     return REPO_ROOT
 
 
+NOT_A_DDS_TEST = 'unset: a test that starts DDS carries @pytest.mark.dds'
+
+
+@pytest.fixture(autouse=True)
+def _dds_only_when_marked(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A test without the `dds` marker gets a ROS_DOMAIN_ID that rcl refuses ("not an integral
+    number"): whatever it starts in-process or inherits the environment cannot join DDS, so
+    `-m 'not dds'` really is the suite without DDS."""
+    if request.node.get_closest_marker('dds') is None:
+        monkeypatch.setenv('ROS_DOMAIN_ID', NOT_A_DDS_TEST)
+
+
 @pytest.fixture()
-def context():
+def context(request: pytest.FixtureRequest):
     """A fresh rclpy context for in-process nodes (rclpy imported here, after the environment
     above is set)."""
+    if request.node.get_closest_marker('dds') is None:
+        pytest.fail(f'{request.node.nodeid} uses the rclpy context: mark it @pytest.mark.dds')
     import rclpy
     from rclpy.context import Context
 

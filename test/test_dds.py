@@ -34,6 +34,8 @@ from rosgraph_msgs.msg import Clock
 
 from ros_helpers import ProcessWatch, assert_no_shm_left, error_at, observer, paired_errors
 
+pytestmark = pytest.mark.dds
+
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
 DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
 
@@ -271,6 +273,10 @@ def test_paper_scenario_over_dds_equals_netsim(tmp_path, no_leftovers):
     for log in (out / 'logs').glob('agent_*.log'):
         assert 'steps without an awaited input: 0' in log.read_text(), log
     assert sorted((out / 'params').glob('*.yaml'))
+    # The monitor's progress: every progress_every (default: a tenth of the run) and at the end.
+    progress = re.findall(r'^  t = +([\d.]+) / 12 s', (out / 'logs' / 'monitor.log').read_text(),
+                          re.M)
+    assert [float(t) for t in progress] == pytest.approx([1.2 * k for k in range(11)])
     # Every process of the run was seen (and no_leftovers checks that none is left).
     started = [c for c in no_leftovers.seen.values() if str(out) in c]
     assert len(started) == 10, started  # 8 estimators, the monitor and the simulator

@@ -31,6 +31,8 @@ from bearing_pose_estimation.studies.summary import read_metrics_csv
 
 from ros_helpers import PATIENT, assert_no_shm_left, observer, with_parameters
 
+pytestmark = pytest.mark.dds
+
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'de_carli_8_quadrotors.yaml'
 DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
 DURATION = 2.0

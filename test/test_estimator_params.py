@@ -22,6 +22,8 @@ from bearing_pose_estimation.scenario import ScenarioError
 from bearing_pose_estimation.ros.simulator_node import SimulatorNode
 from bearing_pose_estimation.estimators.tran_anderson_ahn import TranGains
 
+pytestmark = pytest.mark.dds
+
 
 def _node(context, **params):
     overrides = [Parameter(k, value=v) for k, v in params.items()]
@@ -247,6 +249,39 @@ def test_messages_as_bytes_or_as_objects_give_the_same_estimate(context, raw):
         node.destroy_node()
 
 
+def test_input_frames_rate_limit_diagnostics_and_exchange_parameters(context):
+    """imu_frame, bearings_frame and odom_child_frame: the frame_id each input must carry
+    (empty: any); max_rate: the gyro rate above which a sample is refused; diagnostics_period:
+    the /diagnostics timer; fixed_exchange: the runtime waits for stamped inputs even on the
+    wall clock (default: use_sim_time, off here)."""
+    zero = np.zeros(3)
+    default = _node(context, **EXPLICIT)
+    node = _node(context, imu_frame='rig/base_link', bearings_frame='',
+                 odom_child_frame='rig/base_link', max_rate=1.0, diagnostics_period=0.25,
+                 fixed_exchange=True, **EXPLICIT)
+    try:
+        assert default.s.exchange is None and node.s.exchange is not None
+        assert 250_000_000 in [t.timer_period_ns for t in node.timers]
+        assert 250_000_000 not in [t.timer_period_ns for t in default.timers]
+        node.on_imu(cdr.encode_imu_raw(0.005, 'agent_5', zero))        # the default frame
+        node.on_imu(cdr.encode_imu_raw(0.005, 'rig', [0.0, 0.0, 1.5]))  # above max_rate
+        assert node.rejected == {'wrong_frame': 1, 'absurd_rate': 1}
+        node.on_imu(cdr.encode_imu_raw(0.005, 'rig', [0.0, 0.0, 0.5]))
+        assert node.rt.gyro.end == pytest.approx(0.005)
+        node.on_points(Sensor.BEARINGS, cdr.encode_vectors_raw(
+            0.005, 'any/camera', np.array([1]), np.array([[1.0, 0.0, 0.0]])))
+        node.on_odometry(cdr.encode_odometry_raw(0.005, 'agent_5', zero, zero))
+        assert node.rejected == {'wrong_frame': 1, 'absurd_rate': 1, 'malformed': 1}
+        node.on_odometry(cdr.encode_odometry_raw(0.005, 'rig', zero, zero))
+        assert node.rejected['malformed'] == 1
+        default.on_points(Sensor.BEARINGS, cdr.encode_vectors_raw(
+            0.005, 'any/camera', np.array([1]), np.array([[1.0, 0.0, 0.0]])))
+        assert default.rejected == {'wrong_frame': 1}
+    finally:
+        node.destroy_node()
+        default.destroy_node()
+
+
 @pytest.mark.parametrize('publish_clock', [True, False])
 def test_the_simulator_clock_can_be_turned_off(context, repo_root, publish_clock):
     """`publish_clock: false` (another node owns /clock, e.g. a bag replay): no /clock
@@ -259,6 +294,27 @@ def test_the_simulator_clock_can_be_turned_off(context, repo_root, publish_clock
         assert ('/clock' in topics) == publish_clock
         assert node.count_publishers('/clock') == int(publish_clock)
         assert '/agent_3/imu' in topics
+    finally:
+        node.destroy_node()
+
+
+def test_the_simulator_s_start_timeout_and_lockstep_lead(context, repo_root, capfd):
+    """start_timeout: with nobody matched the simulator gives up, naming what it waited for;
+    max_lag: a lockstep clock runs at most that far ahead of the slowest estimate."""
+    node = SimulatorNode(context=context, parameter_overrides=[
+        Parameter('scenario_file', value=str(repo_root / 'config' / 'paper_8_agents.yaml')),
+        Parameter('start_timeout', value=0.0), Parameter('max_lag', value=0.05)])
+    try:
+        node.on_tick()
+        assert node.state == 'failed' and node.failed.result() is False
+        err = capfd.readouterr().err
+        assert 'not ready after 0 s: unmatched /agent_1/' in err and 'no t0 estimate' in err
+        node._start()
+        node.progress[:] = 0.2
+        node.progress[3] = 0.1    # the slowest estimate
+        for _ in range(20):       # a tick advances at most _MAX_SIM_PER_TICK
+            node.on_tick()
+        assert node.world.t == pytest.approx(0.15)
     finally:
         node.destroy_node()
 

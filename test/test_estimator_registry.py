@@ -88,6 +88,7 @@ def test_each_toy_converges_in_the_batch_simulator_and_netsim_follows_it(method)
         assert abs(a[-1].mean() - b[-1].mean()) <= 0.02 * b[-1].mean() + 1e-9
 
 
+@pytest.mark.dds
 @pytest.mark.parametrize('method', TOYS)
 def test_each_toy_runs_over_dds_as_in_netsim(method, tmp_path):
     """A short run of each toy over DDS, one process per agent, equals netsim's to 1e-9."""

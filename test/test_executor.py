@@ -12,6 +12,8 @@ from std_msgs.msg import Int32
 
 from bearing_pose_estimation.ros.executor import DrainingExecutor
 
+pytestmark = pytest.mark.dds
+
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 

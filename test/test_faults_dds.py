@@ -22,6 +22,8 @@ from bearing_pose_estimation.sim.batch import BatchSimulator
 
 from ros_helpers import assert_no_shm_left, error_at, observer, paired_errors
 
+pytestmark = pytest.mark.dds
+
 DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
 FOUR = {
     'name': 'four', 'leaders': ['agent_1', 'agent_2'],

@@ -12,6 +12,8 @@ import pytest
 
 from bearing_pose_estimation.plan import dds
 
+pytestmark = pytest.mark.dds
+
 CHILD = r'''
 import sys, time
 from rclpy.node import Node

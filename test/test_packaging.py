@@ -150,6 +150,7 @@ def test_msg_defs_imports_from_colcon_install(colcon_install, tmp_path):
     assert Path(proc.stdout.strip()).resolve().is_relative_to(workspace.resolve()), proc.stdout
 
 
+@pytest.mark.dds
 def test_colcon_built_estimator_talks_dds(colcon_install, tmp_path):
     """`ros2 run bearing_pose_estimation estimator --ros-args -r __ns:=/agent_1 -p
     scenario_file:=...` from the colcon install: once its inputs have publishers and its

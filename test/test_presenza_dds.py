@@ -34,6 +34,8 @@ from ros_helpers import PATIENT, assert_no_shm_left, observer, with_parameters
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from presenza_fleet import camera_rate_case1  # noqa: E402
 
+pytestmark = pytest.mark.dds
+
 DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
 DURATION = 2.0
 # Subscribed once the run is going: the simulator waits for the estimators' own subscribers.

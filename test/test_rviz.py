@@ -47,6 +47,7 @@ def test_markers_draw_poses_edges_and_bearing_rays():
     np.testing.assert_allclose(ends[3], R1 @ b_ac, atol=1e-12)    # 1 m towards c
 
 
+@pytest.mark.dds
 def test_the_markers_node_draws_what_the_fleet_publishes(context, repo_root):
     paper = repo_root / 'config' / 'paper_8_agents.yaml'
     node = MarkersNode(context=context,
@@ -88,6 +89,7 @@ def tf_standin(monkeypatch):
     return sent
 
 
+@pytest.mark.dds
 def test_the_estimate_goes_on_tf_when_tf2_ros_is_installed(context, repo_root, tf_standin):
     """world -> agent_5/base_link with the estimate's pose, with every estimate published;
     publish_tf false turns it off."""
@@ -114,6 +116,7 @@ def test_the_estimate_goes_on_tf_when_tf2_ros_is_installed(context, repo_root, t
         node.destroy_node()
 
 
+@pytest.mark.dds
 def test_without_tf2_ros_there_is_no_broadcast(context, repo_root, monkeypatch):
     monkeypatch.setitem(sys.modules, 'tf2_ros', None)   # import fails
     paper = str(repo_root / 'config' / 'paper_8_agents.yaml')

@@ -106,6 +106,7 @@ def test_the_node_logic_matches_the_batch_simulator():
     assert net.att_err[-1].mean() < 1e-2 * net.att_err[0].mean()
 
 
+@pytest.mark.dds
 def test_the_node_refuses_k_R_for_this_method(tmp_path, context):
     """A k_R override on a Tran scenario is a configuration error naming the fix."""
     from rclpy.parameter import Parameter
