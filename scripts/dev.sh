@@ -26,7 +26,8 @@ Usage: scripts/dev.sh <command> [args...]
 
   setup            create .venv (if missing) and install requirements.txt + this package
                    (editable); skipped in seconds when nothing changed
-  test [args...]   setup, then run pytest with the given arguments
+  test [args...]   setup, then run pytest with the given arguments; without any: the
+                   tests without DDS in parallel, then the DDS tests one at a time
   demo [args...]   setup, then: ${DEMO_CMD[*]#"$REPO_ROOT/"} [args...]
   help             this text
 
@@ -79,14 +80,29 @@ cmd_setup() {
     echo "$want" > "$STAMP"
 }
 
-cmd_test() {
-    cmd_setup
-    cd "$REPO_ROOT"
+run_pytest() {
     local rc=0
     "$PY" -m pytest "$@" || rc=$?
     if [[ $rc -eq 5 ]]; then
         echo "dev.sh: error: pytest collected no tests" >&2
     fi
+    return "$rc"
+}
+
+cmd_test() {
+    cmd_setup
+    cd "$REPO_ROOT"
+    if [[ $# -gt 0 ]]; then
+        run_pytest "$@"
+        return
+    fi
+    # The whole suite in two passes: the tests without DDS on every core (pytest-xdist), then
+    # the DDS ones (marked `dds`) one at a time, as each starts a fleet of processes.
+    local rc=0
+    echo "dev.sh: tests without DDS, on $(nproc) cores"
+    run_pytest -m 'not dds' -n "$(nproc)" --dist loadscope || rc=$?
+    echo "dev.sh: tests with DDS, one at a time"
+    run_pytest -m dds || rc=$?
     return "$rc"
 }
 
