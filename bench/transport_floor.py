@@ -119,8 +119,7 @@ from bearing_pose_estimation import msg_defs as wire  # noqa: E402
 from bearing_pose_estimation.cli import launch  # noqa: E402
 from bearing_pose_estimation.estimators.base import Sensor  # noqa: E402
 from bearing_pose_estimation.plan.dds import dds_env, leaked_shm, shm_files  # noqa: E402
-from bearing_pose_estimation.plan.processes import (ProcessSpec, estimator_groups,  # noqa: E402
-                                                    plan_processes)
+from bearing_pose_estimation.plan.processes import ProcessSpec, estimator_groups  # noqa: E402
 from bearing_pose_estimation.runtime.table import (ODOMETRY, optional_first,  # noqa: E402
                                                    subscriptions)
 from bearing_pose_estimation.ros.estimator_group import parse_args as group_args  # noqa: E402

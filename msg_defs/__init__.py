@@ -18,6 +18,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from numpy.typing import NDArray
@@ -119,6 +120,10 @@ ESTIMATE_QOS = _qos(20)
 ESTIMATE_PUB_QOS = _qos(20, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # The recorder's reader asks for that history.
 ESTIMATE_RECORD_QOS = ESTIMATE_PUB_QOS
+# A recorder's reader of the other topics: reliable matches the simulator's and the
+# estimators' writers, volatile both volatile and transient-local ones; deep enough not to
+# drop a burst.
+RECORD_QOS = _qos(1000)
 # Simulator outputs (sensors, truth, clock) are published reliably: on loopback nothing is lost
 # to a best-effort subscriber unless its queue overflows.
 SIM_PUB_QOS = _qos(200)
@@ -145,6 +150,17 @@ def from_stamp(stamp: Time) -> float:
 def stamp_ns(stamp: Time) -> int:
     """Exact integer nanoseconds: a dictionary key that survives the float round trip."""
     return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def diagnostics(name: str, hardware_id: str, message: str, values: Mapping[str, str],
+                stamp: Time, level: int = 0) -> DiagnosticArray:
+    """A diagnostic_msgs/DiagnosticArray of one status (``level``: 0 OK, 1 WARN, 2 ERROR)."""
+    status = DiagnosticStatus(name=name, hardware_id=hardware_id, level=bytes([level]),
+                              message=message,
+                              values=[KeyValue(key=k, value=v) for k, v in values.items()])
+    msg = DiagnosticArray(status=[status])
+    msg.header.stamp = stamp
+    return msg
 
 
 # ----------------------------------------------------------------------------- covariance

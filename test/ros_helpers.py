@@ -23,7 +23,6 @@ from bearing_pose_estimation.core import so3
 from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.msg_defs import cdr
 from bearing_pose_estimation.plan import dds
-from bearing_pose_estimation.plan import processes as plan
 
 
 class Observer:

@@ -1,36 +1,18 @@
 """The estimator interface: what every method declares, and its one vectorised step.
 
 A method is a subclass of :class:`Estimator`, registered under the scenario's ``method:`` key
-(:mod:`bearing_pose_estimation.estimators`). It declares, as class attributes,
+(:mod:`bearing_pose_estimation.estimators`). It declares, as class attributes (documented on
+:class:`Estimator`), its ``Gains`` (:func:`gain`), ``roles``, ``sensors``, ``links`` (its edges,
+:func:`edge_table`), what it ``sends`` (:class:`Channel`) over how many rounds, how its own
+point sensors pair with a step, whose odometry it reads, and its estimate ``frame``; and
+implements its per-agent :class:`State`, its graph-assumption :meth:`Estimator.check` and one
+vectorised :meth:`Estimator.step`. The batch simulator calls that step for the whole fleet, the
+agent runtime (:mod:`bearing_pose_estimation.runtime`) for one agent or the agents of one
+process together: each method's math exists once.
 
-- ``Gains``: a frozen dataclass whose fields are the YAML keys of ``gains:`` and the estimator
-  node's parameter names, each with a default, a help text and a range (:func:`gain`);
-- ``roles``: the special agents it needs (:class:`Roles`: two leaders, one anchor, or none);
-- ``sensors``: what each agent measures (:class:`Sensor`), and ``optional_sensors`` what it
-  uses when available (odometry for the feed-forward of the leader-follower methods);
-- ``links``: its edges: ``'sensing'``, one per neighbour ``j ∈ N_i`` (agent i senses j and
-  listens to it), or ``'communication'``, one per communication neighbour (i senses j, j senses
-  i, or the anchor ranges one of them), with flags saying which (:func:`edge_table`);
-- ``sends``: what each agent sends the agents that listen to it (:class:`Channel`: per agent
-  or per edge, on which edges it travels, how a receiver pairs it with its step, its wire
-  kind), over ``rounds`` rounds of messages per step;
-- how its own point sensors pair with a step (``own_pairing``), whose odometry it reads
-  besides its own (``peer_odometry``) and whether its step takes edges with inputs missing
-  (``partial_edges``, with masks) or only complete ones;
-- ``frame``: how its estimates are expressed (:class:`EstimateFrame`), so that errors are
-  measured after the right alignment (:mod:`bearing_pose_estimation.metrics`);
-
-and implements its per-agent state (a :class:`State` dataclass of ``(N, ...)`` arrays), its
-graph-assumption check (:meth:`Estimator.check`, findings that name the agent, the field and
-the fix) and one vectorised :meth:`Estimator.step`. The batch simulator calls that step for the
-whole fleet, the agent runtime (:mod:`bearing_pose_estimation.runtime`) for one agent or for the
-agents of one process together: each method's math exists once.
-
-A step's inputs (:class:`StepInputs`) are a generic mapping: per agent (``delta_R``, the gyro
-increment; ``displacement``, the odometry's; the anchor's motion), per edge (the own
-measurements by sensor name, what the edge's other end sent by channel name, the other end's
-odometry), and per edge a mask of what is here. The runtime fills it from the declarations
-above without knowing any method's quantity.
+A step's inputs (:class:`StepInputs`) are a generic mapping, per agent, per edge and per edge a
+mask of what is here, keyed by sensor and channel names: the runtime fills it from the
+declarations without knowing any method's quantity.
 """
 from __future__ import annotations
 

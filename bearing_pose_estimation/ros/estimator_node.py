@@ -1,27 +1,21 @@
 """``estimator``: one agent's estimator as a ROS 2 node (one per agent, in /<agent>), with the
 scenario's ``method`` (any registered one).
 
-A thin adapter around the agent runtime (:class:`runtime.agent.AgentRuntime`): it decodes
-messages (``msg_defs``), hands them to the runtime, runs the steps as soon as the runtime has
-their inputs (on every input that can complete one: no timer) and publishes. Subscribes
-(relative names, remappable): ``imu``, the own point sensors the method reads (``bearings``,
-``relative_positions``, ``bearing_rates``), ``odom`` (methods that use odometry),
-``known_pose`` (leaders), and what the table of subscriptions (:mod:`runtime.table`) says it
-reads from the others: their channel topics (``/<j>/pose``, ...), point sensor topics and
-odometry. Publishes ``estimate`` (PoseStamped in the method's estimate frame), ``pose`` (with
-its covariance: what neighbours and robot_localization read), its other channels when a
-neighbour's step reads them ('instant' ones on the ``publish_rate`` grid, 'exact' ones when the
-method reads them, a second round as soon as its first is in; per-edge values formed from
-moving own measurements wait for the measurements of their instant) and its health on
-``/diagnostics`` (:mod:`runtime.health`).
+A thin adapter around :class:`runtime.agent.AgentRuntime`: it decodes messages (``msg_defs``),
+hands them to the runtime, runs each step as soon as the runtime has its inputs (no timer) and
+publishes. Subscribes (relative names, remappable) to ``imu``, the own point sensors the method
+reads, ``odom``, ``known_pose`` (leaders) and what :mod:`runtime.table` says it reads from the
+others; publishes ``estimate`` (PoseStamped in the method's estimate frame), ``pose`` (with its
+covariance), its other channels when a neighbour's step reads them, and its health on
+``/diagnostics`` (:mod:`runtime.health`). Topics, types and frames: msg_defs/README.md.
 
 In a simulation (``fixed_exchange``, default: ``use_sim_time``) a step's inputs are fixed by
-their stamps and waited for: netsim feeds the same runtime the same way, so a run equals
-netsim's to rounding however loaded the machine is. A step that waits with its own sensors
-standing still (a lockstep clock waiting for this agent) goes on without what it waits for after
-``neighbour_wait`` of wall time ('exact' channels) or :data:`EXCHANGE_PATIENCE` (counted in
-``event_impatient_steps``). Bad input is rejected, counted by cause and warned about; it never
-stops the node and never reaches the estimate. Parameters: :mod:`.estimator_params`.
+their stamps and waited for, as netsim feeds the same runtime: a run equals netsim's to rounding
+however loaded the machine is. A step waiting with its own sensors standing still goes on
+without what it waits for after ``neighbour_wait`` of wall time ('exact' channels) or
+:data:`EXCHANGE_PATIENCE` (``event_impatient_steps``). Bad input is rejected, counted by cause
+and warned about; it never stops the node nor reaches the estimate. Parameters:
+:mod:`.estimator_params`.
 """
 from __future__ import annotations
 
@@ -31,9 +25,7 @@ from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -43,11 +35,12 @@ from ..estimators.base import Channel, Sensor, format_gains
 from ..msg_defs import cdr, rviz
 from ..runtime.agent import AgentRuntime
 from ..runtime.buffers import TIME_EVENTS
-from ..runtime.faults import FaultyLink, LinkFaults
+from ..runtime.faults import FaultyLink
 from ..runtime.health import health, summary
 from ..runtime.table import ODOMETRY, Subscription, optional_first, subscriptions
 from .estimator_params import live_change, setup
-from .node_main import run_node, take_waiting, tf_broadcaster, warn_unknown_parameters
+from .node_main import (run_node, take_waiting, tf_broadcaster, wall_timer,
+                        warn_unknown_parameters)
 from .step_batch import StepBatch
 
 # Wall time [s] a step of a fixed exchange waits with its own sensors standing still before
@@ -56,7 +49,6 @@ from .step_batch import StepBatch
 EXCHANGE_PATIENCE = 10.0
 # Wall time [s] between checks for a stalled agent (EstimatorNode.on_watch).
 WATCH_PERIOD_S = 1.0
-STEADY = ClockType.STEADY_TIME
 
 
 class EstimatorNode(Node):
@@ -86,19 +78,16 @@ class EstimatorNode(Node):
         if batch is not None:
             batch.join(self)
         self._make_subscriptions()
-        self.create_timer(s.diagnostics_period, self.publish_diagnostics,
-                          clock=Clock(clock_type=STEADY))
+        wall_timer(self, s.diagnostics_period, self.publish_diagnostics)
         # The t0 state is announced once every subscription has a publisher and every writer
         # the readers it expects: best-effort readers drop what comes before they match, and
         # the simulator starts the clock only after hearing from everyone.
-        self.ready_timer = self.create_timer(0.05, self.on_ready_check,
-                                             clock=Clock(clock_type=STEADY))
+        self.ready_timer = wall_timer(self, 0.05, self.on_ready_check)
         self.exact = any(c.pairing == 'exact' for c in self.method.sends)
         if self.exact or s.exchange is not None:
-            self.create_timer(0.05 if self.exact else 0.5, self.on_patience,
-                              clock=Clock(clock_type=STEADY))
+            wall_timer(self, 0.05 if self.exact else 0.5, self.on_patience)
         self._watched: tuple[int, float] | None = None
-        self.create_timer(WATCH_PERIOD_S, self.on_watch, clock=Clock(clock_type=STEADY))
+        wall_timer(self, WATCH_PERIOD_S, self.on_watch)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         role = 'leader' if s.spec.leader else f'{len(s.spec.peers)} neighbours'
         inject = (f'; INJECTING drop {s.faults.drop_rate:g}, delay {s.faults.delay:g} s on '
@@ -129,7 +118,7 @@ class EstimatorNode(Node):
         self.topics: dict[str, tuple[Any, list[Channel]]] = {
             topic: (self.create_publisher(wire.channel_type(chans[0]), topic, qos), chans)
             for topic, chans in wire.by_topic(own).items() if topic != wire.POSE}
-        self.pub_diag = self.create_publisher(DiagnosticArray, wire.DIAGNOSTICS, 10)
+        self.pub_diag = self.create_publisher(wire.DiagnosticArray, wire.DIAGNOSTICS, 10)
         writers = {wire.ESTIMATE: self.pub_estimate, wire.POSE: self.pub_pose,
                    **{topic: pub for topic, (pub, _) in self.topics.items()}}
         self._readers_wanted = [(writers[topic], n) for topic, n in self.s.listeners.items()
@@ -461,13 +450,9 @@ class EstimatorNode(Node):
             rate = (self.rt.k - steps) / max(now - wall, 1e-9)
             self._diag_steps = (self.rt.k, now)
         h = health(self.rt, self.rejected, self.events, rate)
-        status = DiagnosticStatus(name=f'{self.fleet_prefix}{self.agent}/estimator',
-                                  hardware_id=self.agent, level=bytes([h.level]),
-                                  message=h.message,
-                                  values=[KeyValue(key=k, value=v) for k, v in h.values.items()])
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.pub_diag.publish(msg)
+        self.pub_diag.publish(wire.diagnostics(
+            f'{self.fleet_prefix}{self.agent}/estimator', self.agent, h.message, h.values,
+            self.get_clock().now().to_msg(), h.level))
 
     def destroy_node(self) -> None:
         """Log what this estimator achieved (:func:`runtime.health.summary`)."""

@@ -23,8 +23,6 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.task import Future
 from std_msgs.msg import Empty
@@ -36,7 +34,8 @@ from ..estimators.base import EstimateFrame
 from ..metrics.results import PoseErrors, Recording, pose_errors, to_world
 from ..scenario.model import Scenario
 from ..studies.summary import format_summary, summarize, write_metrics_csv, write_summary_json
-from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
+from .node_main import (declare, run_node, scenario_parameter, wall_timer,
+                        warn_unknown_parameters)
 
 
 # After the last row, the bag keeps recording until no message came for BAG_QUIET_S [s of wall
@@ -77,7 +76,7 @@ class MonitorNode(Node):
         self.frame = self.method.frame
         # The method's margins on the whole fleet's estimates (Presenza et al.: angle
         # rigidity), on /diagnostics once per second of simulated time; min and last logged.
-        self.pub_diag = self.create_publisher(DiagnosticArray, wire.DIAGNOSTICS, 10)
+        self.pub_diag = self.create_publisher(wire.DiagnosticArray, wire.DIAGNOSTICS, 10)
         self.margins: dict[str, list[tuple[float, float]]] = {}
         self.watched = watched(s)
         self.whole = len(self.watched) == len(s.agents) and len(self.followers) < len(s.agents)
@@ -116,8 +115,7 @@ class MonitorNode(Node):
         # this reader yet, and the first records would be lost.
         self.pub_ready = self.create_publisher(
             Empty, wire.fleet_topic(wire.MONITOR_READY, self.fleet), wire.LATCHED_QOS)
-        self.ready_timer = self.create_timer(
-            0.05, self.on_ready_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.ready_timer = wall_timer(self, 0.05, self.on_ready_check)
 
     def on_ready_check(self) -> None:
         if all(sub.get_publisher_count() > 0 for sub in self.subscriptions):
@@ -194,13 +192,10 @@ class MonitorNode(Node):
             self.margins.setdefault(key, []).append((t, value))
         if values and (len(self.margins[next(iter(values))]) - 1) % max(
                 1, int(round(1e9 / self.record_ns))) == 0:
-            status = DiagnosticStatus(name=f'{self.fleet}/monitor/fleet'.lstrip('/'),
-                                      hardware_id='monitor', message='margins on the estimates')
-            status.values = [KeyValue(key='t_s', value=f'{t:.3f}')] + [
-                KeyValue(key=k, value=f'{v:.4g}') for k, v in values.items()]
-            msg = DiagnosticArray(status=[status])
-            msg.header.stamp = wire.to_stamp(t)
-            self.pub_diag.publish(msg)
+            self.pub_diag.publish(wire.diagnostics(
+                f'{self.fleet}/monitor/fleet'.lstrip('/'), 'monitor', 'margins on the estimates',
+                {'t_s': f'{t:.3f}', **{k: f'{v:.4g}' for k, v in values.items()}},
+                wire.to_stamp(t)))
 
     def finish(self, interrupted: bool = False) -> None:
         """Write the outputs (once), from whatever has been recorded."""
@@ -249,8 +244,7 @@ class MonitorNode(Node):
             timer.cancel()
             self._close_bag()
             self.finished.set_result(True)
-        timer = self.create_timer(0.1, close_when_quiet,
-                                  clock=Clock(clock_type=ClockType.STEADY_TIME))
+        timer = wall_timer(self, 0.1, close_when_quiet)
 
     def _close_bag(self) -> None:
         if self.recorder is not None and self.recorder.open:

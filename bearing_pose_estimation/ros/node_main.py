@@ -20,6 +20,7 @@ from typing import Any, TypeVar
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.experimental.events_executor import EventsExecutor
@@ -27,6 +28,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
+from rclpy.timer import Timer
 
 from .executor import DrainingExecutor
 from ..core.errors import ScenarioError
@@ -296,6 +298,11 @@ def tf_broadcaster(node: Node, wanted: bool) -> Any:
                                'carries the same pose)')
         return None
     return TransformBroadcaster(node)
+
+
+def wall_timer(node: Node, period: float, callback: Callable[[], None]) -> Timer:
+    """A timer on the steady clock: it fires whatever the node's (simulated) clock does."""
+    return node.create_timer(period, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
 
 def take_waiting(node: Node) -> int:

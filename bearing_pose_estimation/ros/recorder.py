@@ -21,7 +21,6 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from .. import msg_defs as wire
-from .wiring import RECORD_QOS
 
 
 class BagRecorder:
@@ -40,7 +39,7 @@ class BagRecorder:
             connection = self.writer.add_connection(topic, wire.type_name(msg_type),
                                                     typestore=typestore)
             self.subscriptions.append(node.create_subscription(
-                msg_type, topic, partial(self._write, connection), RECORD_QOS, raw=True))
+                msg_type, topic, partial(self._write, connection), wire.RECORD_QOS, raw=True))
         self.open = True
 
     def _write(self, connection: Connection, data: bytes) -> None:

@@ -27,7 +27,6 @@ from functools import partial
 from typing import Any
 
 import numpy as np
-from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
@@ -38,7 +37,8 @@ from ..msg_defs import cdr
 from ..core.errors import ScenarioError
 from ..estimators.base import Sensor
 from .monitor_node import watched
-from .node_main import declare, run_node, scenario_parameter, warn_unknown_parameters
+from .node_main import (declare, run_node, scenario_parameter, wall_timer,
+                        warn_unknown_parameters)
 from .wiring import listener_counts, recorded_topics
 from ..sim.world import World
 
@@ -130,8 +130,7 @@ class SimulatorNode(Node):
         # A wall-clock timer: the simulator owns sim time, so it must not wait on it. A quarter
         # of a step (at most 5 ms) keeps /clock smooth; every wake-up costs the executor ~0.3 ms
         # of CPU, so a 1 ms tick alone took a third of a core (bench/fleet_scale.py).
-        self.timer = self.create_timer(min(0.005, s.step / 4.0), self.on_tick,
-                                       clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.timer = wall_timer(self, min(0.005, s.step / 4.0), self.on_tick)
         waiting = 'estimators and monitor' if self.wait_for_monitor else 'estimators'
         self.get_logger().info(f'{s.name}: {len(self.names)} agents, {self.duration:g} s'
                                f'{"" if self.publish_clock else ", no /clock"}; '

@@ -5,19 +5,10 @@ from __future__ import annotations
 
 from collections import Counter
 
-from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-
 from .. import msg_defs as wire
 from ..runtime.table import listener_counts as table_counts
 from ..scenario.model import Scenario
 from ..scenario.runtimes import agent_specs
-
-# A recorder's reader: reliable matches the simulator's and the estimators' writers, volatile
-# matches both volatile and transient-local ones; deep enough not to drop a burst.
-RECORD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
-                        reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
 
 
 def listener_counts(scenario: Scenario) -> Counter[tuple[str, str]]:
@@ -39,4 +30,4 @@ def recorded_topics(scenario: Scenario, fleet: str = '') -> list[tuple[str, type
                     if scenario.simulates(s)]
                  + list(channels.items()))
     return ([(wire.topic(a.name, name, fleet), msg_type) for a in scenario.agents
-             for name, msg_type in per_agent] + [(wire.DIAGNOSTICS, DiagnosticArray)])
+             for name, msg_type in per_agent] + [(wire.DIAGNOSTICS, wire.DiagnosticArray)])

@@ -6,31 +6,26 @@ never names a method's quantity. Inputs arrive at their own rates and stamps; ea
 ``h`` runs as soon as its inputs are in:
 
 - **Own motion**: gyro and odometry integrated sample by sample (:mod:`core.gyro`,
-  :mod:`core.odometry`), never held over a step; live odometry is waited for as the gyro is.
-- **Own point sensors** (``measures``) kept per agent seen and rotated to the body frame of the
-  step's instant with the gyro (a 20 ms old bearing paired with the current R̂ costs
-  ``|ω| · 20 ms``): ``own_pairing = 'interpolated'``, between the samples around t (the one
-  after t is waited for); ``'newest'``, the newest the gyro bridges, or in a moving fleet the
-  one at the stamp of the neighbour's values it pairs with.
-- **What neighbours send** (``sends``), per edge on its ``on`` flag. ``'exact'``: the value of
-  t, waited for until it is here or a later one says it is lost, then the sender's newest
-  earlier one carried to t (:meth:`Estimator.carry`), or masked. ``'instant'``: the sender's
-  newest instant at or before t with every required channel, waited for in a simulation
-  (:class:`.buffers.Exchange`); a moving fleet pairs the own measurement and ``p̂_i`` at that
-  instant (:data:`base.P_OWN`). Optional channels are never waited for; one the method does not
-  read at t (:meth:`Estimator.due`) is its newest value. A sender's measurement of this agent
-  is interpolated like the own, turned with its odometry when the method reads it
-  (``peer_odometry``: every edge's other end, or the anchor).
+  :mod:`core.odometry`); live odometry is waited for as the gyro is.
+- **Own point sensors** (``measures``) rotated to the body frame of the step's instant with the
+  gyro (a 20 ms old bearing paired with the current R̂ costs ``|ω| · 20 ms``), paired by
+  ``own_pairing``: ``'interpolated'`` between the samples around t (the one after t waited
+  for); ``'newest'``, the newest the gyro bridges, or in a moving fleet the one at the stamp of
+  the neighbour's values it pairs with (:data:`base.P_OWN`).
+- **What neighbours send** (``sends``), per edge on its ``on`` flag, paired as
+  :class:`base.Channel` says: ``'exact'`` values waited for, or carried
+  (:meth:`Estimator.carry`), or masked; ``'instant'`` ones from the sender's newest complete
+  instant, waited for in a simulation (:class:`.buffers.Exchange`). A sender's measurement of
+  this agent is interpolated like the own, turned with its odometry (``peer_odometry``).
 - **Rounds**: a reply (:meth:`Estimator.reply`) goes out once round 1 is in
   (:meth:`AgentRuntime.pending_reply`); the step then waits for round 2.
 
 Every wait ends when the own sensors are ``link_wait`` ahead (own samples: ``sensor_timeout``),
-or at once when ``impatient``; what is missing is counted (``missing``) and masked. Time rules:
-a gyro stamp ``jump_back`` before the newest restarts from the initial estimate
-(``time_jump``); a gap over ``max_gyro_gap`` restarts the state time after it, keeping the
-estimate (``gyro_gap``); the step grid stays aligned to ``t0``. Leaders take their known pose,
-carried by the gyro (and odometry) between samples. Every ``add_*`` returns None when the input
-is used, or the cause of its rejection.
+or at once when ``impatient``; what is missing is counted (``missing``) and masked. A gyro
+stamp ``jump_back`` before the newest restarts from the initial estimate (``time_jump``); a gap
+over ``max_gyro_gap`` restarts the state time after it, keeping the estimate (``gyro_gap``);
+the step grid stays aligned to ``t0``. Leaders take their known pose, carried by the gyro (and
+odometry). Every ``add_*`` returns None when the input is used, or why it is rejected.
 """
 from __future__ import annotations
 
@@ -222,7 +217,7 @@ class AgentRuntime:
         self._by_id = {p.agent_id: p for p in self.peers}
         # The neighbours it reads anything from (the others are never stale).
         self._read_peers = [p for p in self.peers if p.odometry is not None or any(
-            self.expects(p, c) for c in self.channels.values())]
+            reads(p.flags, c) for c in self.channels.values())]
         self._required_names = [c.name for c in cls.sends if not c.optional]
         self._optional_names = [c.name for c in cls.sends if c.optional]
         self._instant = any(c.pairing == 'instant' for c in cls.sends)
@@ -449,9 +444,6 @@ class AgentRuntime:
             self._pose_stamps.append(float(stamp))
         return None
 
-    def expects(self, peer: Peer, channel: Channel) -> bool:
-        return reads(peer.flags, channel)
-
     def add_message(self, sender: int, stamp: float, values: Mapping[str, object]) -> str | None:
         """A message of neighbour ``sender`` with its values of some channels at its state
         time ``stamp``: per-agent channels as arrays, per-edge ones as ``{listener id:
@@ -522,7 +514,7 @@ class AgentRuntime:
         if peer is None:
             return 'unknown_id'
         carriers = [c for c in self.channels.values()
-                    if c.sensor is sensor and self.expects(peer, c)]
+                    if c.sensor is sensor and reads(peer.flags, c)]
         if not carriers:
             return None   # not read from this sender
         if not math.isfinite(stamp):
@@ -617,10 +609,10 @@ class AgentRuntime:
                 return 'odometry'
             for c in sensors:
                 hist = p.values.get(c.name)
-                if self.expects(p, c) and not (hist and hist.newest_stamp >= t - SAME):
+                if reads(p.flags, c) and not (hist and hist.newest_stamp >= t - SAME):
                     return c.name
             for c in sent:
-                if self.expects(p, c):
+                if reads(p.flags, c):
                     hist = p.values.get(c.name)
                     value, decided = hist.at(t) if hist is not None else (None, False)
                     if value is None and not decided:
@@ -921,7 +913,7 @@ class AgentRuntime:
                and est.due(c.name, t, self.h)}
         for p in self.peers:
             core = [c.name for c in chans if c.name in due and not c.owner_only
-                    and self.expects(p, c)]
+                    and reads(p.flags, c)]
             found: dict[str, Array] = {}
             for name in core:
                 v, _ = p.values[name].at(t) if name in p.values else (None, False)
@@ -936,7 +928,7 @@ class AgentRuntime:
                         if name not in found:
                             self.missing[name] += 1
             for c in chans:
-                if not self.expects(p, c):
+                if not reads(p.flags, c):
                     continue
                 hist = p.values.get(c.name)
                 if c.sensor is not None:
@@ -966,7 +958,7 @@ class AgentRuntime:
         if type(est).partial_edges:
             for c in chans:   # a value not expected on an edge: here, as nothing is missing
                 for p in self.peers:
-                    if not self.expects(p, c):
+                    if not reads(p.flags, c):
                         mask[c.name][p.slot] = True
 
     def _optional(self, peer: Peer, c: Channel, t: float) -> Array:
