@@ -15,16 +15,16 @@ bearings. Each method adds the spectrum condition of its own lemma (:meth:`Estim
 from __future__ import annotations
 
 from dataclasses import dataclass
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import ClassVar, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..core import graph, so3
-from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, G,
-                   HELD, Index, P_OWN, POSE_POSITION, Roles, Sensor, State, StepInputs)
-from .covariance import DOF, POSE_COV, initial_covariance
+from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, HELD,
+                   Index, P_OWN, POSE_POSITION, Roles, Sensor, State, StepInputs)
+from .covariance import DOF, POSE_COV, CovarianceModel, Jacobians, initial_covariance, propagate
 from .fleet import Fleet
 
 P_HAT = Channel('p_hat', per='agent', frame='world', doc='p̂_j, the position estimate [m]',
@@ -57,45 +57,34 @@ class CovState(State):
 
 
 S = TypeVar('S', bound=CovState)
+GL = TypeVar('GL', bound=CovarianceModel)
 
 
-def fed_forward(x: CovState, inputs: StepInputs, k_v: float) -> Array | None:
+def fed_forward(R_hat: Array, displacement: Array | None, k_v: float) -> Array | None:
     """``k_v R̂_i δ_i`` ``(N, 3)``, the odometry displacement the step feeds forward (None:
-    none), for the covariance (:func:`.covariance.propagate`)."""
-    if inputs.displacement is None or k_v == 0.0:
+    none)."""
+    if displacement is None or k_v == 0.0:
         return None
-    return k_v * np.einsum('nab,nb->na', x.R_hat, inputs.displacement)
+    return k_v * np.einsum('nab,nb->na', R_hat, displacement)
 
 
-def own_geometry(x: CovState, inputs: StepInputs, p_nbr: Array) -> tuple[Array, Array]:
-    """``(y_ij = R̂_i b^i_ij (E, 3), d_ij = ‖p̂_i − p̂_j‖ (E,))`` before the step: where the
-    covariance is linearised."""
-    edges = inputs.edges
-    p_own = inputs.edge.get(P_OWN)
-    if p_own is None:
-        p_own = np.take(x.p_hat, edges.agent, axis=0)
-    y = np.einsum('eab,eb->ea', np.take(x.R_hat, edges.agent, axis=0), inputs.edge['bearings'])
-    return y, np.linalg.norm(p_own - p_nbr, axis=1)
-
-
-def neighbour_cov(inputs: StepInputs) -> Array:
-    """``P_j`` ``(E, 6, 6)``, what each neighbour sent of its covariance."""
-    return inputs.edge[POSE_COV.name]
-
-
-def bearing_pull(p_own: Array, edges: Edges, y: Array, p_hat_nbr: Array,
-                 bias_std: float = 0.0) -> Array:
-    """``Σ_j P_{y_ij} (p̂_i - p̂_j)`` per agent, ``(N, 3)``, with ``P_y e = e - y (y·e)/‖y‖²``:
-    the position correction of both observers (``y_ij = R̂_i b^i_ij``, ``(E, 3)``; ``p_own``
-    ``(E, 3)``: the owner's ``p̂_i`` paired with ``p̂_j``, :data:`base.P_OWN`).
+def position_step(p_hat: Array, edges: Edges, y: Array, p_hat_nbr: Array, h_k_p: float,
+                  bias_std: float, moved: Array | None, p_own: Array | None) -> Array:
+    """``p̂_i + k_v R̂_i δ_i - h k_p Σ_j P_{y_ij} (p̂_i - p̂_j)`` ``(N, 3)``, with ``P_y e = e -
+    y (y·e)/‖y‖²``: the position step of both observers (``y_ij = R̂_i b^i_ij`` ``(E, 3)``;
+    ``moved``: :func:`fed_forward`; ``p_own`` ``(E, 3)``: the owner's ``p̂_i`` paired with
+    ``p̂_j``, :data:`base.P_OWN`, None: ``p_hat``).
 
     ``bias_std`` (σ_b > 0) removes the bias of a noisy bearing's projector: with each of the
     two components of the bearing noise of std σ_b, ``E[P_ỹ] y = 2σ_b² y`` to second order,
     so ``P_ỹ − 2σ_b² ỹỹᵀ`` is unbiased there, and the fixed point with it (bench/noise_bias.py:
     2.2 cm of bias down to 0.08 cm on paper_noisy's agent_4)."""
+    if p_own is None:
+        p_own = np.take(p_hat, edges.agent, axis=0)
     e = p_own - p_hat_nbr
     along = (1.0 + 2.0 * bias_std ** 2) * so3.dot(y, e) / so3.dot(y, y)
-    return edges.sum_by_agent(e - y * along[:, None])
+    p_next = p_hat - h_k_p * edges.sum_by_agent(e - y * along[:, None])
+    return p_next if moved is None else p_next + moved
 
 
 def after_start(flags: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -111,9 +100,9 @@ def repeated(eig: Array) -> bool:
     return bool(np.min(np.diff(eig)) <= EIGEN_GAP_REL * max(eig[-1], 1e-300))
 
 
-class BearingLeaderEstimator(Estimator[G, S]):
+class BearingLeaderEstimator(Estimator[GL, S]):
     """Common part of the two leader-follower bearing methods: roles, sensors, messages, the
-    graph check. Subclasses give the step and the local matrix of their lemma."""
+    covariance, the graph check. Subclasses give the step and the spectrum their lemma needs."""
 
     roles: ClassVar[Roles] = Roles(leaders=2)
     sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.BEARINGS,
@@ -127,9 +116,8 @@ class BearingLeaderEstimator(Estimator[G, S]):
 
     def prior(self, n: int, dof: int = DOF) -> Array:
         """The covariance of ``n`` initial estimates (the gains' ``initial_*_std``)."""
-        g = self.gains
-        return initial_covariance(n, g.initial_position_std,  # type: ignore[attr-defined]
-                                  g.initial_attitude_std, dof)  # type: ignore[attr-defined]
+        return initial_covariance(n, self.gains.initial_position_std,
+                                  self.gains.initial_attitude_std, dof)
 
     def with_known_pose(self, x: S, rows: Index, R: Array, p: Array) -> S:
         """Leaders: their known pose, exactly (a zero covariance)."""
@@ -156,11 +144,23 @@ class BearingLeaderEstimator(Estimator[G, S]):
         """``(d_ij = R̂_j b^j_ij (E, 3), p̂_j (E, 3))`` from what the neighbours sent."""
         return -inputs.edge[WORLD_BEARING.name], inputs.edge[P_HAT.name]
 
+    def covariance_step(self, x: S, h: float, inputs: StepInputs, p_nbr: Array, moved: Array | None,
+                        jacobians: Callable[[Array, Array], Jacobians]) -> Array:
+        """``P⁺`` (:func:`.covariance.propagate`) linearised at the estimate before the step:
+        the method's ``jacobians`` at ``y_ij = R̂_i b^i_ij`` and ``d_ij = ‖p̂_i − p̂_j‖``."""
+        edges, g = inputs.edges, self.gains
+        p_own = inputs.edge.get(P_OWN)
+        if p_own is None:
+            p_own = np.take(x.p_hat, edges.agent, axis=0)
+        y = np.einsum('eab,eb->ea', np.take(x.R_hat, edges.agent, axis=0), inputs.edge['bearings'])
+        return propagate(x.P, h, edges, y, inputs.edge[POSE_COV.name], g.bearing_std,
+                         g.gyro_noise_density, jacobians(y, np.linalg.norm(p_own - p_nbr, axis=1)),
+                         moved, g.odometry_noise_density, inputs.edge.get(HELD))
+
     # ------------------------------------------------------------------ Assumption 2
     def check(self, fleet: Fleet) -> CheckReport:
         report = CheckReport(spectra_of=self.conditioning_label)
         add = report.findings.append
-        pos = fleet.positions
         names = list(fleet.names)
         nbrs = {names[i]: [names[j] for j, _ in fleet.neighbours[i]] for i in range(fleet.n)}
 
@@ -192,7 +192,7 @@ class BearingLeaderEstimator(Estimator[G, S]):
                                 f'ancestors a path from {leader}'))
 
             idx = [j for j, _ in neighbours]
-            d = pos[idx] - pos[i]
+            d = fleet.positions[idx] - fleet.positions[i]
             dist = np.linalg.norm(d, axis=1)
             if len(idx) == 0 or np.any(dist < graph.COLLOCATED_M):
                 continue  # already reported
@@ -209,9 +209,8 @@ class BearingLeaderEstimator(Estimator[G, S]):
                                 f'collinear (widest angle {np.degrees(widest):.2f} deg): slow, '
                                 'noise-sensitive position estimate',
                                 'add a neighbour in another direction'))
-            matrix = self.conditioning(b, np.array([k for _, k in neighbours]))
-            assert matrix is not None  # both methods have one
-            eig = np.linalg.eigvalsh(matrix).astype(np.float64)
+            k_ij = np.array([k for _, k in neighbours])
+            eig = np.linalg.eigvalsh(self.conditioning(b, k_ij)).astype(np.float64)
             report.spectra[name] = eig
             problem = self.conditioning_problem(eig)
             if problem is not None:
@@ -220,8 +219,7 @@ class BearingLeaderEstimator(Estimator[G, S]):
         return report
 
     # ------------------------------------------------------------------ along the motion
-    def check_motion(self, fleet: Fleet, times: Array,
-                     positions: Array) -> list[Finding]:
+    def check_motion(self, fleet: Fleet, times: Array, positions: Array) -> list[Finding]:
         """Assumption 2d's geometry at every sample of a moving fleet, and the lemma's
         spectrum. Per follower, at most one finding for its bearings becoming collinear (error)
         or nearly collinear (warning; the thresholds of :meth:`check`), with the first time
@@ -236,14 +234,12 @@ class BearingLeaderEstimator(Estimator[G, S]):
             if len(fleet.neighbours[i]) >= 2:
                 by_size.setdefault(len(fleet.neighbours[i]), []).append(i)
         found: list[tuple[int, int, Finding]] = []   # (agent index, kind, finding)
-        n_samples = len(times)
-        block = max(1, MOTION_BLOCK // max(n_samples, 1))
+        block = max(1, MOTION_BLOCK // max(len(times), 1))
         for group in by_size.values():
             for start in range(0, len(group), block):
                 part = group[start:start + block]
                 own = np.array(part, dtype=np.intp)
-                nbr = np.array([[j for j, _ in fleet.neighbours[i]] for i in part],
-                               dtype=np.intp)
+                nbr = np.array([[j for j, _ in fleet.neighbours[i]] for i in part], dtype=np.intp)
                 d = positions[:, nbr, :] - positions[:, own, None, :]     # (K, F, M, 3)
                 dist = np.linalg.norm(d, axis=-1)
                 valid = np.all(dist >= graph.COLLOCATED_M, axis=-1)        # (K, F)
@@ -288,9 +284,8 @@ class BearingLeaderEstimator(Estimator[G, S]):
         k = int(np.argmax(nearly))
         when = np.flatnonzero(nearly)
         w = int(when[np.argmin(widest[when])])
-        worst = (f'widest angle {deg[k]:.2f} deg' if w == k else
-                 f'widest angle {deg[k]:.2f} deg, down to {deg[w]:.2f} deg at '
-                 f't = {times[w]:.2f} s')
+        worst = f'widest angle {deg[k]:.2f} deg' + (
+            '' if w == k else f', down to {deg[w]:.2f} deg at t = {times[w]:.2f} s')
         return Finding('warning', name, 'velocity', f'at t = {times[k]:.2f} s its bearings '
                        f'become nearly collinear ({worst}): slow, noise-sensitive position '
                        'estimate', f'change the velocities of {name} or of its neighbours '
@@ -305,12 +300,8 @@ class BearingLeaderEstimator(Estimator[G, S]):
         samples = np.flatnonzero(at)
         if samples.size == 0:
             return None
-        mats = []
-        for k in samples:
-            matrix = self.conditioning(b[k], k_ij)
-            assert matrix is not None  # both methods have one
-            mats.append(matrix)
-        eig = np.linalg.eigvalsh(np.stack(mats)).astype(np.float64)
+        mats = np.stack([self.conditioning(b[k], k_ij) for k in samples])
+        eig = np.linalg.eigvalsh(mats).astype(np.float64)
         problem = [self.conditioning_problem(e) for e in eig]
         bad = after_start(np.array([p is not None for p in problem]))
         if not bad.any():
@@ -324,6 +315,10 @@ class BearingLeaderEstimator(Estimator[G, S]):
                        self.conditioning_fix(eig[w], fleet.names[neighbours[0][0]],
                                              len(neighbours))
                        + f', or change the velocities of {name} or of its neighbours')
+
+    def conditioning(self, bearings: Array, k: Array) -> Array:
+        """``M_i = Σ_j k_ij b_ij b_ijᵀ`` (B&T's Lemma 1; Tran et al. add to it)."""
+        return np.einsum('e,ea,eb->ab', k, bearings, bearings)
 
     def conditioning_margin(self, eig: Array) -> float:
         """How far the spectrum ``eig`` (ascending) is from what :meth:`conditioning_problem`

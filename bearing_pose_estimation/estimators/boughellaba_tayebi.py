@@ -65,10 +65,10 @@ from typing import ClassVar
 import numpy as np
 
 from ..core import so3
-from .base import HELD, P_OWN, Array, Edges, StepInputs, gain
-from .bearing_leaders import (BearingLeaderEstimator, CovState, bearing_pull, fed_forward,
-                              neighbour_cov, own_geometry, repeated)
-from .covariance import CovarianceModel, cascade_jacobians, propagate
+from .base import P_OWN, Array, Edges, StepInputs, gain
+from .bearing_leaders import (BearingLeaderEstimator, CovState, fed_forward, position_step,
+                              repeated)
+from .covariance import CovarianceModel, cascade_jacobians
 
 
 @dataclass(frozen=True)
@@ -84,18 +84,9 @@ class CascadeGains(CovarianceModel):
 
 
 def innovation(R_hat: Array, edges: Edges, b_body: Array, d_world: Array) -> tuple[Array, Array]:
-    """Innovation ``σ_i`` and the estimated world bearings ``y_ij = R̂_i b^i_ij``.
-
-    Args:
-        R_hat: ``(N, 3, 3)`` attitude estimates, paired in time with ``b_body``.
-        edges: the sensing edges.
-        b_body: ``(E, 3)`` agent i's own measured bearings ``b^i_ij`` (body frame, unit).
-        d_world: ``(E, 3)`` neighbour j's estimate of the same bearing in the world frame,
-            ``R̂_j b^j_ij = -R̂_j b^j_ji``.
-
-    Returns:
-        ``(sigma (N, 3), y (E, 3))``.
-    """
+    """Innovation ``σ_i`` ``(N, 3)`` and the estimated world bearings ``y_ij = R̂_i b^i_ij``
+    ``(E, 3)``; the arguments as in :func:`cascade_step` (``R_hat`` paired in time with
+    ``b_body``)."""
     # np.take: ~3x faster than fancy indexing for these row gathers.
     y = np.einsum('eab,eb->ea', np.take(R_hat, edges.agent, axis=0), b_body)
     sigma = edges.sum_by_agent(edges.weighted(so3.cross(d_world, y)))
@@ -106,7 +97,8 @@ def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Ed
                  b_body: Array, d_world: Array, p_hat_nbr: Array, gains: CascadeGains,
                  reorthonormalize: bool = True, displacement: Array | None = None,
                  p_own: Array | None = None) -> tuple[Array, Array, Array]:
-    """Advance the observers of all agents by one step ``h`` (see the module docstring).
+    """Advance the observers of all agents by one step ``h`` (see the module docstring):
+    ``(R̂, p̂)`` at ``t + h`` and the innovation ``σ`` used (world frame).
 
     Args:
         R_hat: ``(N, 3, 3)`` attitude estimates at time t.
@@ -114,10 +106,9 @@ def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Ed
         delta_R: ``(N, 3, 3)`` gyro increments ``R(t)ᵀ R(t+h)`` (body frame).
         h: step [s].
         edges: sensing edges (``edges.n_agents == N``).
-        b_body: ``(E, 3)`` own bearings ``b^i_ij`` at time t (body frame).
-        d_world: ``(E, 3)`` neighbours' world bearings ``R̂_j b^j_ij`` at time t.
+        b_body: ``(E, 3)`` own bearings ``b^i_ij`` at time t (body frame, unit).
+        d_world: ``(E, 3)`` neighbours' world bearings ``R̂_j b^j_ij = -R̂_j b^j_ji`` at t.
         p_hat_nbr: ``(E, 3)`` neighbours' position estimates ``p̂_j`` [m].
-        gains: ``k_R``, ``k_p``.
         reorthonormalize: pull R̂ back onto SO(3) after the step. ``Q`` and ``ΔR`` are
             rotations to rounding error, so a caller stepping many agents may do it every few
             steps only.
@@ -125,18 +116,11 @@ def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Ed
             at t) [m], fed forward with ``k_v``; None: none (static agents).
         p_own: ``(E, 3)`` the owner's ``p̂_i`` to pair with ``p̂_j`` (late messages,
             :data:`base.P_OWN`); None: ``p_hat``.
-
-    Returns:
-        ``(R̂, p̂)`` at ``t + h`` and the innovation ``σ`` used (world frame).
     """
     sigma, y = innovation(R_hat, edges, b_body, d_world)
-    if p_own is None:
-        p_own = np.take(p_hat, edges.agent, axis=0)
-    pull = bearing_pull(p_own, edges, y, p_hat_nbr, gains.bias_std)
     Q = so3.exp(-h * gains.k_R * sigma)
-    p_pred = p_hat - h * gains.k_p * pull
-    if displacement is not None and gains.k_v != 0.0:
-        p_pred = p_pred + gains.k_v * np.einsum('nab,nb->na', R_hat, displacement)
+    p_pred = position_step(p_hat, edges, y, p_hat_nbr, h * gains.k_p, gains.bias_std,
+                           fed_forward(R_hat, displacement, gains.k_v), p_own)
     R_next = so3.matmul(Q, R_hat, delta_R)
     if reorthonormalize:
         R_next = so3.reorthonormalize(R_next)
@@ -161,20 +145,13 @@ class BoughellabaTayebi(BearingLeaderEstimator[CascadeGains, CovState]):
         d_world, p_nbr = self.neighbour_terms(inputs)
         g = self.gains
         R_hat, p_hat, sigma = cascade_step(
-            x.R_hat, x.p_hat, inputs.delta_R, h, inputs.edges, inputs.edge['bearings'], d_world, p_nbr,
-            g, reorthonormalize, displacement=inputs.displacement, p_own=inputs.edge.get(P_OWN))
-        # The covariance, linearised at the estimate before the step (covariance.py).
-        y, dist = own_geometry(x, inputs, p_nbr)
-        moved = fed_forward(x, inputs, g.k_v)
+            x.R_hat, x.p_hat, inputs.delta_R, h, inputs.edges, inputs.edge['bearings'], d_world,
+            p_nbr, g, reorthonormalize, inputs.displacement, inputs.edge.get(P_OWN))
+        moved = fed_forward(x.R_hat, inputs.displacement, g.k_v)
         lever = x.p_hat if moved is None else x.p_hat + moved   # what Q turns
-        P = propagate(x.P, h, inputs.edges, y, neighbour_cov(inputs), g.bearing_std,
-                      g.gyro_noise_density,
-                      cascade_jacobians(h, inputs.edges, y, dist, lever, g.k_R, g.k_p),
-                      moved, g.odometry_noise_density, inputs.edge.get(HELD))
+        P = self.covariance_step(x, h, inputs, p_nbr, moved, lambda y, dist: cascade_jacobians(
+            h, inputs.edges, y, dist, lever, g.k_R, g.k_p))
         return CovState(R_hat=R_hat, p_hat=p_hat, P=P), {'innovation': sigma}
-    def conditioning(self, bearings: Array, k: Array) -> Array:
-        """``M_i = Σ_j k_ij b_ij b_ijᵀ`` (Lemma 1)."""
-        return np.einsum('e,ea,eb->ab', k, bearings, bearings)
 
     def conditioning_problem(self, eig: Array) -> str | None:
         if not repeated(eig):

@@ -26,8 +26,8 @@ from its own geometry and noise model (``W_i``: the bearing and gyro noise, ``N_
 angle random walk [rad/√s]) and the covariances ``P_j`` its neighbours send. Solved over the
 whole fleet at once, the recursion without ``c_i`` but with the cross-covariances ``E[x_i x_jᵀ]``
 is exact to first order (on paper_noisy its NEES is 2.8-3.6 for 3 dof on 4 runs, BENCHMARKS.md,
-"The covariance"). An agent
-has neither those cross-covariances nor the neighbours' dynamics, so ``c_i`` stands for them:
+"The covariance"). An agent has neither those cross-covariances nor the neighbours' dynamics,
+so ``c_i`` stands for them:
 
 - a neighbour's error is slow (correlated over ~1/a), not white: over its own window agent i
   sees it as white noise of density ``2 P_j / (a_i + a_j)``; with ``a_j`` unknown, ``a_j`` is
@@ -55,6 +55,9 @@ POSE_COV = Channel('pose_cov', per='agent', frame='estimate', shape=(DOF, DOF), 
                    topic='pose', kind=POSE_COVARIANCE,
                    doc="P_j, the covariance of the sender's pose estimate (position, then "
                        'rotation; covariance.py, de_carli_covariance.py)')
+# F, G, own, theirs, rates: a method's linearised step (cascade_jacobians)
+Jacobians = tuple[Array, Array, Array, Array, Array]
+
 
 @dataclass(frozen=True, kw_only=True)
 class PoseCovarianceModel:
@@ -84,8 +87,7 @@ class CovarianceModel(PoseCovarianceModel):
                               zero_allowed=True, model=True)
 
 
-def initial_covariance(n: int, position_std: float, attitude_std: float,
-                       dof: int = DOF) -> Array:
+def initial_covariance(n: int, position_std: float, attitude_std: float, dof: int = DOF) -> Array:
     """``(n, dof, dof)`` diagonal prior: ``position_std`` [m] and ``attitude_std`` [rad] per
     axis, 0 for the states beyond the pose (they start at their true value, e.g. ``Ω̃ = 0``)."""
     diag = np.zeros(dof)
@@ -93,49 +95,44 @@ def initial_covariance(n: int, position_std: float, attitude_std: float,
     return np.tile(np.diag(diag), (n, 1, 1))
 
 
-def _sums(edges: Edges, *per_edge: Array) -> list[Array]:
-    """``Σ_j`` of each ``(E, 3, 3)`` term per agent, in one sparse product (a product costs
-    ~30 µs whatever its width)."""
-    n = len(per_edge)
+def _edge_terms(edges: Edges, y: Array,
+                dist: Array) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """Per edge ``k_ij``, ``P_b`` and ``B = [b]x`` ``(E, 3, 3)``, and per agent ``M_i = Σ_j P_b``
+    ((23) sums its projectors unweighted), ``Q_i = Σ_j k_ij P_b`` (σ_i weighs with k_ij) and
+    ``A_i = Σ_j d_ij [b]x``, the sums in one sparse product (~30 µs whatever its width)."""
+    k = edges.k[:, None, None]
+    P_b = EYE3 - np.einsum('ea,eb->eab', y, y)
+    B = so3.hat(y)
+    per_edge = (P_b, k * P_b, dist[:, None, None] * B)
     total = edges.sum_by_agent(np.concatenate([t.reshape(-1, 9) for t in per_edge], axis=1))
-    return [total[:, 9 * m:9 * (m + 1)].reshape(-1, 3, 3) for m in range(n)]
+    M, Q, A = (total[:, 9 * m:9 * (m + 1)].reshape(-1, 3, 3) for m in range(3))
+    return k, P_b, B, M, Q, A
 
 
 def cascade_jacobians(h: float, edges: Edges, y: Array, dist: Array, p_hat: Array,
-                      k_R: float, k_p: float) -> tuple[Array, Array, Array, Array, Array]:
-    """The linearised step of the module docstring at the current estimate.
-
-    Args:
-        y: ``(E, 3)`` estimated world bearings ``R̂_i b^i_ij`` (unit).
-        dist: ``(E,)`` estimated distances ``‖p̂_i − p̂_j‖`` [m].
-        p_hat: ``(N, 3)`` what the attitude correction turns about the origin (the lever
-            arm): the positions, moved by the odometry fed forward for moving agents.
-
-    Returns:
-        ``F`` ``(N, 6, 6)``, ``G`` ``(E, 6, 6)`` (neighbour j's error into the edge's agent),
-        the maps of the two bearing noises of each edge ``(E, 6, 3)``, own then the
-        neighbour's, and the decay rates ``(N, 6)``: the eigenvalues of ``k_p M_i`` and
-        ``k_R Q_i`` (``F`` is block triangular).
-    """
-    k = edges.k[:, None, None]
-    eye = EYE3
-    P_b = eye - np.einsum('ea,eb->eab', y, y)
-    B = so3.hat(y)                                           # [b]x, (E, 3, 3)
-    # (23) sums the projectors unweighted; σ_i weighs its terms with k_ij.
-    M, Q, A = _sums(edges, P_b, k * P_b, dist[:, None, None] * B)
+                      k_R: float, k_p: float) -> Jacobians:
+    """The linearised step of the module docstring at the current estimate: ``y`` ``(E, 3)`` the
+    estimated world bearings ``R̂_i b^i_ij`` (unit), ``dist`` ``(E,)`` the estimated distances
+    ``‖p̂_i − p̂_j‖`` [m], ``p_hat`` ``(N, 3)`` what the attitude correction turns about the
+    origin (the lever arm: the positions, moved by the odometry fed forward for moving agents).
+    Returns ``F`` ``(N, 6, 6)``, ``G`` ``(E, 6, 6)`` (neighbour j's error into the edge's
+    agent), the maps of the two bearing noises of each edge ``(E, 6, 3)``, own then the
+    neighbour's, and the decay rates ``(N, 6)``: the eigenvalues of ``k_p M_i`` and ``k_R Q_i``
+    (``F`` is block triangular)."""
+    k, P_b, B, M, Q, A = _edge_terms(edges, y, dist)
     Hp = so3.hat(p_hat)                                      # [p_i]x, (N, 3, 3)
     Hp_e = np.take(Hp, edges.agent, axis=0)
     n = p_hat.shape[0]
     F = np.zeros((n, DOF, DOF))
-    F[:, :3, :3] = eye - h * k_p * M
+    F[:, :3, :3] = EYE3 - h * k_p * M
     F[:, :3, 3:] = h * k_p * A + h * k_R * Hp @ Q
-    F[:, 3:, 3:] = eye - h * k_R * Q
+    F[:, 3:, 3:] = EYE3 - h * k_R * Q
     G = np.zeros((len(y), DOF, DOF))
     G[:, :3, :3] = h * k_p * P_b
     G[:, :3, 3:] = -h * k_R * Hp_e @ (k * P_b)
     G[:, 3:, 3:] = h * k_R * k * P_b
     own = np.zeros((len(y), DOF, 3))          # ν_ij, agent i's own bearing
-    own[:, :3] = -h * k_p * dist[:, None, None] * eye + h * k_R * Hp_e @ (k * B)
+    own[:, :3] = -h * k_p * dist[:, None, None] * EYE3 + h * k_R * Hp_e @ (k * B)
     own[:, 3:] = -h * k_R * k * B
     theirs = np.zeros((len(y), DOF, 3))       # ν'_ij, in what neighbour j sent
     theirs[:, :3] = -h * k_R * Hp_e @ (k * B)
@@ -145,8 +142,7 @@ def cascade_jacobians(h: float, edges: Edges, y: Array, dist: Array, p_hat: Arra
 
 
 def propagate(P: Array, h: float, edges: Edges, y: Array, P_nbr: Array, bearing_std: float,
-              gyro_noise_density: float,
-              jacobians: tuple[Array, Array, Array, Array, Array],
+              gyro_noise_density: float, jacobians: Jacobians,
               moved: Array | None = None, odometry_noise_density: float = 0.0,
               held: Array | None = None) -> Array:
     """``P_i⁺ = F P Fᵀ + W + c_i Σ_j G P_j Gᵀ`` of every agent (module docstring) from its ``P``
@@ -187,8 +183,7 @@ def propagate(P: Array, h: float, edges: Edges, y: Array, P_nbr: Array, bearing_
 
 
 def tran_jacobians(h: float, edges: Edges, y: Array, dist: Array, R_hat: Array,
-                   pairs: Any, k_omega: float, k_p: float, k_c: float
-                   ) -> tuple[Array, Array, Array, Array, Array]:
+                   pairs: Any, k_omega: float, k_p: float, k_c: float) -> Jacobians:
     """Tran et al.'s step (:func:`.tran_anderson_ahn.tran_step`) linearised about the truth,
     error ``(e_i, φ_i, Ω̃_i)`` (``Ω̃`` in the body frame; its true value is 0)::
 
@@ -204,11 +199,7 @@ def tran_jacobians(h: float, edges: Edges, y: Array, dist: Array, R_hat: Array,
     :func:`cascade_jacobians`, with 9 rows; the rates are those of ``k_p M_i`` and the real
     parts of the roots of ``s² + k_ω s + λ = 0`` for each eigenvalue λ of ``Q_i`` (+ ``k_c
     P_c``): the attitude loop is ``φ̈ + k_ω φ̇ + Q φ = 0`` (with ``R̂`` frozen over the decay)."""
-    k = edges.k[:, None, None]
-    eye = EYE3
-    P_b = eye - np.einsum('ea,eb->eab', y, y)
-    B = so3.hat(y)
-    M, Q, A = _sums(edges, P_b, k * P_b, dist[:, None, None] * B)
+    k, P_b, B, M, Q, A = _edge_terms(edges, y, dist)
     # σ's maps per edge: of φ_i (Q), of φ_j (Gφ), of ν (S) and ν' (−S); the pairs add σ_c.
     Gphi = -k * P_b
     S = k * B
@@ -224,23 +215,23 @@ def tran_jacobians(h: float, edges: Edges, y: Array, dist: Array, R_hat: Array,
             Gphi[first] += CL @ so3.hat(b)
             S[first] += CL
         Q = Q.copy()
-        Q[pairs.agent] += k_c * (eye - np.einsum('na,nb->nab', cr, cr) / s ** 2)
+        Q[pairs.agent] += k_c * (EYE3 - np.einsum('na,nb->nab', cr, cr) / s ** 2)
     n = R_hat.shape[0]
     Rt = R_hat.transpose(0, 2, 1)
     Rt_e = np.take(Rt, edges.agent, axis=0)
     F = np.zeros((n, 9, 9))
-    F[:, :3, :3] = eye - h * k_p * M
+    F[:, :3, :3] = EYE3 - h * k_p * M
     F[:, :3, 3:6] = h * k_p * A
-    F[:, 3:6, 3:6] = eye
+    F[:, 3:6, 3:6] = EYE3
     F[:, 3:6, 6:] = -h * R_hat
     F[:, 6:, 3:6] = h * Rt @ Q
-    F[:, 6:, 6:] = (1.0 - h * k_omega) * eye
+    F[:, 6:, 6:] = (1.0 - h * k_omega) * EYE3
     E = len(y)
     G = np.zeros((E, 9, DOF))
     G[:, :3, :3] = h * k_p * P_b
     G[:, 6:, 3:] = h * Rt_e @ Gphi
     own = np.zeros((E, 9, 3))
-    own[:, :3] = -h * k_p * dist[:, None, None] * eye
+    own[:, :3] = -h * k_p * dist[:, None, None] * EYE3
     own[:, 6:] = h * Rt_e @ S
     theirs = np.zeros((E, 9, 3))
     theirs[:, 6:] = -h * Rt_e @ S

@@ -2,10 +2,10 @@
 positions and their own odometry, with no anchor (``method: de_carli``).
 
 Equations, corrections and discretisation: ``../shared/estimators/de-carli-2024.md`` (§n),
-the paper's numbers in parentheses; :mod:`.de_carli_stages` holds the same three stages over a
-whole fleet in the pairs' ``a < b`` orientation, the reference the stage tests check. Here they
-run per robot and per communication link, so that one step serves the batch simulator (all
-robots) and a node (one robot) alike.
+the paper's numbers in parentheses; ``test/de_carli_reference.py`` holds the same three stages
+over a whole fleet in the pairs' ``a < b`` orientation, the reference the stage tests check.
+Here they run per robot and per communication link, so that one step serves the batch
+simulator (all robots) and a node (one robot) alike.
 
 Robots have yaw-only body frames ``R_i = R_z(ψ_i)`` (roll and pitch compensated), horizontal
 vectors are complex numbers, ``ẑ_i ≈ e^{ι(ψ_i + a)}`` is the (unnormalised) yaw estimate and
@@ -28,7 +28,7 @@ for a two-way pair, ``ʲp̂_ji`` too (fed by j's measurement). Channels:
   :mod:`.de_carli_covariance`, on its ``pose``. Each end of a pair propagates the pair's own
   covariance from what it has already, so none travels.
 
-The other end's odometry over the step (``δ_j``, ``Δψ_j``; :class:`base.LinkInputs`) feeds the
+The other end's odometry over the step (``δ_j``, ``Δψ_j``; :data:`base.PEER_DISPLACEMENT`) feeds the
 owner's prediction of ``ⁱp̂_ij``.
 
 One step ``h`` (the estimator frequency, the relative-yaw observer's 200 Hz), everything on the
@@ -63,9 +63,8 @@ the paper's scenario).
 
 Persistent excitation (Theorem 1, §5): only the sensed robots' horizontal motion excites a
 pair. Both ends integrate it from the odometry they both have (``∫|v_xy|² dt``: own and
-received); a pair joins the consensus once it reaches ``pe_threshold`` (default
-:data:`EXCITATION_M2_S`) and stays in (the paper's fleet stops in formation). ``excitation_recent`` (a 1 s exponential window) says
-whether it is excited now.
+received); a pair joins the consensus once it reaches ``pe_threshold`` and stays in
+(:data:`EXCITATION_M2_S`); ``excitation_recent`` (a 1 s window) says whether it is excited now.
 
 Everything converges only up to one common yaw and translation
 (``EstimateFrame.COMMON_YAW_TRANSLATION``): the estimates live in an estimation frame whose
@@ -86,13 +85,12 @@ from . import de_carli_covariance as cov
 from .base import (PEER_DELTA_R, PEER_DISPLACEMENT, PEER_ODOMETRY, POSE_POSITION, VECTOR, Array,
                    Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, Index, Mask,
                    Motion, Roles, Sensor, State, StepInputs, gain)
-from .covariance import POSE_COV, PoseCovarianceModel
+from .covariance import DOF, POSE_COV, PoseCovarianceModel
 from .fleet import Fleet
 
 Complex = NDArray[np.complex128]
 
-# Every value a robot receives is checked against this bound [m] (a camera with depth sees
-# metres).
+# Every value a robot receives is checked against this bound [m] (a depth camera sees metres).
 MAX_VALUE = 1e4
 Z_HAT = Channel('z_hat', per='agent', frame='estimate', shape=(2,), topic='yaw_estimate',
                 kind=VECTOR, pairing='exact', bound=MAX_VALUE,
@@ -262,9 +260,12 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
                             p_residual=np.full(n, UNKNOWN_RESIDUAL), P=self.prior(n), **links)
 
     def prior(self, n: int) -> Array:
-        """The covariance of ``n`` initial estimates (the gains' ``initial_*_std``)."""
-        return cov.pose_prior(n, self.gains.initial_position_std,
-                              self.gains.initial_attitude_std)
+        """The covariance of ``n`` initial estimates: the gains' ``initial_position_std²`` on x,
+        y, z, ``initial_attitude_std²`` on yaw, 0 on roll and pitch (known)."""
+        P = np.zeros((n, DOF, DOF))
+        P[:, [0, 1, 2], [0, 1, 2]] = self.gains.initial_position_std ** 2
+        P[:, 5, 5] = self.gains.initial_attitude_std ** 2
+        return P
 
     def missing(self, channel: str) -> Array:
         """A neighbour's covariance not received (yet): the prior."""
@@ -291,7 +292,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         relyaw = np.zeros((len(sender), 2))
         if slot is not None and x.slots:
             inside = slot < x.slots
-            s, k = sender[inside], np.minimum(slot[inside], x.slots - 1)
+            s, k = sender[inside], slot[inside]
             ready = x.ready_pair[s, k]
             relyaw[inside] = np.where(ready[:, None], as_pair(unit(x.z_pair[s, k])), 0.0)
         return {'z_hat': as_pair(x.z_hat), 'p_hat': x.p_hat,
@@ -330,14 +331,12 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
     # --- the step
     def step(self, x: DeCarliState, h: float, inputs: StepInputs,
              reorthonormalize: bool = True) -> tuple[DeCarliState, dict[str, Array]]:
-        g = self.gains
-        edges = inputs.edges
+        g, edges, rec = self.gains, inputs.edges, inputs.edge
         assert edges.slot is not None
         n = x.p_hat.shape[0]
         ag, sl = edges.agent, edges.slot
         x = x.grown(int(sl.max()) + 1 if len(sl) else 0)
         out = x.rows(slice(None))
-        rec = inputs.edge
         tick = int(round(inputs.t / h))
         h2, h3 = self.every(g.yaw_rate, h) * h, self.every(g.position_rate, h) * h
 
@@ -441,30 +440,26 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         if start.any():
             P[start] = cov.pair_prior(int(start.sum()), g.relative_position_std,
                                       g.initial_attitude_std)
+        odo_var, gyro_var = h * g.odometry_noise_density ** 2, h * g.gyro_noise_density ** 2
         out.P_pair[ag[pairs], sl[pairs]] = cov.pair_step(
-            P, maps, two_way, g.relative_position_std ** 2, h * g.odometry_noise_density ** 2,
-            h * g.gyro_noise_density ** 2)
+            P, maps, two_way, g.relative_position_std ** 2, odo_var, gyro_var)
         eps_var = np.zeros(len(ag))
         live = out.P_pair[ag, sl, 2, 2] + out.P_pair[ag, sl, 3, 3] > 0.0
         eps_var[live] = cov.yaw_error_var(out.P_pair[ag[live], sl[live]], z_pair[live])
         out.P = cov.robot_step(x.P, rec[POSE_COV.name], edges,
                                self.robot_maps(x, h, inputs, active, z_hat), eps_var,
-                               inputs.displacement is not None,
-                               h * g.odometry_noise_density ** 2, h * g.gyro_noise_density ** 2)
+                               inputs.displacement is not None, odo_var, gyro_var)
 
         residual = np.zeros(n)
         np.maximum.at(residual, a, np.abs(E_out))
-        target = as_complex(yaw_target)
-        yaw_residual = np.abs(target - n_active * x.z_hat) / np.maximum(
+        yaw_residual = np.abs(as_complex(yaw_target) - n_active * x.z_hat) / np.maximum(
             n_active * np.abs(x.z_hat), MIN_MODULUS)
-        position_residual = out.p_residual
         stage = np.select([n_active == 0, residual > RELATIVE_DONE_M, yaw_residual > YAW_DONE,
-                           position_residual > POSITION_DONE_M], [0, 1, 2, 3], 4)
-        diagnostics = {'innovation': correction, 'z_modulus': np.abs(out.z_hat),
-                       'pairs_excited': n_active.astype(float),
-                       'relative_residual_m': residual, 'yaw_residual': yaw_residual,
-                       'position_residual_m': position_residual, 'stage': stage.astype(float)}
-        return out, diagnostics
+                           out.p_residual > POSITION_DONE_M], [0, 1, 2, 3], 4)
+        return out, {'innovation': correction, 'z_modulus': np.abs(out.z_hat),
+                     'pairs_excited': n_active.astype(float), 'relative_residual_m': residual,
+                     'yaw_residual': yaw_residual, 'position_residual_m': out.p_residual,
+                     'stage': stage.astype(float)}
 
     def robot_maps(self, x: DeCarliState, h: float, inputs: StepInputs,
                    active: NDArray[np.bool_], z_mid: Complex) -> cov.RobotMaps:
@@ -472,14 +467,13 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         ``active`` the pairs stage 2 used, ``z_mid`` the yaws after it."""
         g, edges, rec = self.gains, inputs.edges, inputs.edge
         tick = int(round(inputs.t / h))
+        every_2, every_3 = self.every(g.yaw_rate, h), self.every(g.position_rate, h)
         y_ok, m_ok, _, fresh = usable(inputs)
-        yaw_tick = tick % self.every(g.yaw_rate, h) == 0
         moved = (None if inputs.displacement is None else np.einsum(
             'nab,nb->na', rot_z(np.angle(z_mid)), np.asarray(inputs.displacement, float)))
         return cov.robot_maps(
-            edges, self.every(g.position_rate, h) * h, g.k_p,
-            tick % self.every(g.position_rate, h) == 0,
-            self.every(g.yaw_rate, h) * h * g.k_z if yaw_tick else None,
+            edges, every_3 * h, g.k_p, tick % every_3 == 0,
+            every_2 * h * g.k_z if tick % every_2 == 0 else None,
             rec['p_hat'] - x.p_hat[edges.agent], (fresh & y_ok).astype(float),
             (fresh & m_ok).astype(float),
             x.z_hat, as_complex(rec['z_hat']), active.astype(float), moved,
@@ -543,12 +537,9 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         out = np.full(len(agent), np.nan)
         if not x.slots:
             return out
-        inside = slot < x.slots
-        k = np.flatnonzero(inside)
-        own = x.ready_pair[agent[k], slot[k]]
-        k = k[own]
-        out[k] = np.abs(x.z_pair[agent[k], slot[k]] - np.exp(1j * (psi[other[k]]
-                                                                   - psi[agent[k]])))
+        k = np.flatnonzero(slot < x.slots)
+        k = k[x.ready_pair[agent[k], slot[k]]]
+        out[k] = np.abs(x.z_pair[agent[k], slot[k]] - np.exp(1j * (psi[other[k]] - psi[agent[k]])))
         return out
 
     # --- assumptions
@@ -576,7 +567,6 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
                     '(roll and pitch compensated by the IMU)',
                     'give it a `yaw:` spline, or an attitude about z and an angular velocity '
                     '[0, 0, w]'))
-        h = fleet.step
         for rate_name in ('yaw_rate', 'position_rate'):
             rate = getattr(self.gains, rate_name)
             ratio = fleet.frequency / rate
@@ -585,9 +575,8 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
                     'error', 'gains', rate_name, f'{rate:g} Hz does not divide the estimator '
                     f'frequency {fleet.frequency:g} Hz',
                     f'use frequency / n, e.g. {fleet.frequency / 2:g}'))
-        laplacian = edge_laplacian(tail, head, n)
-        lam = float(np.linalg.eigvalsh(laplacian)[-1]) if len(tail) else 0.0
-        h3 = self.every(self.gains.position_rate, h) * h
+        lam = float(np.linalg.eigvalsh(edge_laplacian(tail, head, n))[-1]) if len(tail) else 0.0
+        h3 = self.every(self.gains.position_rate, fleet.step) * fleet.step
         if h3 * self.gains.k_p * lam >= EULER_LIMIT:
             report.findings.append(Finding(
                 'error', 'gains', 'k_p', f'the position correction diverges: h3 k_p '
@@ -598,8 +587,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
                 report.findings.append(unexcited(names, a_, b_, sensed, 0.0))
         return report
 
-    def check_motion(self, fleet: Fleet, times: Array,
-                     positions: Array) -> list[Finding]:
+    def check_motion(self, fleet: Fleet, times: Array, positions: Array) -> list[Finding]:
         """Warn for every pair whose sensed robots' horizontal motion along the sampled truth
         stays below the excitation the consensus waits for (the paper's mode is checked with
         the exogenous motion: the truth cannot depend on estimates here)."""

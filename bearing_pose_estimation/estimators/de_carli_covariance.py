@@ -54,7 +54,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .base import Array, Edges
-from .covariance import DOF
 
 Num = NDArray[Any]   # complex or boolean arrays
 
@@ -82,14 +81,6 @@ def times_i(a: Num) -> Array:
     out = np.empty(a.shape + (2,))
     out[..., 0], out[..., 1] = -a.imag, a.real
     return out
-
-
-def pose_prior(n: int, position_std: float, yaw_std: float) -> Array:
-    """``(n, 6, 6)``: ``position_std²`` on x, y, z, ``yaw_std²`` on yaw, 0 on roll and pitch."""
-    P = np.zeros((n, DOF, DOF))
-    P[:, [0, 1, 2], [0, 1, 2]] = position_std ** 2
-    P[:, 5, 5] = yaw_std ** 2
-    return P
 
 
 def pair_prior(k: int, relative_std: float, yaw_std: float) -> Array:

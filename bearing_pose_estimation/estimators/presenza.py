@@ -23,9 +23,10 @@ or the anchor ranges the other). Two rounds of messages per step (``rounds = 2``
    𝔟̂_ji)`` (11, with the estimated distance, §4.2).
 
 Every robot also receives the anchor's gyro increment and odometry over the step
-(:class:`base.AnchorInputs`). For the covariance (:mod:`.presenza_covariance`), optional and
-never waited for: ``pose_cov`` (round 1, per robot, on its ``pose``) and ``term_cov`` (round
-2, per link: what only the sensing robot knows of the listener's covariance).
+(:data:`base.ANCHOR_DELTA_R`, :data:`base.ANCHOR_DISPLACEMENT`). For the covariance
+(:mod:`.presenza_covariance`), optional and never waited for: ``pose_cov`` (round 1, per
+robot, on its ``pose``) and ``term_cov`` (round 2, per link: what only the sensing robot knows
+of the listener's covariance).
 
 One step ``h``, everything on the right at the step's start:
 
@@ -63,6 +64,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from functools import lru_cache
+from itertools import combinations
 from typing import ClassVar
 
 import numpy as np
@@ -146,19 +148,12 @@ def _pairs(agent: bytes, senses: bytes) -> tuple[Index, Index]:
     """The angles of every robot: pairs of its sensing links ``(e1, e2)``, ``e1 < e2``."""
     a = np.frombuffer(agent, dtype=np.intp)
     s = np.frombuffer(senses, dtype=bool)
-    e1: list[int] = []
-    e2: list[int] = []
-    for i in np.unique(a):
-        mine = np.flatnonzero((a == i) & s)
-        for x in range(len(mine)):
-            e1.extend([int(mine[x])] * (len(mine) - x - 1))
-            e2.extend(int(m) for m in mine[x + 1:])
-    return np.array(e1, dtype=np.intp), np.array(e2, dtype=np.intp)
+    pairs = [p for i in np.unique(a) for p in combinations(np.flatnonzero((a == i) & s), 2)]
+    e1, e2 = np.array(pairs, dtype=np.intp).reshape(-1, 2).T
+    return e1, e2
 
 
-@lru_cache(maxsize=16)
-def _triples(out: tuple[tuple[int, ...], ...]) -> Index:
-    return angles.angle_triples(out)
+_triples = lru_cache(maxsize=16)(angles.angle_triples)   # per fleet (fleet_margins)
 
 
 def _outer(a: Array, b: Array) -> Array:
@@ -250,16 +245,14 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         """Sensing robots (two or more out-neighbours) and free robots, as the paper's
         figures show them apart."""
         sensing = [name for name, nbrs in zip(fleet.names, fleet.neighbours) if len(nbrs) >= 2]
-        return {'sensing': sensing,
-                'free': [name for name in fleet.names if name not in sensing]}
+        return {'sensing': sensing, 'free': [name for name in fleet.names if name not in sensing]}
 
     def fleet_margins(self, fleet: Fleet, R_hat: Array, p_hat: Array) -> dict[str, float]:
         """Infinitesimal angle rigidity of the estimated positions: ``σ_{3N-7}/σ_1`` of the
         angle rigidity matrix on the normalised estimates (the check's margin, §2, on ``q̂``
         instead of the truth): the gradient flow (16) needs it away from 0."""
-        out = [[j for j, _ in nbrs] for nbrs in fleet.neighbours]
-        return {'angle_rigidity_margin': angles.iar_margin(p_hat, _triples(tuple(map(tuple,
-                                                                                  out))))}
+        out = tuple(tuple(j for j, _ in nbrs) for nbrs in fleet.neighbours)
+        return {'angle_rigidity_margin': angles.iar_margin(p_hat, _triples(out))}
 
     @staticmethod
     def _structure(x: PresenzaState, inputs: StepInputs) -> tuple[Mask, Mask, Mask]:
@@ -274,12 +267,11 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         return used, edges.flag('sensed_by'), count >= 2
 
     @staticmethod
-    def _motion(h: float, inputs: StepInputs, n: int) -> tuple[Array, Array, Array, Array,
-                                                                Array, Array]:
+    def _motion(h: float, inputs: StepInputs) -> tuple[Array, Array, Array, Array, Array, Array]:
         """Own ``ω_i``, ``u_i``, the anchor's ``ω_a``, ``u_a`` (step averages, ``(N, 3)``) and
         the anchor's increments ``ΔR_a``, ``δ_a``."""
         a_R, a_d = inputs.agent[ANCHOR_DELTA_R], inputs.agent[ANCHOR_DISPLACEMENT]
-        delta = inputs.displacement if inputs.displacement is not None else np.zeros((n, 3))
+        delta = inputs.displacement if inputs.displacement is not None else np.zeros_like(a_d)
         return (so3.log_small(inputs.delta_R) / h, delta / h, so3.log_small(a_R) / h,
                 a_d / h, a_R, a_d)
 
@@ -291,8 +283,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         n, n_edges = x.p_hat.shape[0], len(inputs.edges)
         agent = inputs.edges.agent
         e1, e2 = _pairs(agent.tobytes(), np.ascontiguousarray(senses).tobytes())
-        terms = cov.angle_terms(x.p_hat, inputs.edge['q_hat'], agent, e1, e2,
-                                MIN_DISTANCE_M)
+        terms = cov.angle_terms(x.p_hat, inputs.edge['q_hat'], agent, e1, e2, MIN_DISTANCE_M)
         zeta, D = np.zeros((n, 3)), np.zeros((n, 3, 3))
         g_out, D_out = np.zeros((n_edges, 3)), np.zeros((n_edges, 3, 3))
         if not len(e1):
@@ -313,31 +304,27 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         """Round 2, from each sensing robot to each out-neighbour (zeros on other links)."""
         senses, _, sensing = self._structure(x, inputs)
         agent = inputs.edges.agent
-        n = x.p_hat.shape[0]
         _, _, g_out, D_out, terms = self._angle_terms(x, inputs, senses)
         send = (senses & sensing[agent])[:, None]
-        omega, u, omega_a, u_a, _, _ = self._motion(h, inputs, n)
+        omega, u, omega_a, u_a, _, _ = self._motion(h, inputs)
         Q = x.R_hat[agent]
         beta = inputs.edge['bearings']
         b_hat = np.einsum('eab,eb->ea', Q, beta)                   # 𝔟̂ = Q̂_j β_ji
-        upsilon = (np.einsum('nab,nb->na', x.R_hat, u) - u_a
-                   - so3.cross(omega_a, x.p_hat))[agent]          # (10)
+        Ru = np.einsum('nab,nb->na', x.R_hat, u)                    # Q̂_j u_j
+        upsilon = (Ru - u_a - so3.cross(omega_a, x.p_hat))[agent]  # (10)
         dist = np.linalg.norm(inputs.edge['q_hat'] - x.p_hat[agent], axis=1, keepdims=True)
         g = self.gains
         rates = inputs.edge.get('bearing_rates')
-        if rates is None:
-            velocity, b_sent = np.zeros_like(b_hat), np.zeros_like(b_hat)
-            linear = None
-        else:
+        velocity, b_sent, linear = np.zeros_like(b_hat), np.zeros_like(b_hat), None
+        if rates is not None:
             derotated = rates + so3.cross(omega[agent], beta)
             s = np.einsum('eab,eb->ea', Q, derotated)             # Q̂_j (β̇ + ω_j × β)
             r_dot = s - so3.cross(omega_a[agent], b_hat)           # the rate of 𝔟_ji
             velocity = (upsilon - b_hat * np.sum(b_hat * upsilon, axis=1, keepdims=True)
                         + dist * r_dot)
             b_sent = b_hat
-            linear = cov.VelocityTerms(b_hat, dist[:, 0], r_dot, s, Q,
-                                       np.einsum('nab,nb->na', x.R_hat, u)[agent],
-                                       omega[agent], omega_a[agent])
+            linear = cov.VelocityTerms(b_hat, dist[:, 0], r_dot, s, Q, Ru[agent], omega[agent],
+                                       omega_a[agent])
         term_cov = cov.sender_terms(
             len(agent), terms, beta, x.P, inputs.edge[POSE_COV.name], agent, linear,
             g.bearing_std ** 2, g.bearing_rate_std ** 2, g.odometry_noise_density ** 2,
@@ -356,8 +343,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         is_anchor: Mask = inputs.agent[IS_ANCHOR].astype(bool)
         ranged_by = edges.flag('ranged_by') & inputs.here('q_ranged')
         agent = edges.agent
-        n = x.p_hat.shape[0]
-        _, u, omega_a, u_a, dR_a, delta_a = self._motion(h, inputs, n)
+        _, u, omega_a, u_a, dR_a, delta_a = self._motion(h, inputs)
         zeta, D, _, _, terms = self._angle_terms(x, inputs, senses)
         # Received angle terms and the anchor term (6), (5).
         into = sensed_by[:, None]
@@ -391,10 +377,9 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         gamma = np.where(sensing[:, None], gamma_own,
                          np.where(ok[:, None], gamma_new, x.gamma_hat))
         Q_T_gamma = np.einsum('nba,nb->na', x.R_hat, gamma)
-        free = ~sensing
-        Omega = np.where(free[:, None], so3.cross(u, Q_T_gamma), Omega)
+        Omega = np.where(sensing[:, None], Omega, so3.cross(u, Q_T_gamma))
         K_free = (np.sum(u * u, axis=1)[:, None, None] * np.eye(3) - _outer(u, u))
-        K = np.where(free[:, None, None], K_free, K)
+        K = np.where(sensing[:, None, None], K, K_free)
         # Corrections, preconditioned (§9), then the prediction with the increments.
         w = g.preconditioning
         eye = np.eye(3)
@@ -417,8 +402,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         b_own = np.einsum('eab,eb->ea', x.R_hat[agent], beta)     # Q̂_i β_ij
         P_inv = np.linalg.inv(np.where(ok[:, None, None], P, eye))
         lin = cov.own_linearisation(
-            h, g.kappa_q, kappa_Q[:, 0], w, D, so3.matmul(x.R_hat, K, np.swapaxes(x.R_hat, -1,
-                                                                                   -2)),
+            h, g.kappa_q, kappa_Q[:, 0], w, D, so3.matmul(x.R_hat, K, np.swapaxes(x.R_hat, -1, -2)),
             sensing, b_own, agent, senses, move, gamma, omega_a, P_inv, ok, b_in,
             r[cov.TERM_COV.name][:, cov.RATE], valid)
         P_next = cov.propagate(
@@ -428,10 +412,8 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
             is_anchor=is_anchor, sensing=sensing, gamma=gamma, R_hat=x.R_hat,
             q_next=p_new, model=g, kappa_s=g.kappa_s, h=h, pinned=hold)
         out = PresenzaState(R_hat=R_new, p_hat=p_new, gamma_hat=gamma_next, P=P_next)
-        diag = {'innovation': Omega, 'zeta': zeta,
-                'lambda_P': np.where(sensing, 0.0, lam_P),
-                'reconstructed': (sensing | ok).astype(float)}
-        return out, diag
+        return out, {'innovation': Omega, 'zeta': zeta, 'lambda_P': np.where(sensing, 0.0, lam_P),
+                     'reconstructed': (sensing | ok).astype(float)}
 
     @staticmethod
     def _sum_blocks(edges: Edges, packed: Array) -> Array:

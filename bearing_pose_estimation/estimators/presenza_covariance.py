@@ -41,11 +41,11 @@ The robots that see i send it, with their second round, what only they know
   bearing rate ``ṙ_ji``. The range rate's part ``δ𝔟 ḋ`` is left out (the sensing robot does
   not know ``ḋ``; with the paper's motions it is about a tenth of the attitude's part).
 
-A variance past :data:`MAX_POSITION_STD` or :data:`MAX_ATTITUDE_STD` (the robot is lost)
-is capped there. Not modelled: held samples (the node's bearings are at the step rate in every scenario here),
-a free robot holding ``γ̂`` while ``λ_min(P̂_i)`` is small, and bearing rates differenced from
-noisy bearings, which are correlated in time (``bearing_rate_std`` then defaults to their
-per-sample std ``σ √2 f``).
+A variance past :data:`MAX_POSITION_STD` or :data:`MAX_ATTITUDE_STD` (the robot is lost) is
+capped there. Not modelled: held samples (the node's bearings are at the step rate in every
+scenario here), a free robot holding ``γ̂`` while ``λ_min(P̂_i)`` is small, and bearing rates
+differenced from noisy bearings, which are correlated in time (``bearing_rate_std`` then
+defaults to their per-sample std ``σ √2 f``).
 """
 from __future__ import annotations
 
@@ -53,14 +53,11 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
 
 from ..core import so3
-from .base import Array, Channel, Index, gain
-from .covariance import DOF, CovarianceModel
+from .base import Array, Channel, Index, Mask, gain
+from .covariance import DOF, EYE3, CovarianceModel
 
-Mask = NDArray[np.bool_]
-EYE3 = np.eye(3)
 # The slow inputs' weights c (module docstring): position rows, attitude rows.
 C_POSITION, C_ATTITUDE = 1.3, 2.0
 # A loop's decay per step is floored at this fraction of its fastest direction's (a free
@@ -69,7 +66,7 @@ MIN_DECAY_RATIO = 1e-2
 MIN_DECAY = 1e-9
 # The covariance says "lost" at these stds [m], [rad] and grows no further: past them the
 # linearisation means nothing, and an unbounded recursion would end in overflow (a receiver
-# takes values up to link_agent.MAX_RANGE_M = 1e4, here m²).
+# takes values up to TERM_COV's bound, 1e4, here m²).
 MAX_POSITION_STD, MAX_ATTITUDE_STD = 100.0, np.pi
 # The layout of TERM_COV: four packed symmetric blocks and a vector.
 ANGLE_WHITE, ANGLE_SLOW, VELOCITY_WHITE, VELOCITY_SLOW = (slice(6 * k, 6 * k + 6)
@@ -181,18 +178,13 @@ def sender_terms(n_edges: int, angles: AngleTerms, bearings: Array, P_own: Array
                  P_other: Array, agent: Index, velocity: VelocityTerms | None,
                  bearing_var: float, rate_var: float, odometry_density2: float,
                  gyro_density2: float, h: float) -> Array:
-    """:data:`TERM_COV` per link ``(E, 27)`` of a sensing robot j to each robot i it sees.
-
-    Args:
-        angles: j's own angles (:func:`angle_terms`).
-        bearings: ``(E, 3)`` j's body bearings ``β_ji``.
-        P_own: ``(N, 6, 6)`` the senders' own covariance; ``P_other`` ``(E, 6, 6)`` the
-            covariance each listener sent (round 1, ``pose_cov``).
-        velocity: the free listeners' velocity terms, per link (None: no bearing rates, no
-            velocity terms).
-        bearing_var, rate_var: per component [rad²], [1/s²]; ``*_density2``: the squared
-            noise densities of odometry [m²/s] and gyro [rad²/s].
-    """
+    """:data:`TERM_COV` per link ``(E, 27)`` of a sensing robot j to each robot i it sees, from
+    j's own ``angles`` (:func:`angle_terms`), its body bearings ``β_ji`` ``(E, 3)``, the senders'
+    own covariance ``P_own`` ``(N, 6, 6)``, the covariance each listener sent ``P_other``
+    ``(E, 6, 6)`` (round 1, ``pose_cov``), the free listeners' ``velocity`` terms per link
+    (None: no bearing rates, no velocity terms), ``bearing_var``, ``rate_var`` per component
+    [rad²], [1/s²] and the squared noise densities ``*_density2`` of odometry [m²/s] and gyro
+    [rad²/s]."""
     out = np.zeros((n_edges, TERM_SIZE))
     e1, e2, chi_jk, chi_kj, g_own, _ = angles
     if len(e1):
@@ -250,26 +242,21 @@ def own_linearisation(h: float, kappa_q: float, kappa_Q: Array, w: float, D: Arr
                       moved: Array, gamma: Array, omega_a: Array, P_inv: Array,
                       reconstructed: Mask, b_in: Array, r_in: Array, valid: Mask
                       ) -> OwnLinearisation:
-    """:class:`OwnLinearisation` of every robot.
-
-    Args:
-        kappa_Q: ``(N,)`` each robot's attitude gain; ``D``: ``(N, 3, 3)`` ``D̂_i``; ``K_a``:
-            ``(N, 3, 3)`` ``K_i`` in the anchor frame; ``b_own``: ``(E, 3)`` the sensing
-            links' ``Q̂_i β_ij`` (``used``); ``moved``: ``(N, 3)`` ``Q̂_i δ_i``; ``gamma``:
-            ``(N, 3)`` ``γ̂_i`` (a free robot's ``Q̂_i Ω_i = Q̂_i u_i × γ̂_i``: its map of
-            ``φ`` is taken as ``−K``, symmetric, which it is at the truth where ``Q̂ u = γ̂``;
-            the exact ``[γ̂]x [Q̂ u]x`` at the estimate gave robot_3 of presenza_noisy an
-            attitude NEES of 150, its poor velocity reconstruction turning the loop);
-            ``P_inv``: ``(N, 3, 3)`` ``P̂_i⁻¹`` where ``reconstructed``;
-            ``b_in``, ``r_in``: ``(E, 3)`` the received ``𝔟̂_ji`` and ``ṙ_ji`` (``valid``).
-    """
+    """:class:`OwnLinearisation` of every robot from ``kappa_Q`` ``(N,)``, each robot's attitude
+    gain; ``D`` ``(N, 3, 3)``, ``D̂_i``; ``K_a`` ``(N, 3, 3)``, ``K_i`` in the anchor frame;
+    ``b_own`` ``(E, 3)``, the sensing links' ``Q̂_i β_ij`` (``used``); ``moved`` ``(N, 3)``,
+    ``Q̂_i δ_i``; ``gamma`` ``(N, 3)``, ``γ̂_i`` (a free robot's ``Q̂_i Ω_i = Q̂_i u_i × γ̂_i``:
+    its map of ``φ`` is taken as ``−K``, symmetric, which it is at the truth where ``Q̂ u = γ̂``;
+    the exact ``[γ̂]x [Q̂ u]x`` at the estimate gave robot_3 of presenza_noisy an attitude NEES
+    of 150, its poor velocity reconstruction turning the loop); ``P_inv`` ``(N, 3, 3)``,
+    ``P̂_i⁻¹`` where ``reconstructed``; ``b_in``, ``r_in`` ``(E, 3)``, the received ``𝔟̂_ji``
+    and ``ṙ_ji`` (``valid``)."""
     n = D.shape[0]
     # D̂ and K commute with their gains: one eigendecomposition gives G, A and A^{-1/2}.
     lam, V = np.linalg.eigh(np.concatenate([D, K_a]))
     lam = np.maximum(lam, 0.0)
     rate = np.concatenate([np.full(n, h * kappa_q), h * kappa_Q])[:, None]
-    g = rate / (1.0 + np.concatenate([np.full(n, 2.0 * w), np.full(n, w)])[:, None] * rate
-                * lam)
+    g = rate / (1.0 + np.concatenate([np.full(n, 2.0 * w), np.full(n, w)])[:, None] * rate * lam)
     a = g * lam
     floor = np.maximum(MIN_DECAY_RATIO * a.max(axis=1, keepdims=True), MIN_DECAY)
     c = np.concatenate([np.full(n, C_POSITION), np.full(n, C_ATTITUDE)])[:, None]
@@ -314,11 +301,8 @@ def binned(index: Index, n: int, *rows: Array) -> list[Array]:
         starts = np.flatnonzero(np.r_[True, idx[1:] != idx[:-1]])
         stacked = np.concatenate([x.reshape(M, k) for x, k in zip(rows, sizes)], axis=1)
         flat[idx[starts]] = np.add.reduceat(stacked[order], starts, axis=0)
-    out, at = [], 0
-    for x, size in zip(rows, sizes):
-        out.append(flat[:, at:at + size].reshape((n,) + x.shape[1:]))
-        at += size
-    return out
+    parts = np.split(flat, np.cumsum(sizes)[:-1], axis=1)
+    return [part.reshape((n,) + x.shape[1:]) for x, part in zip(rows, parts)]
 
 
 def own_input_maps(lin: OwnLinearisation, agent: Index, used: Mask, b_own: Array,

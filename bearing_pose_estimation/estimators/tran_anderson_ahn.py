@@ -28,24 +28,19 @@ Why ``exp(-h Ω̃) ΔR`` in that order: with the truth propagated by the same ``
 ``dR̃/dt = R̃ [R̂ Ω̃]x``: the gyro cancels out of the error dynamics and the truth (with
 ``Ω̃ = 0``) is an exact fixed point.
 
-Moving agents (an extension: the paper's positions are static). With the body velocity
-``v_i`` from odometry (``dp_i/dt = R_i v_i``) fed forward with the gain ``k_v`` (1: on, the
-default; 0: off)::
+Moving agents (an extension, as in :mod:`.boughellaba_tayebi`: the body velocity ``v_i`` fed
+forward with ``k_v``, discretised with the odometry displacement ``δ_i`` over the step)::
 
     dp̂_i/dt = k_v R̂_i v_i - k_p Σ_j P_{y_ij} (p̂_i - p̂_j)
+    p̂_i ← p̂_i + k_v R̂_i δ_i - h k_p Σ_j P_{y_ij} (p̂_i - p̂_j)
 
 Here the error is ``p̃_i = p_i - p̂_i`` (no ``R̃`` in it), so with ``k_v = 1``
 ``dp̃_i/dt = (R_i - R̂_i) v_i + k_p Σ_j P_{y_ij} (p̂_i - p̂_j)``: the velocity does not cancel
 exactly, but its term ``(I - R̂_i R_iᵀ) ṗ_i = (I - R̃_iᵀ) ṗ_i`` vanishes as fast as the
 attitude error, which converges on its own (the attitude observer does not depend on
 positions): the cascade keeps the paper's position dynamics in the limit, and the true
-trajectory (``R̂ = R``, ``p̂ = p``) is an exact solution. Without it, ``ṗ_i`` drives ``p̃_i``
-and the estimate lags (a floor of order ``|v| / k_p``). Discretised with the odometry
-displacement over the step, ``δ_i = R_i(t)ᵀ (p_i(t+h) - p_i(t))``, not ``v_i h``::
-
-    p̂_i ← p̂_i + k_v R̂_i δ_i - h k_p Σ_j P_{y_ij} (p̂_i - p̂_j)
-
-so that at ``R̂ = R`` the prediction moves ``p̂`` exactly as ``p`` moves, ``p⁺ = p + R δ``.
+trajectory (``R̂ = R``, ``p̂ = p``) is an exact solution: at ``R̂ = R`` the prediction moves
+``p̂`` exactly as ``p`` moves, ``p⁺ = p + R δ``.
 """
 from __future__ import annotations
 
@@ -56,16 +51,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core import so3
-from .base import HELD, P_OWN, Array, Edges, StepInputs, gain
-from .bearing_leaders import (EIGEN_GAP_REL, BearingLeaderEstimator, CovState, bearing_pull,
-                              fed_forward, neighbour_cov, own_geometry, repeated)
-from .covariance import CovarianceModel, propagate, tran_jacobians
+from .base import P_OWN, Array, Edges, StepInputs, gain
+from .bearing_leaders import (EIGEN_GAP_REL, BearingLeaderEstimator, CovState, fed_forward,
+                              position_step, repeated)
+from .covariance import CovarianceModel, tran_jacobians
 
 
 @dataclass(frozen=True)
 class TranGains(CovarianceModel):
-    """``k_omega`` (k_ω, damping of Ω̃), ``k_p`` (position), ``k_c`` (the extra direction of
-    two-neighbour followers); per-edge ``k_ij`` live in :class:`base.Edges`."""
+    """Gains of Tran et al.'s observers; per-edge ``k_ij`` live in :class:`base.Edges`."""
 
     k_omega: float = gain(2.0, 'damping k_omega of the gyro correction')
     k_p: float = gain(1.0, 'position gain k_p')
@@ -74,7 +68,7 @@ class TranGains(CovarianceModel):
                       zero_allowed=True)
     bias_std: float = gain(0.0, 'bearing noise std [rad] whose projector bias the position '
                            'correction removes (0: off, the paper\'s observer; '
-                           'bearing_leaders.bearing_pull)', zero_allowed=True)
+                           'bearing_leaders.position_step)', zero_allowed=True)
 
 
 @dataclass
@@ -115,15 +109,12 @@ def tran_step(R_hat: Array, Omega_tilde: Array, p_hat: Array, delta_R: Array, h:
               p_hat_nbr: Array, gains: TranGains, reorthonormalize: bool = True,
               displacement: Array | None = None, p_own: Array | None = None
               ) -> tuple[Array, Array, Array, Array]:
-    """Advance the Tran-Anderson-Ahn observers of all agents by one step ``h``.
+    """Advance the Tran-Anderson-Ahn observers of all agents by one step ``h``: ``(R̂, Ω̃, p̂)``
+    at ``t + h`` and the torque driving Ω̃ at t (body frame).
 
     Arguments as in :func:`.boughellaba_tayebi.cascade_step` (``displacement`` and ``p_own``
     too), plus ``Omega_tilde`` ``(N, 3)`` and the two-neighbour ``pairs``
-    (:meth:`TwoNeighbourPairs.of`).
-
-    Returns:
-        ``(R̂, Ω̃, p̂)`` at ``t + h`` and the torque driving Ω̃ at t (body frame).
-    """
+    (:meth:`TwoNeighbourPairs.of`)."""
     R_i = np.take(R_hat, edges.agent, axis=0)
     # (R̂_iᵀ d_ij) × b^i_ij, summed with k_ij.
     d_body = np.einsum('eba,eb->ea', R_i, d_world)
@@ -133,14 +124,9 @@ def tran_step(R_hat: Array, Omega_tilde: Array, p_hat: Array, delta_R: Array, h:
         c_world = _unit(so3.cross(d_world[pairs.first], d_world[pairs.second]))
         c_est = np.einsum('nba,nb->na', np.take(R_hat, pairs.agent, axis=0), c_world)
         torque[pairs.agent] += gains.k_c * so3.cross(c_est, c_body)
-    if p_own is None:
-        p_own = np.take(p_hat, edges.agent, axis=0)
-    pull = bearing_pull(p_own, edges, np.einsum('eab,eb->ea', R_i, b_body), p_hat_nbr,
-                        gains.bias_std)
-    p_next = p_hat - h * gains.k_p * pull
-    if displacement is not None and gains.k_v != 0.0:
-        p_next = p_next + gains.k_v * np.einsum('nab,nb->na', R_hat, displacement)
-
+    p_next = position_step(p_hat, edges, np.einsum('eab,eb->ea', R_i, b_body), p_hat_nbr,
+                           h * gains.k_p, gains.bias_std,
+                           fed_forward(R_hat, displacement, gains.k_v), p_own)
     R_next = so3.matmul(R_hat, so3.exp(-h * Omega_tilde), delta_R)
     if reorthonormalize:
         R_next = so3.reorthonormalize(R_next)
@@ -153,10 +139,7 @@ class TranAndersonAhn(BearingLeaderEstimator[TranGains, TranState]):
     Gains: ClassVar[type] = TranGains
     reference_scenario: ClassVar[str] = 'tran_cube.yaml'
     conditioning_label: ClassVar[str] = 'K_i = Σ_j k_ij b_ij b_ijᵀ, + k_c c cᵀ with two neighbours'
-
-    def __init__(self, gains: TranGains) -> None:
-        super().__init__(gains)
-        self._pairs: tuple[Edges, TwoNeighbourPairs] | None = None  # a fleet's, computed once
+    _pairs: tuple[Edges, TwoNeighbourPairs] | None = None   # a fleet's, computed once
 
     def initial_state(self, R_hat: Array, p_hat: Array) -> TranState:
         R_hat = np.array(R_hat, dtype=float)
@@ -178,20 +161,16 @@ class TranAndersonAhn(BearingLeaderEstimator[TranGains, TranState]):
             x.R_hat, x.Omega_tilde, x.p_hat, inputs.delta_R, h, inputs.edges,
             pairs, inputs.edge['bearings'], d_world, p_nbr, g, reorthonormalize,
             displacement=inputs.displacement, p_own=inputs.edge.get(P_OWN))
-        # The covariance, linearised at the estimate before the step (covariance.py).
-        y, dist = own_geometry(x, inputs, p_nbr)
-        P = propagate(x.P, h, inputs.edges, y, neighbour_cov(inputs), g.bearing_std,
-                      g.gyro_noise_density,
-                      tran_jacobians(h, inputs.edges, y, dist, x.R_hat, pairs, g.k_omega, g.k_p,
-                                     g.k_c),
-                      fed_forward(x, inputs, g.k_v), g.odometry_noise_density, inputs.edge.get(HELD))
-        return (TranState(R_hat=R_hat, p_hat=p_hat, P=P, Omega_tilde=Omega),
-                {'innovation': torque})
+        P = self.covariance_step(
+            x, h, inputs, p_nbr, fed_forward(x.R_hat, inputs.displacement, g.k_v),
+            lambda y, dist: tran_jacobians(h, inputs.edges, y, dist, x.R_hat, pairs, g.k_omega,
+                                           g.k_p, g.k_c))
+        return TranState(R_hat=R_hat, p_hat=p_hat, P=P, Omega_tilde=Omega), {'innovation': torque}
 
     def conditioning(self, bearings: Array, k: Array) -> Array:
         """``K_i = Σ_j k_ij b_ij b_ijᵀ``, plus ``k_c c cᵀ`` along ``c = b_ij × b_ik`` for
         exactly two neighbours ((9) and Lemma 2)."""
-        K = np.einsum('e,ea,eb->ab', k, bearings, bearings)
+        K = super().conditioning(bearings, k)
         if len(bearings) == 2:
             c = np.cross(bearings[0], bearings[1])
             if np.linalg.norm(c) > 0:
