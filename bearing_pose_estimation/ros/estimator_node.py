@@ -243,20 +243,21 @@ class EstimatorNode(Node):
             self._publish(grid=True, deferred=True)
         self.run_ready_steps()
 
-    def on_odometry(self, msg: Any) -> None:
-        decoded = self._decoded(msg, '', 'odom', lambda b: cdr.decode_odometry_raw(
-            b, self.frames['odom'] or None))
+    def _use(self, decoded: Any, add: Callable[..., str | None], what: str) -> None:
+        """A decoded input (its stamp first) to the runtime's ``add``: what it rejects is
+        counted, and the steps it completes run."""
         if decoded is not None and self.rt is not None:
-            t, v, omega = decoded
-            self._counted([self.rt.add_odometry(t, v, omega, now=self._now())],
-                          f'odom sample at {t:.6f}')
+            self._counted([add(self.rt, *decoded)], f'{what} at {decoded[0]:.6f}')
             self.run_ready_steps()
 
+    def on_odometry(self, msg: Any) -> None:
+        self._use(self._decoded(msg, '', 'odom', lambda b: cdr.decode_odometry_raw(
+            b, self.frames['odom'] or None)), lambda rt, *d: rt.add_odometry(
+                *d, now=self._now()), 'odom sample')
+
     def on_known_pose(self, msg: Any) -> None:
-        decoded = self._decoded(msg, self.s.world_frame, 'known_pose', cdr.decode_pose_raw)
-        if decoded is not None and self.rt is not None:
-            self._counted([self.rt.add_known_pose(*decoded)], 'known_pose')
-            self.run_ready_steps()
+        self._use(self._decoded(msg, self.s.world_frame, 'known_pose', cdr.decode_pose_raw),
+                  AgentRuntime.add_known_pose, 'known_pose')
 
     def _link(self, handler: Callable[[Subscription, Any], None], sub: Subscription,
               msg: Any) -> None:
@@ -286,14 +287,10 @@ class EstimatorNode(Node):
             self.run_ready_steps()
 
     def on_peer_points(self, sub: Subscription, msg: Any) -> None:
-        decoded = self._decoded(msg, wire.body_frame(sub.source), f'{sub.topic} of '
-                                f'{sub.source}', cdr.decode_vectors_raw)
-        if decoded is not None and self.rt is not None:
-            chan = next(c for c in self.method.sends if c.name == sub.channels[0])
-            assert chan.sensor is not None
-            self._counted([self.rt.add_peer_points(sub.source_id, chan.sensor, *decoded)],
-                          f'{sub.topic} of {sub.source}')
-            self.run_ready_steps()
+        what = f'{sub.topic} of {sub.source}'
+        sensor = next(c.sensor for c in self.method.sends if c.name == sub.channels[0])
+        self._use(self._decoded(msg, wire.body_frame(sub.source), what, cdr.decode_vectors_raw),
+                  lambda rt, *d: rt.add_peer_points(sub.source_id, sensor, *d), what)
 
     def on_peer_odometry(self, sub: Subscription, msg: Any) -> None:
         decoded = self._decoded(msg, '', f'odom of {sub.source}', lambda b: (
