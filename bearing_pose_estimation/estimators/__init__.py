@@ -47,11 +47,7 @@ def methods() -> tuple[str, ...]:
 
 
 def get(method: str) -> type[Estimator]:
-    """The class registered as ``method``.
-
-    Raises:
-        ScenarioError: unknown method, naming the known ones.
-    """
+    """The class registered as ``method``; ScenarioError naming the known ones if unknown."""
     if method not in _REGISTRY and ':' in method:
         return _imported(method)
     try:

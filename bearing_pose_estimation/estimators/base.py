@@ -2,13 +2,12 @@
 
 A method is a subclass of :class:`Estimator`, registered under the scenario's ``method:`` key
 (:mod:`bearing_pose_estimation.estimators`). It declares, as class attributes (documented on
-:class:`Estimator`), its ``Gains`` (:func:`gain`), ``roles``, ``sensors``, ``links`` (its edges,
-:func:`edge_table`), what it ``sends`` (:class:`Channel`) over how many rounds, how its own
-point sensors pair with a step, whose odometry it reads, and its estimate ``frame``; and
-implements its per-agent :class:`State`, its graph-assumption :meth:`Estimator.check` and one
-vectorised :meth:`Estimator.step`. The batch simulator calls that step for the whole fleet, the
-agent runtime (:mod:`bearing_pose_estimation.runtime`) for one agent or the agents of one
-process together: each method's math exists once.
+:class:`Estimator`), its gains, roles, sensors, edges (:func:`edge_table`), what it sends
+(:class:`Channel`) and its estimate frame; and implements its per-agent :class:`State`, its
+graph-assumption :meth:`Estimator.check` and one vectorised :meth:`Estimator.step`. The batch
+simulator calls that step for the whole fleet, the agent runtime
+(:mod:`bearing_pose_estimation.runtime`) for one agent or the agents of one process together:
+each method's math exists once.
 
 A step's inputs (:class:`StepInputs`) are a generic mapping, per agent, per edge and per edge a
 mask of what is here, keyed by sensor and channel names: the runtime fills it from the
@@ -155,12 +154,9 @@ def gain_fields(gains_cls: type) -> tuple[dataclasses.Field, ...]:
 
 
 def parse_gains(gains_cls: type, values: Mapping[str, Any], where: str = 'gains') -> Any:
-    """``gains_cls`` from ``values`` (missing keys take their defaults).
-
-    Raises:
-        ScenarioError: an unknown key, or a value that is not a finite number above the
-            gain's minimum, naming ``<where>.<gain>`` and the fix.
-    """
+    """``gains_cls`` from ``values`` (missing keys take their defaults). Raises ScenarioError
+    for an unknown key or a value that is not a finite number above the gain's minimum, naming
+    ``<where>.<gain>`` and the fix."""
     known = [f.name for f in gain_fields(gains_cls)]
     for key in values:
         if key not in known:
@@ -205,10 +201,8 @@ class Edges:
 
     ``agent[e]`` indexes the state row of the agent that owns edge ``e`` (always 0 in a node);
     ``k[e]`` is ``k_ij``; ``flags`` say what each edge is (:func:`edge_table`: ``senses``,
-    ``sensed_by``, ``owns``, ...). Sums over each agent's edges use a sparse ``(n_agents, E)``
-    incidence matrix, built once at the first sum, for a fleet's many edges (the batch
-    simulator's, built once a run). Compared by identity, so a method may cache what it
-    derives from a fleet's edges.
+    ``sensed_by``, ``owns``, ...). Compared by identity, so a method may cache what it derives
+    from a fleet's edges (as :meth:`sum_by_agent` caches its incidence matrix).
     """
 
     agent: Index
@@ -269,12 +263,6 @@ class Edges:
         value = self.flags.get(name)
         return np.ones(len(self), dtype=bool) if value is None else value
 
-    def rows(self, sel: Index, agent: Index, n_agents: int) -> Edges:
-        """The edges ``sel``, owned by the rows ``agent`` of a state of ``n_agents``."""
-        assert self.slot is not None
-        return Edges(agent=agent, k=self.k[sel], n_agents=n_agents, slot=self.slot[sel],
-                     flags={name: v[sel] for name, v in self.flags.items()})
-
     @staticmethod
     def stack(parts: Sequence[Edges]) -> Edges:
         """Several agents' edges as one, agents and edges in that order; every part has the
@@ -316,11 +304,6 @@ class State:
         """The states of several agents (one or more rows each) as one, in that order."""
         return cls(**{f.name: np.concatenate([getattr(x, f.name) for x in parts])
                       for f in dataclasses.fields(cls)})
-
-    def set_rows(self, idx: Any, other: State) -> None:
-        """Overwrite the rows ``idx`` with ``other`` (same type, one row per index)."""
-        for f in dataclasses.fields(self):
-            getattr(self, f.name)[idx] = getattr(other, f.name)
 
     def is_finite(self) -> bool:
         values = (getattr(self, f.name) for f in dataclasses.fields(self))
@@ -402,10 +385,8 @@ class StepInputs:
         """The inputs of several agents' steps as one fleet step, agents and edges in that
         order: :meth:`agent` undone. Every part has the same keys, and the same t."""
         first = parts[0]
-        for p in parts[1:]:
-            if (p.agent.keys() != first.agent.keys() or p.edge.keys() != first.edge.keys()
-                    or p.mask.keys() != first.mask.keys() or p.t != first.t):
-                raise ValueError('StepInputs.stack: the parts have different keys or times')
+        if not all(first.stacks_with(p) for p in parts[1:]):
+            raise ValueError('StepInputs.stack: the parts have different keys or times')
         return StepInputs(
             edges=Edges.stack([p.edges for p in parts]), t=first.t,
             agent={k: np.concatenate([p.agent[k] for p in parts]) for k in first.agent},
@@ -426,7 +407,11 @@ class StepInputs:
 
     def select(self, sel: Index, agent: Index, rows: Any, n_agents: int) -> StepInputs:
         """The edges ``sel`` (now owned by the rows ``agent``) of the agents ``rows``."""
-        return StepInputs(edges=self.edges.rows(sel, agent, n_agents), t=self.t,
+        e = self.edges
+        assert e.slot is not None
+        edges = Edges(agent=agent, k=e.k[sel], n_agents=n_agents, slot=e.slot[sel],
+                      flags={name: v[sel] for name, v in e.flags.items()})
+        return StepInputs(edges=edges, t=self.t,
                           agent={k: v[rows] for k, v in self.agent.items()},
                           edge={k: v[sel] for k, v in self.edge.items()},
                           mask={k: v[sel] for k, v in self.mask.items()})
@@ -558,13 +543,6 @@ class Estimator(ABC, Generic[G, S]):
         """Rounds of messages per step (2: what :meth:`reply` forms from round 1)."""
         return max((c.round for c in cls.sends), default=1)
 
-    @classmethod
-    def required(cls) -> tuple[str, ...]:
-        """The inputs an edge needs to take part in a step, for a method without
-        ``partial_edges``: its own measurements and the channels that are not optional."""
-        return tuple([s.value for s in cls.measures]
-                     + [c.name for c in cls.sends if not c.optional and c.sensor is None])
-
     # --- state
     @abstractmethod
     def initial_state(self, R_hat: Array, p_hat: Array) -> S:
@@ -575,7 +553,8 @@ class Estimator(ABC, Generic[G, S]):
         """``x`` with the agents ``rows`` at their known pose ``R``, ``p`` (leaders) and every
         other state of theirs at its initial value."""
         pinned = self.initial_state(R, p)
-        x.set_rows(rows, pinned)
+        for f in dataclasses.fields(x):
+            getattr(x, f.name)[rows] = getattr(pinned, f.name)
         return x
 
     def propagate(self, x: S, delta_R: Array, displacement: Array | None = None) -> S:
@@ -692,22 +671,15 @@ class Estimator(ABC, Generic[G, S]):
 
 
 # ----------------------------------------------------------------------------- the edges
-def owns_pair(i: Any, j: Any, senses: Any, sensed_by: Any) -> Any:
-    """Whether agent i keeps the shared state of its pair with j (§8 of the De Carli notes):
-    the sensing agent of a one-way pair, the lower index (or id) of a two-way one. Scalars or
-    arrays."""
-    return np.where(np.logical_and(senses, sensed_by), np.less(i, j), senses)
-
-
 @dataclass(frozen=True)
 class EdgeTable:
     """A fleet's edges for one method (:func:`edge_table`), grouped by agent: edge ``e`` joins
     ``agent[e]`` to ``other[e]`` with gain ``k[e]``; ``flags`` (each ``(E,)``) say what it is:
     ``senses`` (the agent measures the other), ``sensed_by`` (the other measures it), and for
-    communication links ``owns`` (the agent keeps the pair's shared state: the sensing agent
-    of a one-way pair, the lower index of a two-way one), ``ranges`` and ``ranged_by`` (the
-    anchor measures the other's relative position, or the other's of this one); ``reverse``:
-    the index of the edge ``other → agent`` (-1: none)."""
+    communication links ``owns`` (the agent keeps the pair's shared state, §8 of the De Carli
+    notes: the sensing agent of a one-way pair, the lower index of a two-way one), ``ranges``
+    and ``ranged_by`` (the anchor measures the other's relative position, or the other's of
+    this one); ``reverse``: the index of the edge ``other → agent`` (-1: none)."""
 
     agent: Index
     other: Index
@@ -731,36 +703,32 @@ def edge_table(method: type[Estimator], n: int, tail: Index, head: Index, k: Arr
     neighbour, ids ascending, for ``links = 'communication'`` (the anchor's ranged robots
     linked to it too)."""
     tail, head = np.asarray(tail, dtype=np.intp), np.asarray(head, dtype=np.intp)
-    sensed = set(zip(tail.tolist(), head.tolist()))
+    edges = list(zip(tail.tolist(), head.tolist()))
+    sensed = set(edges)
     if method.links == 'sensing':
         both = not method.directed_sensing
         flags = {'senses': np.ones(len(tail), bool),
-                 'sensed_by': np.array([both or (j, i) in sensed
-                                        for i, j in zip(tail.tolist(), head.tolist())], bool)}
-        where = {(i, j): e for e, (i, j) in enumerate(zip(tail.tolist(), head.tolist()))}
-        reverse = np.array([where.get((j, i), -1) for i, j in zip(tail.tolist(),
-                                                                  head.tolist())], np.intp)
+                 'sensed_by': np.array([both or (j, i) in sensed for i, j in edges], bool)}
+        where = {(i, j): e for e, (i, j) in enumerate(edges)}
+        reverse = np.array([where.get((j, i), -1) for i, j in edges], np.intp)
         return EdgeTable(tail, head, np.asarray(k, dtype=float), flags, reverse)
     pairs = [(anchor, int(r)) for r in ranged] if anchor is not None else []
     linked = sensed | set(pairs)
-    agent: list[int] = []
-    other: list[int] = []
-    for i in range(n):
-        for j in sorted({b for a, b in linked if a == i} | {a for a, b in linked if b == i}):
-            agent.append(i)
-            other.append(j)
-    agent_a, other_a = np.array(agent, dtype=np.intp), np.array(other, dtype=np.intp)
-    senses = np.array([(i, j) in sensed for i, j in zip(agent, other)], dtype=bool)
-    sensed_by = np.array([(j, i) in sensed for i, j in zip(agent, other)], dtype=bool)
-    where = {(i, j): e for e, (i, j) in enumerate(zip(agent, other))}
+    links = [(i, j) for i in range(n)
+             for j in sorted({b for a, b in linked if a == i} | {a for a, b in linked if b == i})]
+    agent = np.array([i for i, _ in links], dtype=np.intp)
+    other = np.array([j for _, j in links], dtype=np.intp)
+    senses = np.array([(i, j) in sensed for i, j in links], dtype=bool)
+    sensed_by = np.array([(j, i) in sensed for i, j in links], dtype=bool)
+    where = {(i, j): e for e, (i, j) in enumerate(links)}
     flags = {'senses': senses, 'sensed_by': sensed_by,
-             'owns': owns_pair(agent_a, other_a, senses, sensed_by)}
+             'owns': np.where(senses & sensed_by, agent < other, senses)}
     if method.roles.anchor:
         ranges = set(pairs)
-        flags['ranges'] = np.array([(i, j) in ranges for i, j in zip(agent, other)], bool)
-        flags['ranged_by'] = np.array([(j, i) in ranges for i, j in zip(agent, other)], bool)
-    return EdgeTable(agent_a, other_a, np.ones(len(agent)), flags,
-                     np.array([where[(j, i)] for i, j in zip(agent, other)], dtype=np.intp))
+        flags['ranges'] = np.array([(i, j) in ranges for i, j in links], bool)
+        flags['ranged_by'] = np.array([(j, i) in ranges for i, j in links], bool)
+    return EdgeTable(agent, other, np.ones(len(links)), flags,
+                     np.array([where[(j, i)] for i, j in links], dtype=np.intp))
 
 
 def route(outbox: Mapping[str, Array], sends: Sequence[Channel],

@@ -3,8 +3,7 @@
 The estimator interface (:meth:`base.Estimator.check`, :meth:`~base.Estimator.check_motion`,
 :meth:`~base.Estimator.agent_groups`, :meth:`~base.Estimator.fleet_margins`) takes this small
 frozen value instead of the whole scenario, so the methods sit below the scenario layer:
-``Scenario.fleet()`` builds it (once per scenario). Agents are indices in the scenario's
-order; names are only for messages.
+``Scenario.fleet()`` builds it (once per scenario).
 """
 from __future__ import annotations
 
@@ -22,10 +21,9 @@ Index = NDArray[np.intp]
 
 @dataclass(frozen=True, eq=False)
 class Fleet:
-    """What a method knows of a fleet: its agents, sensing graph, roles and starting estimates.
-
-    Agents are indices ``0..N-1`` in the scenario's order. Arrays are read-only (one fleet is
-    shared by every caller of its scenario)."""
+    """A fleet's agents, sensing graph, roles and starting estimates. Agents are indices
+    ``0..N-1`` in the scenario's order (names are only for messages). Arrays are read-only (one
+    fleet is shared by every caller of its scenario)."""
 
     names: tuple[str, ...]
     # Per agent i: (j, k_ij) for each j in N_i, in the scenario's order.

@@ -1,21 +1,20 @@
 """The estimator node's parameters: declared with their effective values (the scenario's, or
-the explicit mode's defaults), checked, and turned into what its runtime needs
-(:class:`Setup`); and the live changes of gains and input limits.
+the explicit mode's defaults, so ``ros2 param get`` tells the truth), checked, and turned into
+what its runtime needs (:class:`Setup`); and the live changes of gains and input limits.
 
 Parameters: either ``scenario_file`` (+ ``agent``, default: the namespace) or the explicit set
 ``agent_id``, ``leader``, ``neighbours``, ``neighbour_ids``, ``neighbour_gains``,
 ``initial_position``, ``initial_orientation`` (x, y, z, w), with ``method`` (empty: the
 registry's default); ``frequency`` [Hz], ``publish_rate`` [Hz] and the method's gains, named as
-in a scenario's ``gains:``, each declared with its effective value, so ``ros2 param get`` tells
-the truth; a gain of another method is an error. The gains and the input limits
+in a scenario's ``gains:`` (a gain of another method is an error). The gains, the input limits
 (``sensor_timeout``, ``neighbour_timeout``, ``max_rate``, ``link_wait``) and ``neighbour_wait``
 can be set while the node runs: a change is validated (range, the gain's minimum, and the
 method's check on the scenario) and applies from the next step, or is refused with the reason.
 The node's own: ``start_time``, the expected frames ``imu_frame``, ``bearings_frame``,
 ``odom_child_frame`` (empty: accept any), ``diagnostics_period`` [s, wall clock],
-``neighbour_wait``, ``publish_tf``, ``raw_messages``, ``fixed_exchange``, and the fault
-injection for tests and studies ``inject_drop_rate``, ``inject_delay`` [s], ``inject_seed``
-(:mod:`runtime.faults`; it turns ``fixed_exchange`` off).
+``publish_tf``, ``raw_messages``, ``fixed_exchange``, and the fault injection for tests and
+studies ``inject_drop_rate``, ``inject_delay`` [s], ``inject_seed`` (:mod:`runtime.faults`; it
+turns ``fixed_exchange`` off).
 """
 from __future__ import annotations
 
@@ -105,25 +104,21 @@ def _refuse_other_gains(method: str, own: list[str], given: Collection[str], whe
 def _explicit_parameters(node: Node) -> dict[str, Any]:
     """The explicit mode's parameters, declared (:func:`explicit_spec` checks them)."""
     p = partial(declare, node)
-    e = {'agent_id': p('agent_id', 0, 'explicit mode: this agent\'s id (1-based)'),
-         'leader': p('leader', False, 'explicit mode: a leader (known pose, no neighbours)'),
-         'neighbours': [n for n in p('neighbours', [''], 'explicit mode: neighbour names') if n],
-         'neighbour_ids': p('neighbour_ids', [0], 'explicit mode: neighbour ids'),
-         'neighbour_gains': p('neighbour_gains', [0.0], 'explicit mode: k_ij per neighbour'),
-         'initial_position': p('initial_position', [0.0, 0.0, 0.0],
-                               'explicit mode: initial p̂ [m]'),
-         'initial_orientation': p('initial_orientation', [0.0, 0.0, 0.0, 1.0],
-                                  'explicit mode: initial R̂ as a quaternion x, y, z, w')}
-    return e
+    return {'agent_id': p('agent_id', 0, 'explicit mode: this agent\'s id (1-based)'),
+            'leader': p('leader', False, 'explicit mode: a leader (known pose, no neighbours)'),
+            'neighbours': [n for n in p('neighbours', [''], 'explicit mode: neighbour names') if n],
+            'neighbour_ids': p('neighbour_ids', [0], 'explicit mode: neighbour ids'),
+            'neighbour_gains': p('neighbour_gains', [0.0], 'explicit mode: k_ij per neighbour'),
+            'initial_position': p('initial_position', [0.0, 0.0, 0.0],
+                                  'explicit mode: initial p̂ [m]'),
+            'initial_orientation': p('initial_orientation', [0.0, 0.0, 0.0, 1.0],
+                                     'explicit mode: initial R̂ as a quaternion x, y, z, w')}
 
 
 def explicit_spec(e: dict[str, Any], agent: str) -> AgentSpec:
-    """The spec of the explicit parameters ``e`` (:func:`_explicit_parameters`), checked.
-
-    Raises:
-        ScenarioError: a missing id, neighbour lists of different lengths or under two for a
-            follower, a gain that is not positive, a bad initial pose; naming the fix.
-    """
+    """The spec of the explicit parameters ``e`` (:func:`_explicit_parameters`), checked:
+    ScenarioError naming the fix for a missing id, neighbour lists of different lengths or under
+    two for a follower, a gain that is not positive, a bad initial pose."""
     names = e['neighbours']
     if e['agent_id'] <= 0:
         raise ScenarioError('parameter agent_id must be > 0 without a scenario_file. Fix: '
@@ -151,11 +146,8 @@ def explicit_spec(e: dict[str, Any], agent: str) -> AgentSpec:
 
 
 def setup(node: Node) -> Setup:
-    """Declare the node's parameters and read what they say (module docstring).
-
-    Raises:
-        ScenarioError: a bad value, naming the parameter and the fix.
-    """
+    """Declare the node's parameters and read what they say (module docstring); ScenarioError
+    for a bad value, naming the parameter and the fix."""
     p = partial(declare, node)
     scenario_file = p('scenario_file', '', 'scenario YAML; empty: explicit parameters')
     default_agent = node.get_namespace().strip('/').split('/')[-1]
@@ -280,14 +272,9 @@ def setup(node: Node) -> Setup:
 
 def live_change(s: Setup, params: list[Parameter]) -> tuple[Any, Limits]:
     """New gains and limits (and ``s.neighbour_wait``) from a live change of ``params`` (rclpy
-    has checked the type,
-    the range and that the parameter is not read-only): the gains must be valid and, with a
-    scenario, pass the method's check on it (e.g. a position gain whose Euler step would
-    diverge is refused).
-
-    Raises:
-        ScenarioError: the change is refused, with the reason.
-    """
+    has checked the type, the range and that the parameter is not read-only): the gains must be
+    valid and, with a scenario, pass the method's check on it (e.g. a position gain whose Euler
+    step would diverge is refused); else ScenarioError with the reason."""
     own = {f.name for f in gain_fields(type(s.gains))}
     new_gains = {p.name: float(p.value) for p in params if p.name in own}
     new_limits = {p.name: float(p.value) for p in params if p.name in LIVE_LIMITS}

@@ -1,16 +1,12 @@
-"""The steps of the agents that share an ``estimators`` process, run together.
+"""The steps of the agents that share an ``estimators`` process, run together in one call
+(:mod:`runtime.together` says why; ``bench/covariance_cost.py``, ``bench/de_carli_cost.py``).
 
-An agent's step costs ~130-500 µs here, nearly all of it numpy's overhead per call on small
-blocks; eight agents' steps in one call cost little more than one
-(``bench/covariance_cost.py``, ``bench/de_carli_cost.py``, BENCHMARKS.md "Steps run
-together"). So an agent whose step is ready does not run it at once: it asks this batch, and
-once the executor has handled every message already queued (the simulator sends each
-instant's samples to all agents in one burst), the batch runs the steps of every agent that
-asked in one call (:func:`runtime.together.advance_together`). Each agent gets exactly what
-its own step would give (``test_runtime.py``), after the messages queued before it and at most
-:data:`WAIT_S` of waiting for the others. Every method steps this way; a two-round method's
-replies go out as soon as their first round is in, only the step (its second round in) waits
-for the batch. The batch sees its members through :class:`Member` only.
+An agent whose step is ready does not run it at once: it asks this batch, and once the executor
+has handled every message already queued (the simulator sends each instant's samples to all
+agents in one burst), the batch runs the steps of every agent that asked: each agent's step
+after the messages queued before it and at most :data:`WAIT_S` of waiting for the others. A
+two-round method's replies go out as soon as their first round is in; only the step waits for
+the batch. The batch sees its members through :class:`Member` only.
 
 The rclpy EventsExecutor of the pinned wheels has no guard conditions, and nothing tells
 whether its queue is empty: :meth:`StepBatch.settle` spins it without waiting until a spin
@@ -161,31 +157,28 @@ class StepBatch:
     def flush(self) -> None:
         """Every step the asking agents have ready, one step of all of them at a time."""
         start = time.thread_time_ns()
-        try:
-            self._flush()
-        finally:
-            self.cpu_flush += time.thread_time_ns() - start
-
-    def _flush(self) -> None:
         ready = list(self.pending)
         self.pending.clear()
-        while True:
-            # An agent with no step ready stays so until a message comes (none is handled
-            # here): only those that stepped are asked again.
-            ready = [n for n in ready if n.rt is not None and n.rt.steps_ready() > 0]
-            if not ready:
-                return
-            for node in ready:
-                node.before_step()
-            start = time.thread_time_ns()
-            stepped = advance_together([n.rt for n in ready if n.rt is not None])
-            spent = time.thread_time_ns() - start
-            self.cpu_steps += spent
-            self.cpu_flush -= spent   # counted as steps, not publishing
-            self.rounds += 1
-            self.steps += len(stepped)
-            for node in ready:
-                node.after_step()
+        try:
+            while True:
+                # An agent with no step ready stays so until a message comes (none is handled
+                # here): only those that stepped are asked again.
+                ready = [n for n in ready if n.rt is not None and n.rt.steps_ready() > 0]
+                if not ready:
+                    return
+                for node in ready:
+                    node.before_step()
+                begun = time.thread_time_ns()
+                stepped = advance_together([n.rt for n in ready if n.rt is not None])
+                spent = time.thread_time_ns() - begun
+                self.cpu_steps += spent
+                self.cpu_flush -= spent   # counted as steps, not publishing
+                self.rounds += 1
+                self.steps += len(stepped)
+                for node in ready:
+                    node.after_step()
+        finally:
+            self.cpu_flush += time.thread_time_ns() - start
 
 
 def read_cpu_split(text: str) -> dict[str, tuple[float, int]] | None:

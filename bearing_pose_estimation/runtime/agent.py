@@ -3,22 +3,14 @@ netsim's agents and an ``estimators`` process's steps run.
 
 :class:`AgentRuntime` is configured by its method's declarations (:mod:`estimators.base`) and
 never names a method's quantity. Inputs arrive at their own rates and stamps; each fixed step
-``h`` runs as soon as its inputs are in:
-
-- **Own motion**: gyro and odometry integrated sample by sample (:mod:`core.gyro`,
-  :mod:`core.odometry`); live odometry is waited for as the gyro is.
-- **Own point sensors** (``measures``) rotated to the body frame of the step's instant with the
-  gyro (a 20 ms old bearing paired with the current R̂ costs ``|ω| · 20 ms``), paired by
-  ``own_pairing``: ``'interpolated'`` between the samples around t (the one after t waited
-  for); ``'newest'``, the newest the gyro bridges, or in a moving fleet the one at the stamp of
-  the neighbour's values it pairs with (:data:`base.P_OWN`).
-- **What neighbours send** (``sends``), per edge on its ``on`` flag, paired as
-  :class:`base.Channel` says: ``'exact'`` values waited for, or carried
-  (:meth:`Estimator.carry`), or masked; ``'instant'`` ones from the sender's newest complete
-  instant, waited for in a simulation (:class:`.buffers.Exchange`). A sender's measurement of
-  this agent is interpolated like the own, turned with its odometry (``peer_odometry``).
-- **Rounds**: a reply (:meth:`Estimator.reply`) goes out once round 1 is in
-  (:meth:`AgentRuntime.pending_reply`); the step then waits for round 2.
+``h`` runs as soon as its inputs are in: the own gyro and odometry, integrated sample by sample
+(:mod:`core.gyro`, :mod:`core.odometry`; live odometry is waited for as the gyro is); the own
+point sensors (``measures``), rotated with the gyro to the body frame of the step's instant (a
+20 ms old bearing paired with the current R̂ costs ``|ω| · 20 ms``) and paired by
+``own_pairing``; what neighbours send (``sends``), paired as :class:`base.Channel` says (a
+sender's measurement of this agent is interpolated like the own, turned with its odometry); a
+two-round method's reply (:meth:`AgentRuntime.pending_reply`) once round 1 is in, after which
+the step waits for round 2.
 
 Every wait ends when the own sensors are ``link_wait`` ahead (own samples: ``sensor_timeout``),
 or at once when ``impatient``; what is missing is counted (``missing``) and masked. A gyro
@@ -31,7 +23,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter, deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -127,14 +119,12 @@ class Peer:
         hist = self.values.get(name)
         return hist.samples[-1][1] if hist else None
 
-    def at_one_instant(self, names: Sequence[str],
-                       not_after: float) -> tuple[float, dict[str, Array]] | None:
-        """The newest stamp, not after ``not_after``, at which every channel ``names`` has a
-        value, with those values; None if there is none."""
+    def instants(self, names: Sequence[str],
+                 not_after: float) -> Iterator[tuple[float, dict[str, Array]]]:
+        """Newest first, the stamps not after ``not_after`` at which every channel ``names``
+        has a value, with those values."""
         first = self.values.get(names[0]) if names else None
-        if not first:
-            return None
-        for stamp, value in reversed(first.samples):
+        for stamp, value in reversed(first.samples) if first else ():
             if stamp > not_after + SAME:
                 continue
             out = {names[0]: value}
@@ -145,8 +135,12 @@ class Peer:
                     break
                 out[name] = match
             else:
-                return stamp, out
-        return None
+                yield stamp, out
+
+    def at_one_instant(self, names: Sequence[str],
+                       not_after: float) -> tuple[float, dict[str, Array]] | None:
+        """The newest of :meth:`instants`, or None."""
+        return next(self.instants(names, not_after), None)
 
 
 @dataclass
@@ -172,18 +166,11 @@ class Prepared:
 
 
 class AgentRuntime:
-    """One agent of any registered method, fed by time-stamped inputs (module docstring).
-
-    Args:
-        estimator: the method with its gains (:func:`bearing_pose_estimation.estimators.build`).
-        spec: the agent's edges, initial estimate and role.
-        step: the estimator step ``h`` [s].
-        t0: the scenario's start time; the first gyro interval starts here.
-        limits: input checks and timeouts.
-        exchange: a simulation's deterministic exchange (None: a step takes what is here).
-        expects_odometry: odometry comes with the first step (simulated): wait for it from
-            the start (a method that needs odometry always does).
-    """
+    """One agent of any registered method, fed by time-stamped inputs (module docstring):
+    ``step`` is ``h`` [s]; the first gyro interval starts at ``t0``, the scenario's start;
+    ``exchange``: a simulation's (None: a step takes what is here); ``expects_odometry``:
+    odometry comes with the first step (simulated), so it is waited for from the start (as a
+    method that needs odometry always does)."""
 
     def __init__(self, estimator: Estimator, spec: AgentSpec, step: float, t0: float = 0.0,
                  limits: Limits = Limits(), exchange: Exchange | None = None,
@@ -227,7 +214,9 @@ class AgentRuntime:
         self._exact = {r: [c for c in cls.sends if c.round == r
                            and (c.pairing == 'exact' or c.sensor is not None)]
                        for r in range(1, self.rounds + 1)}
-        self._complete_keys = cls.required()
+        # What an edge needs to take part in a step, for a method without partial_edges.
+        self._complete_keys = [s.value for s in cls.measures] + [
+            c.name for c in cls.sends if not c.optional and c.sensor is None]
         flags = {name: np.array([p.flags.get(name, False) for p in self.peers], dtype=bool)
                  for name in sorted({f for p in self.peers for f in p.flags})}
         # Its edges, one per peer: the same object every step (a method may cache what it
@@ -343,25 +332,23 @@ class AgentRuntime:
     def add_odometry(self, stamp: float, v: Array, omega: Array,
                      now: float | None = None) -> str | None:
         """An interval-average odometry twist (body velocity ``v`` [m/s], rate ``omega``
-        [rad/s]; see :mod:`core.odometry`); ``unused`` by methods without odometry. After a gap
-        longer than ``max_gyro_gap`` its integration restarts at this sample
-        (``odometry_gap``); the steps over the gap run without it."""
+        [rad/s]; see :mod:`core.odometry`); ``unused`` by methods without odometry. The steps
+        over a gap longer than ``max_gyro_gap`` run without it."""
         if not self.uses_odometry:
             return 'unused'
-        if now is not None and math.isfinite(stamp) and stamp > now + self.limits.max_future:
-            return twist_problem(stamp, np.asarray(v), np.asarray(omega),
-                                 self.limits) or 'future_stamp'
-        return self._add_twist(self.odometry, stamp, v, omega, own=True)
+        return self._add_twist(self.odometry, stamp, v, omega, own=True, now=now)
 
     def _add_twist(self, odometry: OdometryBuffer, stamp: float, v: Array, omega: Array,
-                   own: bool) -> str | None:
-        """A twist into ``odometry``, or why not (non-finite, absurd, out of order); after a
-        gap its integration restarts at it (``odometry_gap``), and another agent's clock that
-        jumped back restarts it too (``own``: the gyro's time rules decide)."""
+                   own: bool, now: float | None = None) -> str | None:
+        """A twist into ``odometry``, or why not (non-finite, absurd, future, out of order);
+        after a gap its integration restarts at it (``odometry_gap``), and another agent's clock
+        that jumped back restarts it too (``own``: the gyro's time rules decide)."""
         v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
         problem = twist_problem(stamp, v, omega, self.limits)
         if problem is not None:
             return problem
+        if now is not None and stamp > now + self.limits.max_future:
+            return 'future_stamp'
         end = odometry.end
         if stamp <= end:
             if own and odometry.empty and stamp >= end - 1e-9:
@@ -493,7 +480,7 @@ class AgentRuntime:
             hist = peer.values.setdefault(name, Stamped())
             if hist and stamp < hist.newest_stamp - SAME:
                 if hist.newest_stamp - stamp > lim.jump_back:
-                    hist.clear()   # the sender restarted its clock
+                    hist.samples.clear()   # the sender restarted its clock
                 else:
                     return 'out_of_order'
         for name, v in mine.items():
@@ -524,10 +511,9 @@ class AgentRuntime:
             return None
         v = np.asarray(vectors, dtype=float)[mine[0]]
         c = carriers[0]
-        problem = bounded_problem(v, min(c.bound, POINT_BOUNDS[sensor]))
         hist = peer.values.setdefault(c.name, Stamped())
-        if problem is None and hist and stamp <= hist.newest_stamp:
-            problem = 'out_of_order'
+        problem = bounded_problem(v, min(c.bound, POINT_BOUNDS[sensor])) or (
+            'out_of_order' if hist and stamp <= hist.newest_stamp else None)
         if problem is not None:
             return problem
         hist.add(float(stamp), v.copy())
@@ -537,8 +523,7 @@ class AgentRuntime:
     def add_peer_odometry(self, sender: int, stamp: float, v: Array,
                           omega: Array) -> str | None:
         """Another agent's odometry sample, for a method that reads it (its edges' other
-        ends', or the anchor's): out of order, non-finite or absurd samples are rejected; its
-        clock restarted or a gap: the integration restarts."""
+        ends', or the anchor's)."""
         if self.anchor_odometry is not None and self.spec.anchor is not None:
             odometry = self.anchor_odometry if sender == self.spec.anchor[1] else None
         else:
@@ -558,21 +543,17 @@ class AgentRuntime:
             return []
         return [p.name for p in self._read_peers if p.newest() < limit]
 
-    def _due(self, t: float, round_: int) -> list[Channel]:
-        """The round's channels that the step at t waits for: not optional, read at t."""
-        est = self.estimator
-        return [c for c in self.channels.values() if c.round == round_ and not c.optional
-                and est.due(c.name, t, self.h)]
-
     def _awaiting(self, t: float, round_: int) -> str | None:
         """What round ``round_`` of the step at ``t`` still waits for, or None when every
         input is here or known not to come (module docstring); :attr:`awaited_peer`: from
         whom."""
         self.awaited_peer = None
         h = self.h
-        own_late = self.gyro.end - t > self.limits.sensor_timeout
         behind = self.gyro.end - t > self.limits.link_wait
-        cls = type(self.estimator)
+
+        def odometry_due(odo: OdometryBuffer | None) -> bool:   # needed, not silent, not in yet
+            return (odo is not None and self.requires_odometry and not odo.covers(t, t + h)
+                    and odo.end >= t - self.limits.neighbour_timeout)
         if self.exchange is not None and round_ == 1:
             awaited = self._awaiting_exchange(t)
             if awaited is not None:
@@ -580,11 +561,10 @@ class AgentRuntime:
         if self.leader:
             return None
         if round_ == 1:
-            if (self.anchor_odometry is not None and not behind and self.requires_odometry
-                    and not self.anchor_odometry.covers(t, t + h)
-                    and self.anchor_odometry.end >= t - self.limits.neighbour_timeout):
+            if not behind and odometry_due(self.anchor_odometry):
                 return 'anchor_odometry'
-            if cls.own_pairing == 'interpolated' and not own_late:
+            if (type(self.estimator).own_pairing == 'interpolated'
+                    and self.gyro.end - t <= self.limits.sensor_timeout):   # not given up on
                 for sensor, by_target in self.own.items():
                     flag = self._own_flag[sensor]
                     for p in self.peers:
@@ -595,17 +575,15 @@ class AgentRuntime:
         if behind:
             return None
         stale = set(self.stale_neighbours(t))
-        due = [c for c in self._due(t, round_) if c.pairing == 'exact']
+        due = [c for c in self.channels.values() if c.round == round_ and not c.optional
+               and c.pairing == 'exact' and self.estimator.due(c.name, t, h)]
         sensors = [c for c in due if c.sensor is not None]
         sent = [c for c in due if c.sensor is None]
         for p in self.peers:
             if p.name in stale:
                 continue
-            odo = p.odometry
             self.awaited_peer = p.name
-            if (round_ == 1 and odo is not None and self.requires_odometry
-                    and not odo.covers(t, t + h)
-                    and odo.end >= t - self.limits.neighbour_timeout):
+            if round_ == 1 and odometry_due(p.odometry):
                 return 'odometry'
             for c in sensors:
                 hist = p.values.get(c.name)
@@ -641,14 +619,9 @@ class AgentRuntime:
         due = t + SAME - ex.publish_period   # a newest stamp at or before this: one is due
         for p in self.peers:
             heard = p.heard
-            if not heard:
-                if self.t0 < alive:
-                    continue   # silent since t0: not waited for
-                self.awaited_peer = p.name
-                return p.name
-            if max(heard.values()) < alive:
-                continue   # silent: not waited for
-            if min(heard.values()) <= due or not required <= heard.keys():
+            if (max(heard.values()) if heard else self.t0) < alive:
+                continue   # silent (since t0): not waited for
+            if not heard or min(heard.values()) <= due or not required <= heard.keys():
                 self.awaited_peer = p.name
                 return p.name
         return None
@@ -691,7 +664,9 @@ class AgentRuntime:
             while max_steps is None or ran < max_steps:
                 if not self.steps_ready():   # (two rounds: the caller sends pending_reply)
                     break
-                self._step()
+                prepared = self.begin_step()
+                if prepared is not None:
+                    self.end_step(prepared, *self.estimator.step(self.x, self.h, prepared.inputs))
                 ran += 1
                 self.impatient = False
         finally:
@@ -723,11 +698,6 @@ class AgentRuntime:
                 if flag is None or p.flags.get(flag, False)}
 
     # ------------------------------------------------------------------------------ the step
-    def _step(self) -> None:
-        prepared = self.begin_step()
-        if prepared is not None:
-            self.end_step(prepared, *self.estimator.step(self.x, self.h, prepared.inputs))
-
     def begin_step(self) -> Prepared | None:
         """The step's inputs, gathered by :meth:`steps_ready`, or None for a leader, whose
         whole step this is."""
@@ -903,6 +873,7 @@ class AgentRuntime:
         newest earlier one carried to t, else left out; optional ones never wait; channels not
         read at t are their newest value."""
         est, n = self.estimator, len(self.peers)
+        partial = type(est).partial_edges
         chans = self._exact[round_]
         if not chans:
             return
@@ -914,11 +885,8 @@ class AgentRuntime:
         for p in self.peers:
             core = [c.name for c in chans if c.name in due and not c.owner_only
                     and reads(p.flags, c)]
-            found: dict[str, Array] = {}
-            for name in core:
-                v, _ = p.values[name].at(t) if name in p.values else (None, False)
-                if v is not None:
-                    found[name] = v
+            found = {name: v for name in core
+                     if name in p.values and (v := p.values[name].at(t)[0]) is not None}
             if core and len(found) < len(core):
                 carried = self._carry(p, core, t)   # late or lost: carried to t
                 if carried is not None:
@@ -928,7 +896,8 @@ class AgentRuntime:
                         if name not in found:
                             self.missing[name] += 1
             for c in chans:
-                if not reads(p.flags, c):
+                if not reads(p.flags, c):   # not expected on the edge: here, as none is missing
+                    mask[c.name][p.slot] = partial
                     continue
                 hist = p.values.get(c.name)
                 if c.sensor is not None:
@@ -941,12 +910,7 @@ class AgentRuntime:
                 elif c.optional:
                     v = self._optional(p, c, t)
                 elif c.name not in due:
-                    v = hist.samples[-1][1] if hist else None   # not read now: the newest
-                    if v is None:
-                        continue
-                    mask[c.name][p.slot] = True
-                    edge[c.name][p.slot] = v
-                    continue
+                    v = p.latest(c.name)   # not read now: the newest
                 else:   # owner-only: its own value, or carried, or none
                     v = hist.at(t)[0] if hist else None
                     if v is None:
@@ -955,26 +919,19 @@ class AgentRuntime:
                             self.missing[c.name] += 1
                 if v is not None:
                     edge[c.name][p.slot], mask[c.name][p.slot] = v, True
-        if type(est).partial_edges:
-            for c in chans:   # a value not expected on an edge: here, as nothing is missing
-                for p in self.peers:
-                    if not reads(p.flags, c):
-                        mask[c.name][p.slot] = True
 
     def _optional(self, peer: Peer, c: Channel, t: float) -> Array:
         """An optional value at ``t``: the sender's of t, else its newest earlier one carried
         to t (or as it is), else the method's stand-in; never waited for, not counted."""
         hist = peer.values.get(c.name)
         if hist:
-            v, _ = hist.at(t)
+            v = hist.at(t)[0]
+            if v is None:
+                v = (self._carry(peer, [c.name], t) or {}).get(c.name)
+            if v is None and (newest := hist.newest(t)) is not None:
+                v = newest[1]
             if v is not None:
                 return v
-            carried = self._carry(peer, [c.name], t)
-            if carried is not None and c.name in carried:
-                return carried[c.name]
-            newest = hist.newest(t)
-            if newest is not None:
-                return newest[1]
         return self.estimator.missing(c.name)
 
     def _carry(self, peer: Peer, names: Sequence[str], t: float) -> dict[str, Array] | None:
@@ -982,22 +939,13 @@ class AgentRuntime:
         has them all, no older than ``neighbour_timeout``, carried over ``[t_s, t]`` by the
         method (:meth:`Estimator.carry`) with what this agent knows of the motion; None when
         nothing can be carried."""
-        first = peer.values.get(names[0])
-        if first is None:
-            return None
-        for stamp, value in first.before(t):
+        for stamp, values in peer.instants(names, not_after=t):
+            if stamp >= t - SAME:
+                continue
             if stamp < t - self.limits.neighbour_timeout:
                 return None   # too old: its estimator is silent (its sensors may not be)
-            values = {names[0]: value}
-            for name in names[1:]:
-                hist = peer.values.get(name)
-                v = hist.at(stamp)[0] if hist else None
-                if v is None:
-                    break
-                values[name] = v
-            else:
-                out = self.estimator.carry(values, self._motion(peer, stamp, t))
-                return None if out is None or out.keys() < set(names) else out
+            out = self.estimator.carry(values, self._motion(peer, stamp, t))
+            return None if out is None or out.keys() < set(names) else out
         return None
 
     def _motion(self, peer: Peer, s: float, t: float) -> Motion:
@@ -1012,7 +960,7 @@ class AgentRuntime:
             anchor_R, anchor_d = anchor.rotation(s, t), anchor.displacement(s, t)
         return Motion(own, peer_R, peer_d, anchor_R, anchor_d)
 
-    # 'instant' pairing (module docstring): the leader-follower methods' exchange.
+    # 'instant' pairing (:class:`base.Channel`): the leader-follower methods' exchange.
     def _instant_channels(self, t: float, moving: bool, edge: dict[str, Array],
                           mask: dict[str, NDArray[np.bool_]]) -> None:
         """Each neighbour's 'instant' channels of its newest instant at or before ``t`` (a
@@ -1023,9 +971,10 @@ class AgentRuntime:
         until = self._until(t + self.h)
         exchange = self.exchange is not None
         rows: list[tuple[Peer, list[Array], dict[str, Array], float]] = []
+        limit = t - self.limits.neighbour_timeout
         for p in self.peers:
-            if self._silent(p, names, t):
-                continue
+            if any(name not in p.values or p.values[name].newest_stamp < limit for name in names):
+                continue   # silent: a required channel never sent, or not since neighbour_timeout
             latest = {name: hist.samples[-1][1] for name, hist in p.values.items() if hist}
             t_s, sent = t, latest
             if not moving and exchange:   # its values of its instant ≤ t
@@ -1033,10 +982,8 @@ class AgentRuntime:
                 if fixed is not None:
                     sent = {**latest, **fixed[1]}
                     for name in self._optional_names:
-                        if hist := p.values.get(name):
-                            newest = hist.newest(t)
-                            if newest is not None:
-                                sent[name] = newest[1]
+                        if (hist := p.values.get(name)) and (newest := hist.newest(t)):
+                            sent[name] = newest[1]
             elif moving:   # its values of one instant, paired with the own at that instant
                 own = self.own[sensors[0]].get(p.agent_id) if sensors else None
                 newest_own = own.newest_stamp if own else t
@@ -1091,13 +1038,6 @@ class AgentRuntime:
             out[rows] = values
         return out
 
-    def _silent(self, peer: Peer, names: Sequence[str], t: float) -> bool:
-        """A neighbour that never sent a required channel, or whose newest value of one is
-        older than ``neighbour_timeout``."""
-        limit = t - self.limits.neighbour_timeout
-        return any(name not in peer.values or peer.values[name].newest_stamp < limit
-                   for name in names)
-
     def _until(self, t: float) -> float:
         """The newest own measurement a step or message at ``t`` may use (a simulation's
         exchange fixes it; a robot uses anything)."""
@@ -1111,8 +1051,7 @@ class AgentRuntime:
         or, given ``at``, the one measured at ``at`` (moving): interpolated between the two
         samples around it (rotated to t, then a normalised linear interpolation), the newest
         held after it. ``until``: no sample measured after it."""
-        by_target = self.own.get(sensor)
-        hist = by_target.get(agent_id) if by_target is not None else None
+        hist = self.own.get(sensor, {}).get(agent_id)
         if not hist:
             return None
         timeout = self.limits.sensor_timeout
@@ -1185,6 +1124,7 @@ class AgentRuntime:
         ``{listener id: value}``. Measurements travel on the sensor topics, not here."""
         cls = type(self.estimator)
         t = self.t
+        ids: list[int] | None = None   # the listeners of the per-edge channels (None: the edges')
         if cls.links == 'sensing':   # to every agent it measures, from that measurement
             sensor = cls.partner_sensor
             ids, vectors = [], []
@@ -1197,23 +1137,20 @@ class AgentRuntime:
                     vectors.append(v)
             sent = self.estimator.outbox(self.x, np.zeros(len(ids), dtype=np.intp),
                                          np.array(vectors).reshape(-1, 3))
-            addressed = {c.name: dict(zip(ids, sent[c.name])) for c in cls.sends
-                         if c.per == 'edge' and c.round == 1 and c.sensor is None}
         else:
             n = len(self.peers)
             sent = self.estimator.outbox(self.x, np.zeros(n, dtype=np.intp), np.zeros((n, 3)),
                                          slot=np.arange(n, dtype=np.intp))
-            addressed = {c.name: self._addressed(c, sent[c.name]) for c in cls.sends
-                         if c.per == 'edge' and c.round == 1 and c.sensor is None}
-        return {c.name: addressed[c.name] if c.per == 'edge' else sent[c.name][0]
+        return {c.name: sent[c.name][0] if c.per != 'edge'
+                else self._addressed(c, sent[c.name]) if ids is None
+                else dict(zip(ids, sent[c.name]))
                 for c in cls.sends if c.round == 1 and c.sensor is None}
 
     def sends_now(self, name: str, publish_grid: bool) -> bool:
         """Channel ``name`` goes out after the step that reached the state time: 'exact'
         ones when a listener's step reads them at this instant, 'instant' ones on the
         publish grid."""
-        c = self.channels[name]
-        if c.pairing == 'exact':
+        if self.channels[name].pairing == 'exact':
             return self.estimator.due(name, self.t, self.h)
         return publish_grid
 

@@ -74,9 +74,6 @@ class Stamped:
         else:
             self.samples.append((stamp, value))
 
-    def clear(self) -> None:
-        self.samples.clear()
-
     def at(self, t: float) -> tuple[Array | None, bool]:
         """``(value, decided)``: the value stamped ``t``; or None with ``decided`` when it
         will not come (a later one is here)."""
@@ -93,10 +90,6 @@ class Stamped:
             if stamp <= until + SAME:
                 return stamp, value
         return None
-
-    def before(self, t: float) -> list[tuple[float, Array]]:
-        """The samples stamped before ``t``, newest first."""
-        return [(s, v) for s, v in reversed(self.samples) if s < t - SAME]
 
     def interpolate(self, t: float, rotate: Callable[[float, float], Array]
                     ) -> tuple[Array | None, bool]:

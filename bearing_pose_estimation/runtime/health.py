@@ -48,8 +48,7 @@ def health(rt: AgentRuntime | None, rejected: Counter[str], events: Counter[str]
                 if problem is not None:
                     level = max(level, WARN)
                     problems.append(problem)
-            slots = len(rt.peers)
-            for label, texts in rt.estimator.neighbour_report(rt.x, slots).items():
+            for label, texts in rt.estimator.neighbour_report(rt.x, len(rt.peers)).items():
                 for peer, text in zip(rt.peers, texts):
                     values[f'{label}_{peer.name}'] = text
             stages = rt.estimator.stages

@@ -10,8 +10,7 @@ most ``link_wait`` of its own sensors' time. A fault-free run pairs its inputs a
 simulation does (:class:`runtime.buffers.Exchange`), so a DDS run equals it to rounding. Every
 check, rejection and time rule is the runtimes'. Faults:
 
-- :class:`LinkFaults`: each neighbour message is dropped with ``drop_rate`` and delivered
-  ``delay`` seconds late (the node's ``inject_*`` parameters, :mod:`runtime.faults`);
+- :class:`LinkFaults`: lost and late neighbour messages (:mod:`runtime.faults`);
 - :class:`Outage`: an agent is cut off over ``[start, end)``. ``network_only``: a partition,
   no neighbour message in or out while its own sensors keep feeding it. Otherwise no process,
   no input or output; it comes back as it was (``restart=False``: paused, input sent meanwhile
@@ -37,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.errors import ScenarioError
-from ..estimators.base import Channel, Sensor
+from ..estimators.base import POINT_SENSORS, Channel, Sensor
 from ..metrics.results import PoseErrors, Recording, pose_errors
 from ..runtime.agent import AgentRuntime
 from ..runtime.buffers import TIME_EVENTS, Limits
@@ -305,21 +304,19 @@ class _Network:
         self.exchange = (exchange_of(scenario) if not (links or outages or garbage.fraction)
                          else None)
         self.agents: dict[str, AgentRuntime] = {n: self._runtime(n) for n in self.names}
+        self.subs = {name: subscriptions(self.method, spec) for name, spec in self.specs.items()}
         # Who reads what: (sender, topic) -> readers, from the one table.
         self.readers: dict[tuple[str, str], list[str]] = {}
-        for name, spec in self.specs.items():
-            for sub in subscriptions(self.method, spec):
+        for name, subs in self.subs.items():
+            for sub in subs:
                 self.readers.setdefault((sub.source, sub.topic), []).append(name)
-        self.subs = {name: subscriptions(self.method, spec) for name, spec in self.specs.items()}
         self.topics: dict[int, dict[str, list[str]]] = {}   # round -> topic -> channels
         for c in self.method.sends:
             if c.sensor is None:
                 self.topics.setdefault(c.round, {}).setdefault(c.topic, []).append(c.name)
         # The point sensors someone reads: its own step, or a neighbour from its topic.
         read = {c.sensor for c in self.method.sends if c.sensor is not None}
-        self.point_sensors = [s for s in (Sensor.BEARINGS, Sensor.RELATIVE_POSITIONS,
-                                          Sensor.BEARING_RATES)
-                              if s in self.method.measures or s in read]
+        self.point_sensors = [s for s in POINT_SENSORS if s in self.method.measures or s in read]
         self.sent_k = dict.fromkeys(self.names, -1)
         self.per_step = int(round(scenario.step / self.world.dt))
         self.per_publish = self.per_step * scenario.publish_every
@@ -398,12 +395,9 @@ class _Network:
         if self.offline(name, now):
             return
         for receiver in self.readers.get((name, topic), ()):
-            self.link.send(now, partial(self._arrive, receiver, msg))
+            self.link.send(now, partial(self.receive, receiver, msg))
 
-    def _arrive(self, to: str, msg: tuple, now: float) -> None:
-        self.receive(to, now, msg)
-
-    def receive(self, to: str, now: float, msg: tuple) -> None:
+    def receive(self, to: str, msg: tuple, now: float) -> None:
         if self.offline(to, now) or self.stopped(to, now):
             return
         agent = self.agents[to]
