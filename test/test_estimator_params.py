@@ -345,6 +345,40 @@ def test_the_simulator_waits_for_the_recorders_readers(context, repo_root, recor
         node.destroy_node()
 
 
+def test_the_monitor_is_ready_once_every_follower_s_t0_estimate_is_in(context, repo_root,
+                                                                    tmp_path):
+    """/monitor/ready (the simulator's go) needs more than a publisher for each reader: every
+    follower's t = 0 estimate, which proves its writer matched the monitor before the clock
+    started (a writer that matches later may have dropped t = 0 from its history)."""
+    import time
+
+    from bearing_pose_estimation.ros.monitor_node import MonitorNode
+
+    node = MonitorNode(context=context, parameter_overrides=[
+        Parameter('scenario_file', value=str(repo_root / 'config' / 'paper_8_agents.yaml')),
+        Parameter('out_dir', value=str(tmp_path)), Parameter('plots', value=False)])
+    fleet = rclpy_node(context, 'fleet')
+    try:
+        for sub in node.subscriptions:
+            qos = (wire.ESTIMATE_PUB_QOS if sub.topic_name.endswith(wire.ESTIMATE)
+                   else wire.SIM_PUB_QOS)
+            fleet.create_publisher(wire.PoseStamped, sub.topic_name, qos)
+        deadline = time.monotonic() + 10.0
+        while (min(s.get_publisher_count() for s in node.subscriptions) < 1
+               and time.monotonic() < deadline):
+            time.sleep(0.01)
+        t0 = cdr.encode_pose_raw(0.0, 'world', np.eye(3), np.zeros(3))
+        for k in range(len(node.followers)):
+            node.on_ready_check()
+            assert not node.ready_timer.is_canceled(), k   # not ready: not announced
+            node._on_pose(node._est, k, t0)
+        node.on_ready_check()
+        assert node.ready_timer.is_canceled()
+    finally:
+        fleet.destroy_node()
+        node.destroy_node()
+
+
 def test_the_simulator_names_the_estimators_its_clock_waits_for(context, repo_root, capfd,
                                                               monkeypatch):
     """A lockstep clock held by the slowest estimators for STALL_WARN_S of wall time gets a
