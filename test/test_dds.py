@@ -29,10 +29,10 @@ from bearing_pose_estimation.ros.estimator_group import CPU_SPLIT_ENV
 from bearing_pose_estimation.ros.step_batch import read_cpu_split
 from bearing_pose_estimation.scenario import initial_estimates, load_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
-from bearing_pose_estimation.sim.netsim import run_network
 from rosgraph_msgs.msg import Clock
 
-from ros_helpers import ProcessWatch, assert_no_shm_left, error_at, observer, paired_errors
+from ros_helpers import (ProcessWatch, assert_equals_netsim, assert_no_shm_left, error_at, observer,
+                         paired_errors)
 
 pytestmark = pytest.mark.dds
 
@@ -226,39 +226,6 @@ def _read_metrics(path: Path) -> dict[float, tuple[float, float]]:
                                       float(r['position_error_mean_m'])) for r in rows}
 
 
-_NETSIM: dict = {}   # scenario text -> netsim Recording
-
-
-def _netsim(scenario_file: Path, duration: float):
-    """netsim's followers, record times and errors of a scenario to ``duration``, cut from
-    a longer run of the same scenario text when an earlier test made one."""
-    text = scenario_file.read_text()
-    net = _NETSIM.get(text)
-    if net is None or net.t[-1] < duration - 1e-9:
-        net = _NETSIM[text] = run_network(load_scenario(scenario_file), duration,
-                                          record_every=0.1)
-    k = int(np.searchsorted(net.t, duration + 1e-9))
-    return net.followers, net.t[:k], net.att_err[:k], net.pos_err[:k]
-
-
-def _assert_equals_netsim(metrics: Path, scenario_file: Path) -> None:
-    """Every follower's errors at every record of a DDS run equal netsim's (the same agent
-    logic without DDS) to metrics.csv's rounding (10 digits): the nodes' fixed exchange under
-    use_sim_time makes the run independent of the machine's load (issue 15). For errors near
-    zero, the quaternions on the wire (exact to ~1e-16) set an absolute floor: 1e-12 here."""
-    from bearing_pose_estimation.studies.summary import read_metrics_csv
-
-    dds = read_metrics_csv(metrics)
-    followers, t, att, pos = _netsim(scenario_file, float(dds.t[-1]))
-    assert dds.followers == followers
-    # Every record the monitor made (on a loaded machine it can miss the first few, before
-    # its readers match: seen once in CI with two fleets at once), most of them.
-    _, i, j = np.intersect1d(np.round(dds.t * 1e6), np.round(t * 1e6), return_indices=True)
-    assert i.size >= 0.9 * t.size and dds.t[-1] == pytest.approx(t[-1]), (dds.t, t)
-    np.testing.assert_allclose(dds.att_err[i], att[j], rtol=2e-9, atol=1e-12)
-    np.testing.assert_allclose(dds.pos_err[i], pos[j], rtol=2e-9, atol=1e-12)
-
-
 def test_paper_scenario_over_dds_equals_netsim(tmp_path, no_leftovers):
     """One process per agent plus simulator and monitor, through `bearing-pose run`: every
     follower's errors at every 0.1 s equal netsim's to rounding (netsim tracks the batch
@@ -267,7 +234,7 @@ def test_paper_scenario_over_dds_equals_netsim(tmp_path, no_leftovers):
     out = tmp_path / 'run'
     assert main(['run', str(PAPER), '--duration', '12', '--out', str(out),
                  '--domain-id', str(DOMAIN), '--no-plots']) == 0
-    _assert_equals_netsim(out / 'metrics.csv', PAPER)
+    assert_equals_netsim(out / 'metrics.csv', PAPER)
     dds = _read_metrics(out / 'metrics.csv')
     assert dds[12.0][0] < 1e-2 and dds[12.0][1] < 0.6   # batch: 5.5e-3 rad, 0.47 m
     for log in (out / 'logs').glob('agent_*.log'):
@@ -301,7 +268,7 @@ def test_several_agents_per_process_recorded_and_evaluated_with_evo(tmp_path, no
                  '4', '--domain-id', str(DOMAIN), '--no-plots', '--record']) == 0
     assert sorted(p.name for p in (out / 'logs').glob('estimators_*.log')) == [
         'estimators_0.log', 'estimators_1.log']
-    _assert_equals_netsim(out / 'metrics.csv', PAPER)
+    assert_equals_netsim(out / 'metrics.csv', PAPER)
     # ... although each process ran its agents' steps together (ros/step_batch.py).
     for log in ('estimators_0.log', 'estimators_1.log'):
         assert _agents_per_round(out / 'logs' / log) > 1.5
@@ -364,7 +331,7 @@ def test_tran_method_over_dds_through_compare_distributed(tmp_path, no_leftovers
                                 'gyro_noise_density': 0.0, 'odometry_noise_density': 0.0,
                                 'initial_position_std': 2.0, 'initial_attitude_std': 1.0}
     assert 'k_omega=2.5' in (method_dir / 'logs' / 'estimators_0.log').read_text()
-    _assert_equals_netsim(method_dir / 'metrics.csv', method_dir / 'scenario.yaml')
+    assert_equals_netsim(method_dir / 'metrics.csv', method_dir / 'scenario.yaml')
     assert _agents_per_round(method_dir / 'logs' / 'estimators_1.log') > 1.5
     log = method_dir / 'logs' / 'estimators_1.log'
     split = read_cpu_split(log.read_text())
@@ -556,7 +523,7 @@ def test_two_fleets_side_by_side_on_one_domain(tmp_path, no_leftovers):
     for fleet, (scenario_file, out, proc) in runs.items():
         log, _ = proc.communicate(timeout=300)
         assert proc.returncode == 0, log[-3000:]
-        _assert_equals_netsim(out / 'metrics.csv', scenario_file)
+        assert_equals_netsim(out / 'metrics.csv', scenario_file)
         params = yaml.safe_load((out / 'params' / 'agent_3.yaml').read_text())
         assert list(params) == [f'/{fleet}/agent_3/estimator']
         launch_file = (out / 'fleet.launch.xml').read_text()

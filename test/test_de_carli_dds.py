@@ -29,7 +29,8 @@ from bearing_pose_estimation.scenario.parse import read_scenario_data
 from bearing_pose_estimation.sim.batch import BatchSimulator
 from bearing_pose_estimation.studies.summary import read_metrics_csv
 
-from ros_helpers import PATIENT, assert_no_shm_left, observer, with_parameters
+from ros_helpers import (PATIENT, assert_equals_netsim, assert_no_shm_left, observer,
+                         with_parameters)
 
 pytestmark = pytest.mark.dds
 
@@ -106,6 +107,13 @@ def test_the_fleet_reproduces_the_batch_simulator(run):
     np.testing.assert_allclose(pos_d, pos_b, rtol=1e-6)
     np.testing.assert_allclose(att_d, att_b, rtol=1e-6, atol=1e-12)
     assert pos_d[-1] < 0.1 * pos_d[0] and att_d[-1] < 1e-6
+
+
+def test_the_fleet_equals_netsim(run):
+    """The same agent runtime without DDS (netsim) gives every record to metrics.csv's
+    rounding: the nodes' inputs, pairing and steps are netsim's."""
+    scenario_file, out = run[0], run[1]
+    assert_equals_netsim(out / 'metrics.csv', scenario_file)
 
 
 def test_yaw_estimates_travel_as_complex_numbers_in_the_estimation_frame(run):

@@ -29,7 +29,8 @@ from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
 from bearing_pose_estimation.studies.summary import read_metrics_csv
 
-from ros_helpers import PATIENT, assert_no_shm_left, observer, with_parameters
+from ros_helpers import (PATIENT, assert_equals_netsim, assert_no_shm_left, observer,
+                         with_parameters)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from presenza_fleet import camera_rate_case1  # noqa: E402
@@ -125,6 +126,13 @@ def test_the_fleet_reproduces_the_batch_simulator(run):
     np.testing.assert_allclose(pos_d, pos_b, rtol=1e-6)
     np.testing.assert_allclose(att_d, att_b, rtol=1e-6)
     assert pos_d[-1] < 0.5 * pos_d[0] and att_d[-1] < 0.5 * att_d[0]
+
+
+def test_the_fleet_equals_netsim(run):
+    """The same agent runtime without DDS (netsim) gives every record to metrics.csv's
+    rounding: the nodes' inputs, pairing and steps are netsim's."""
+    scenario_file, out = run[0], run[1]
+    assert_equals_netsim(out / 'metrics.csv', scenario_file)
 
 
 def test_the_pose_carries_the_batch_simulator_s_covariance(run):

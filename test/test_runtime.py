@@ -29,6 +29,7 @@ import yaml
 from bearing_pose_estimation.core import so3
 from bearing_pose_estimation.core.gyro import GyroBuffer
 from bearing_pose_estimation.core.motion import in_anchor_frame
+from bearing_pose_estimation.estimators import get as estimator_class, methods
 from bearing_pose_estimation.estimators.base import Sensor, StepInputs
 from bearing_pose_estimation.runtime.agent import reads
 from bearing_pose_estimation.runtime.buffers import Exchange, Limits
@@ -502,9 +503,9 @@ def _networks_stepped_both_ways(scenario, duration: float, links: LinkFaults, ch
     sizes: list[int] = []
     stack = StepInputs.stack
 
-    def counted(parts):
+    def counted(parts, same_t=True):
         sizes.append(len(parts))
-        return stack(parts)
+        return stack(parts, same_t)
     nets = [_Network(scenario, links, (), Garbage(), Limits(), batched=b) for b in (False, True)]
     for net in nets:
         net.start()
@@ -560,6 +561,64 @@ def test_steps_run_together_give_each_agent_its_own_steps_exactly(make, duration
         both = type(x0).stack([x0, x1.grown(5)])
         assert both.P_out.shape[:2] == (2, 5) and not np.any(both.P_out[0, 3:])
         np.testing.assert_array_equal(both.P_out[0, :3], x0.P_out[0])
+
+
+def test_steps_of_different_instants_run_together_exactly(monkeypatch):
+    """An ``estimators`` process flushes agents a step apart in one round: a method whose step
+    does not read its time (not ``timed_step``) runs them in one call, each getting its own
+    step bit for bit. agent_4 is held back every other step in both networks (with noise and
+    covariances), so it and those waiting for it lag a step."""
+    import bearing_pose_estimation.sim.netsim as netsim
+
+    scenario = load_scenario(CONFIG / 'paper_noisy.yaml')
+    real, stack = netsim.advance_together, StepInputs.stack
+    nets = [_Network(scenario, LinkFaults(), (), Garbage(), Limits()) for _ in range(2)]
+    alone = {id(a) for a in nets[0].agents.values()}
+    ready_at, stacked_at = [], []   # how many instants: ready in one round, in one call
+    per_step = nets[0].per_step
+    tick = 0
+
+    def held(agents):
+        agents = [a for a in agents if not (a.name == 'agent_4' and tick // per_step % 2)]
+        if id(agents[0]) in alone:
+            return [a for a in agents if a.advance(1)]
+        ready_at.append(len({a.t for a in agents if a.steps_ready() > 0 and not a.leader}))
+        return real(agents)
+
+    def counted(parts, same_t=True):
+        stacked_at.append(len({p.t for p in parts}))
+        return stack(parts, same_t)
+    monkeypatch.setattr(netsim, 'advance_together', held)
+    monkeypatch.setattr(StepInputs, 'stack', staticmethod(counted))
+    for net in nets:
+        net.start()
+    for tick in range(1, int(round(0.5 / scenario.step)) * nets[0].per_step + 1):
+        for net in nets:
+            net.tick(tick * nets[0].world.dt)
+        for name in nets[0].names:
+            a, b = (net.agents[name] for net in nets)
+            assert (a.k, a.last.t) == (b.k, b.last.t), name
+            _assert_same_step(a, b, f'{name} at tick {tick}', ())
+    assert max(ready_at) > 1 and max(stacked_at) > 1, (ready_at, stacked_at)
+
+
+@pytest.mark.parametrize('method', methods())
+def test_a_step_that_reads_its_time_says_so(method):
+    """``timed_step`` (only steps of one instant share a call) is declared exactly by the
+    methods whose step depends on its start time: the same inputs stamped one to three steps
+    later give another state."""
+    cls = estimator_class(method)
+    sim = BatchSimulator(load_scenario(CONFIG / cls.reference_scenario))
+    for _ in range(3):
+        sim.step()
+    inputs = sim.inputs()
+    first, _ = sim.estimator.step(sim.x, sim.h, inputs)
+    later = [sim.estimator.step(sim.x, sim.h,
+                                dataclasses.replace(inputs, t=inputs.t + s * sim.h))[0]
+             for s in (1, 2, 3)]
+    differs = any(not np.array_equal(getattr(first, f.name), getattr(x, f.name))
+                  for x in later for f in dataclasses.fields(first))
+    assert differs == cls.timed_step, method
 
 
 def test_presenza_covariances_stepped_together_are_bit_exact():

@@ -381,11 +381,11 @@ class StepInputs:
         return np.ones(len(self.edges), dtype=bool) if value is None else value
 
     @staticmethod
-    def stack(parts: Sequence[StepInputs]) -> StepInputs:
+    def stack(parts: Sequence[StepInputs], same_t: bool = True) -> StepInputs:
         """The inputs of several agents' steps as one fleet step, agents and edges in that
-        order: :meth:`agent` undone. Every part has the same keys, and the same t."""
+        order: :meth:`agent` undone. Every part has the same keys (and t, with ``same_t``)."""
         first = parts[0]
-        if not all(first.stacks_with(p) for p in parts[1:]):
+        if not all(first.stacks_with(p, same_t) for p in parts[1:]):
             raise ValueError('StepInputs.stack: the parts have different keys or times')
         return StepInputs(
             edges=Edges.stack([p.edges for p in parts]), t=first.t,
@@ -393,9 +393,9 @@ class StepInputs:
             edge={k: np.concatenate([p.edge[k] for p in parts]) for k in first.edge},
             mask={k: np.concatenate([p.mask[k] for p in parts]) for k in first.mask})
 
-    def stacks_with(self, other: StepInputs) -> bool:
+    def stacks_with(self, other: StepInputs, same_t: bool = True) -> bool:
         """Whether :meth:`stack` takes both."""
-        return (self.t == other.t and self.agent.keys() == other.agent.keys()
+        return ((self.t == other.t or not same_t) and self.agent.keys() == other.agent.keys()
                 and self.edge.keys() == other.edge.keys()
                 and self.mask.keys() == other.mask.keys()
                 and self.edges.flags.keys() == other.edges.flags.keys())
@@ -520,6 +520,9 @@ class Estimator(ABC, Generic[G, S]):
     peer_odometry: ClassVar[Literal['none', 'links', 'anchor']] = 'none'
     # The step takes edges with inputs missing (masks); False: only the complete ones.
     partial_edges: ClassVar[bool] = False
+    # The step reads its start time (``inputs.t``: multirate stages): only steps of one instant
+    # share a call (otherwise agents a step apart do, as an ``estimators`` process flushes them).
+    timed_step: ClassVar[bool] = False
     # The sensor whose measurement of the listener the per-edge channels are formed from
     # (outbox's ``bearings``): what each agent sends, and what travels on its sensor topic.
     partner_sensor: ClassVar[Sensor | None] = None

@@ -242,6 +242,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
     own_pairing = 'interpolated'
     peer_odometry = 'links'
     partial_edges: ClassVar[bool] = True
+    timed_step: ClassVar[bool] = True   # stages 2 and 3 run at their own rates (13), (21)
     partner_sensor: ClassVar[Sensor | None] = Sensor.RELATIVE_POSITIONS
     stages: ClassVar[tuple[str, ...]] = ('waiting_for_excitation', 'relative_yaw', 'yaw',
                                          'position', 'converged')

@@ -63,9 +63,7 @@ class EstimatorNode(Node):
         self.agent, self.method, self.frames, self.raw = s.agent, s.method, s.frames, s.raw
         self.link = FaultyLink(s.faults)
         self.tf = tf_broadcaster(self, s.publish_tf)
-        self.rt: AgentRuntime | None = None
-        if s.start_time >= 0.0:
-            self.rt = self._runtime(s.start_time)
+        self.rt = self._runtime(s.start_time) if s.start_time >= 0.0 else None
         self.rejected: Counter[str] = Counter()
         self.events: Counter[str] = Counter()
         self._published_k = -1
@@ -79,9 +77,8 @@ class EstimatorNode(Node):
             batch.join(self)
         self._make_subscriptions()
         wall_timer(self, s.diagnostics_period, self.publish_diagnostics)
-        # The t0 state is announced once every subscription has a publisher and every writer
-        # the readers it expects: best-effort readers drop what comes before they match, and
-        # the simulator starts the clock only after hearing from everyone.
+        # The t0 state goes out once every subscription has a publisher and every writer its
+        # readers (best effort drops what comes before): the simulator waits to hear everyone.
         self.ready_timer = wall_timer(self, 0.05, self.on_ready_check)
         self.exact = any(c.pairing == 'exact' for c in self.method.sends)
         if self.exact or s.exchange is not None:
@@ -196,8 +193,7 @@ class EstimatorNode(Node):
             return None
 
     def _now(self) -> float | None:
-        """The node's clock [s], or None before a simulated clock has ticked (a late joiner's
-        first samples must not look like they come from the future)."""
+        """The node's clock [s], or None before a simulated clock ticks (nothing is future)."""
         ns = self.get_clock().now().nanoseconds
         return ns * 1e-9 if ns > 0 else None
 
@@ -442,10 +438,8 @@ class EstimatorNode(Node):
         """The agent's health on /diagnostics (:func:`runtime.health.health`)."""
         rate = None
         if self.rt is not None:
-            steps, wall = self._diag_steps
-            now = time.monotonic()
-            rate = (self.rt.k - steps) / max(now - wall, 1e-9)
-            self._diag_steps = (self.rt.k, now)
+            (steps, wall), now = self._diag_steps, time.monotonic()
+            rate, self._diag_steps = (self.rt.k - steps) / max(now - wall, 1e-9), (self.rt.k, now)
         h = health(self.rt, self.rejected, self.events, rate)
         self.pub_diag.publish(wire.diagnostics(
             f'{self.fleet_prefix}{self.agent}/estimator', self.agent, h.message, h.values,

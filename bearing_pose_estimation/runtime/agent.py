@@ -1105,7 +1105,8 @@ class AgentRuntime:
             if moving:
                 p = (p + R @ self.odometry.displacement(stamp, t) if stamp <= t
                      else p - R_t @ self.odometry.displacement(t, stamp))
-            self.x = self.estimator.with_known_pose(self.x, np.zeros(1, dtype=np.intp),
+            # A copy: with_known_pose writes in place, and values netsim sent share arrays.
+            self.x = self.estimator.with_known_pose(self.x.rows(slice(None)), np.zeros(1, int),
                                                     R_t[None], p[None])
             newer = [pose for pose in self._known_poses if pose[0] > stamp]
             self._known_poses.clear()

@@ -3,8 +3,7 @@
 An agent's step costs ~130-500 µs, nearly all of it numpy's overhead per call on small
 blocks; eight agents' steps in one call cost little more than one (BENCHMARKS.md, "Steps run
 together"). A step treats its agents' rows independently, so each agent gets exactly what its
-own step gives (``test_runtime.py``). netsim and an ``estimators`` process (``ros/step_batch.py``)
-run their agents' steps this way.
+own step gives (``test_runtime.py``). Used by netsim and ``estimators`` processes.
 """
 from __future__ import annotations
 
@@ -16,8 +15,8 @@ from .agent import AgentRuntime, Prepared
 
 def advance_together(agents: Sequence[AgentRuntime]) -> list[AgentRuntime]:
     """One step of every agent that has one ready (each as its own ``advance(1)``), those of
-    one method with equal gains and inputs that stack in one call of the method's step.
-    Returns the agents that stepped."""
+    one method with equal gains and inputs that stack in one call of the method's step (of
+    one instant, if the method's step reads it). Returns the agents that stepped."""
     stepped = [a for a in agents if a.steps_ready() > 0]
     groups: list[list[tuple[AgentRuntime, Prepared]]] = []
     for a in stepped:
@@ -27,7 +26,8 @@ def advance_together(agents: Sequence[AgentRuntime]) -> list[AgentRuntime]:
         for group in groups:
             b, other = group[0]
             if (type(b.estimator) is type(a.estimator) and b.estimator.gains == a.estimator.gains
-                    and b.h == a.h and other.inputs.stacks_with(prepared.inputs)):
+                    and b.h == a.h
+                    and other.inputs.stacks_with(prepared.inputs, a.estimator.timed_step)):
                 group.append((a, prepared))
                 break
         else:
@@ -38,7 +38,8 @@ def advance_together(agents: Sequence[AgentRuntime]) -> list[AgentRuntime]:
             lead.end_step(group[0][1], *lead.estimator.step(lead.x, lead.h, group[0][1].inputs))
             continue
         x, diagnostics = lead.estimator.step(type(lead.x).stack([a.x for a, _ in group]), lead.h,
-                                             StepInputs.stack([p.inputs for _, p in group]))
+                                             StepInputs.stack([p.inputs for _, p in group],
+                                                              lead.estimator.timed_step))
         for i, (a, prepared) in enumerate(group):
             a.end_step(prepared, x.rows(slice(i, i + 1)),
                        {k: v[i:i + 1] for k, v in diagnostics.items()})
