@@ -15,6 +15,8 @@ simulated world, like the simulator node, cannot see the estimates).
 Columns (measures in netsim):
 - re-convergence: time after the fault ends until both mean errors are back at or below the
   fault-free run's at that instant (``netsim.reconvergence_time``; faults with an end only);
+- caught up: time after the fault ends from which both stay within 1.5 times the fault-free
+  run's at the same instant (``netsim.catch_up_time``);
 - cost: seconds of convergence lost by the end, for the error that lost more
   (``netsim.convergence_cost``);
 - events: the estimators' time rules that fired (``time_jump``, ``gyro_gap``);
@@ -32,16 +34,17 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from bearing_pose_estimation.sim.netsim import (FaultCase, NetRun, convergence_cost, fault_cases,
+from bearing_pose_estimation.sim.netsim import (CATCH_UP_FACTOR, FaultCase, NetRun,
+                                                catch_up_time, convergence_cost, fault_cases,
                                                 reconvergence_time, run_case)
 from bearing_pose_estimation.scenario import Scenario, load_scenario
 
 PAPER = Path(__file__).resolve().parents[1] / 'config' / 'paper_8_agents.yaml'
 RECORD_EVERY = 0.5  # [s]: the resolution of the re-convergence and cost columns
 HEADER = ('| fault | mean att. error at end [rad] | mean pos. error at end [m] | '
-          're-convergence after the fault [s] | cost at the end [s] | time-rule events | '
-          'garbage rejected | crashes | non-finite estimates |\n'
-          '|---|---|---|---|---|---|---|---|---|')
+          're-convergence after the fault [s] | caught up after the fault [s] | cost at the end [s] '
+          '| time-rule events | garbage rejected | crashes | non-finite estimates |\n'
+          '|---|---|---|---|---|---|---|---|---|---|')
 
 
 def load(path: Path) -> Scenario:
@@ -64,13 +67,15 @@ def run_row(case: FaultCase, duration: float, path: Path = PAPER) -> NetRun | st
 def format_row(case: FaultCase, run: NetRun | str, ref: NetRun) -> str:
     """The table row of one case."""
     if isinstance(run, str):
-        return f'| {case.label} | crashed: {run} | | | | | | 1 | |'
+        return f'| {case.label} | crashed: {run} | | | | | | | 1 | |'
     rec = run.recording
     att, pos = rec.mean_errors()
-    reconv = 'n/a'
+    reconv = caught = 'n/a'
     if case.window is not None:
         t = reconvergence_time(rec, ref.recording, case.window[1])
         reconv = 'not by the end' if t is None else f'{t:.1f}'
+        t = catch_up_time(rec, ref.recording, case.window[1], CATCH_UP_FACTOR)
+        caught = 'not by the end' if t is None else f'{t:.1f}'
     events = ', '.join(f'{k} ×{n}' for k, n in sorted(run.inputs.events.items())) or 'none'
     tally = run.inputs
     garbage = (f'{sum(tally.garbage_rejected.values())} of {tally.garbage_injected}'
@@ -78,7 +83,7 @@ def format_row(case: FaultCase, run: NetRun | str, ref: NetRun) -> str:
     non_finite = str(run.non_finite_estimates)
     if run.non_finite_steps:
         non_finite += f' ({run.non_finite_steps} steps discarded)'
-    return (f'| {case.label} | {att[-1]:.2e} | {pos[-1]:.2e} | {reconv} | '
+    return (f'| {case.label} | {att[-1]:.2e} | {pos[-1]:.2e} | {reconv} | {caught} | '
             f'{convergence_cost(rec, ref.recording):.1f} | {events} | {garbage} | 0 | '
             f'{non_finite} |')
 

@@ -25,6 +25,10 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+# The processes a test starts run this checkout's package: the venv's editable install points
+# at one checkout, and a git worktree's tests would otherwise start another's nodes.
+os.environ['PYTHONPATH'] = os.pathsep.join(
+    [str(REPO_ROOT), *filter(None, [os.environ.get('PYTHONPATH')])])
 
 
 @pytest.fixture(scope='session')

@@ -14,8 +14,8 @@ from bearing_pose_estimation.core import so3
 from bearing_pose_estimation.estimators.base import Sensor
 from bearing_pose_estimation.runtime.buffers import Limits
 from bearing_pose_estimation.scenario.runtimes import agent_specs, runtime_for
-from bearing_pose_estimation.sim.netsim import (Outage, convergence_cost, fault_cases,
-                                            reconvergence_time, run_case)
+from bearing_pose_estimation.sim.netsim import (Outage, catch_up_time, convergence_cost,
+                                            fault_cases, reconvergence_time, run_case)
 from bearing_pose_estimation.scenario import load_scenario
 from bearing_pose_estimation.metrics.results import Recording
 from bearing_pose_estimation.sim.world import World
@@ -271,6 +271,19 @@ def test_reconvergence_and_cost_measures():
     assert convergence_cost(hurt, ref) == 1.0                # ref had 0.75 or less from 4 s
     assert convergence_cost(ref, ref) == 0.0
     assert convergence_cost(_recording(t, [0] * 6, [0] * 6), ref) == 0.0  # better: no cost
+
+
+def test_catch_up_is_the_fault_free_run_at_the_same_instant():
+    """catch_up_time: from when both errors stay within 1.5 times the fault-free run's at the
+    same instant; a fleet that stays behind never catches up, though it re-converges."""
+    t = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    ref = _recording(t, [8, 4, 2, 1, 0.5, 0.25], [8, 4, 2, 1, 0.5, 0.25])
+    behind = _recording(t, [8, 4, 6, 3, 1.5, 0.75], [8, 4, 2, 1, 0.5, 0.25])
+    back = _recording(t, [8, 4, 6, 1.2, 0.8, 0.25], [8, 4, 2, 1, 0.5, 0.25])
+    assert reconvergence_time(behind, ref, 2.0) == 2.0 and catch_up_time(behind, ref, 2.0) is None
+    assert catch_up_time(back, ref, 2.0) == 3.0                # 0.8 > 1.5 x 0.5 at 4 s
+    assert catch_up_time(back, ref, 2.0, factor=2.0) == 1.0
+    assert catch_up_time(ref, ref, 2.0) == 0.0
 
 
 def test_a_partition_does_not_restart_the_process():

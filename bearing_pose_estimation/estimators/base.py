@@ -433,6 +433,15 @@ class StepInputs:
                                    mask={})
 
 
+@dataclass(frozen=True)
+class WarmStart:
+    """What :meth:`Estimator.warm_start` made of one agent's inputs: a state (None: refused)
+    and, for /diagnostics, why."""
+
+    x: State | None
+    note: str
+
+
 # ----------------------------------------------------------------------------- findings
 @dataclass(frozen=True)
 class Finding:
@@ -593,6 +602,12 @@ class Estimator(ABC, Generic[G, S]):
         agent sends the edge's other end, formed from its state, its own measurements and the
         round-1 values it received (``inputs`` as :meth:`step` gets them, without round 2)."""
         raise NotImplementedError(f'{self.method} exchanges one round of messages')
+
+    def warm_start(self, x: S, inputs: StepInputs) -> WarmStart | None:
+        """A state built from what one agent with no trustworthy estimate (started late,
+        restarted, after a gyro gap or a clock jump) measures and hears at its step's start
+        (``inputs``, complete edges), or why not; None: the method has no warm start."""
+        return None
 
     def missing(self, channel: str) -> Array:
         """What the step takes for an ``optional`` channel a neighbour has not sent."""

@@ -21,9 +21,9 @@ from typing import ClassVar, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core import graph, so3
+from ..core import graph, so3, warm_start
 from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, HELD,
-                   Index, P_OWN, POSE_POSITION, Roles, Sensor, State, StepInputs)
+                   Index, P_OWN, POSE_POSITION, Roles, Sensor, State, StepInputs, WarmStart)
 from .covariance import DOF, POSE_COV, CovarianceModel, Jacobians, initial_covariance, propagate
 from .fleet import Fleet
 
@@ -39,6 +39,12 @@ COLLINEAR_ERROR_RAD = 1e-6
 COLLINEAR_WARN_DEG = 5.0
 # Eigenvalues closer than this (relative to the largest) count as repeated.
 EIGEN_GAP_REL = 1e-6
+# A warm start is accepted when every residual angle is within this many per-component
+# standard deviations of the noise it explains: both bearings' and the neighbour's estimate's
+# (its covariance), at least WARM_FLOOR_RAD (a noise-free simulation's neighbours are exact only
+# to rounding). A true residual exceeds 4 sigma with probability exp(-8) = 3e-4 (Rayleigh).
+WARM_SIGMAS = 4.0
+WARM_FLOOR_RAD = 1e-3
 # check_motion works on (samples × followers) blocks of about this many bearing sets.
 MOTION_BLOCK = 200_000
 # The local matrix depends on the bearings only: along the motion its spectrum is evaluated at
@@ -124,6 +130,35 @@ class BearingLeaderEstimator(Estimator[GL, S]):
         x = super().with_known_pose(x, rows, R, p)
         x.P[rows] = 0.0
         return x
+
+    def warm_start(self, x: S, inputs: StepInputs) -> WarmStart:
+        """The attitude from Wahba's problem between the own bearings ``b^i_ij`` and the
+        neighbours' ``d_ij = -R̂_j b^j_ji``, the position triangulated from their ``p̂_j``
+        along ``d_ij`` (:mod:`core.warm_start`), with the covariance of that fit; refused when a
+        residual exceeds :data:`WARM_SIGMAS` of its noise (an outlier, a neighbour's bad
+        estimate) or the bearings are (nearly) collinear."""
+        b = inputs.edge[Sensor.BEARINGS.value]
+        d, p_j = self.neighbour_terms(inputs)
+        attitude, position = (warm_start.wahba(b, d, inputs.edges.k),
+                              warm_start.triangulate(p_j, d, inputs.edges.k))
+        if attitude is None or position is None:
+            return WarmStart(None, f'not determined: {len(b)} neighbour bearing(s) within '
+                                   f'{np.degrees(warm_start.MIN_SPREAD_RAD):g} deg of a line')
+        (R, res_R), (p, res_p) = attitude, position
+        P_j = inputs.edge[POSE_COV.name]
+        dist = np.linalg.norm(p_j - p, axis=1)
+        var = 2.0 * self.gains.bearing_std ** 2 + np.trace(P_j[:, 3:6, 3:6], axis1=1, axis2=2) / 3
+        sig_R = np.maximum(np.sqrt(var), WARM_FLOOR_RAD)
+        sig_p = np.maximum(np.sqrt(var + np.trace(P_j[:, :3, :3], axis1=1, axis2=2)
+                                   / (3.0 * np.maximum(dist, 1e-9) ** 2)), WARM_FLOOR_RAD)
+        z = max(float(np.max(res_R / sig_R)), float(np.max(res_p / sig_p)))
+        residual = f'residual {max(res_R.max(), res_p.max()):.2g} rad ({z:.2g} sigma)'
+        if z > WARM_SIGMAS:
+            return WarmStart(None, f'refused: {residual} from {len(b)} neighbours')
+        x = self.initial_state(R[None], p[None])
+        x.P[0, :3, :3] = np.linalg.inv(warm_start.information(d, sig_p, dist))
+        x.P[0, 3:6, 3:6] = np.linalg.inv(warm_start.information(d, sig_R))
+        return WarmStart(x, f'accepted: {residual} from {len(b)} neighbours')
 
     def missing(self, channel: str) -> Array:
         """A neighbour's covariance not received (yet): the prior, what nothing is known of."""

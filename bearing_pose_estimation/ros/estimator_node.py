@@ -409,7 +409,7 @@ class EstimatorNode(Node):
         t, frame = rt.t, self.s.estimate_frame
         if not deferred and (force or (self._published_k != rt.k and (grid or any(
                 rt.sends_now(c.name, grid) for c in self.pose_channels)))):
-            if self.pub_pose is not None:   # first: what the neighbours' steps wait for
+            if self.pub_pose is not None and not rt.withholding:   # first: neighbours wait
                 self.pub_pose.publish(cdr.encode_pose_covariance_raw(
                     t, frame, rt.R_hat[0], rt.p_hat[0], rt.covariance()))
             self.pub_estimate.publish(cdr.encode_pose_raw(t, frame, rt.R_hat[0], rt.p_hat[0]))
@@ -419,7 +419,7 @@ class EstimatorNode(Node):
             self._published_k = rt.k
         due = {topic: (pub, chans) for topic, (pub, chans) in self.topics.items()
                if any(c.round == 1 and (force or rt.sends_now(c.name, grid)) for c in chans)}
-        if not due:
+        if not due or rt.withholding:
             return
         if (not force and self.method.links == 'sensing' and rt.odometry_live()
                 and not rt.measured_at(t)):

@@ -245,10 +245,16 @@ class AgentRuntime:
         self.awaited: str | None = None           # what the latest wait was for
         self.awaited_peer: str | None = None      # and from whom (None: the own sensors)
         self.carried = 0                          # late values carried to the step's instant
-        self.unpaired = 0                         # values a moving fleet could not pair
+        self.unpaired = 0                         # values not paired with their instant
         self.odometry_missing_steps = 0           # steps without the odometry expected
         self.anchor_still_steps = 0               # steps without the anchor's odometry
         self.non_finite_steps = 0                 # steps discarded as non-finite
+        # No trustworthy estimate since then (None: it has one): started after the fleet's
+        # t = 0 (a late or restarted process, or a robot's real clock), a gyro gap or a clock
+        # jump. Until then, or warm_window, each step first tries the method's warm start.
+        self.cold_since: float | None = self.t0 if self.t0 > SAME and not self.leader else None
+        self.warm_note = ''                       # the latest warm start's outcome
+        self.warm_starts: Counter[str] = Counter()   # accepted, refused, unavailable
         self.impatient = False
         self._pending: StepInputs | None = None   # the inputs of step _pending_k
         self._pending_k = -1
@@ -284,6 +290,7 @@ class AgentRuntime:
         self.odometry.reset(stamp)
         if reset_estimate:
             self.x = self.estimator.initial_state(self.R0[None], self.p0[None])
+        self.cold_since = None if self.leader else self.t0   # a leader knows its pose
         for by_target in self.own.values():
             by_target.clear()
         for stamps in self._own_stamps.values():
@@ -711,7 +718,23 @@ class AgentRuntime:
             self._pending = None
             self.k += 1
             return None
+        if self.cold_since is not None and self.limits.warm_window > 0:
+            self._warm_start(t, self.cold_since, inputs)
         return Prepared(t, tuple(self.stale_neighbours(t)), inputs)
+
+    def _warm_start(self, t: float, since: float, inputs: StepInputs) -> None:
+        """The method's warm start from the step's complete edges: taken, or tried again
+        next step until ``warm_window`` has passed since ``since`` (then it goes on as it is)."""
+        tried = self.estimator.warm_start(self.x, inputs.complete(self._complete_keys))
+        if tried is not None and tried.x is None and t - since < self.limits.warm_window:
+            self.warm_note = f'trying since t = {since:.3f} s: {tried.note}'
+            return
+        outcome = 'unavailable' if tried is None else 'refused' if tried.x is None else 'accepted'
+        self.warm_starts[outcome] += 1
+        self.warm_note = f'{outcome} at t = {t:.3f} s' + (f': {tried.note}' if tried else '')
+        self.cold_since = None
+        if tried is not None and tried.x is not None:
+            self.x = tried.x
 
     def end_step(self, prepared: Prepared, x: State, diagnostics: dict[str, Array]) -> None:
         """The step's end, from the new state ``x`` (one row) the method's step returned."""
@@ -979,7 +1002,9 @@ class AgentRuntime:
             t_s, sent = t, latest
             if not moving and exchange:   # its values of its instant ≤ t
                 fixed = p.at_one_instant(names, not_after=t)
-                if fixed is not None:
+                if fixed is None:
+                    self.unpaired += 1   # its instant left the history: its newest, counted
+                else:
                     sent = {**latest, **fixed[1]}
                     for name in self._optional_names:
                         if (hist := p.values.get(name)) and (newest := hist.newest(t)):
@@ -1118,6 +1143,14 @@ class AgentRuntime:
         measures: what it sends at ``t`` is then exact for a moving fleet."""
         return all(hist.newest_stamp >= t - SAME for by_target in self.own.values()
                    for hist in by_target.values() if hist)
+
+    @property
+    def withholding(self) -> bool:
+        """Whether it sends nothing to its neighbours: cold, until its warm start is decided.
+        A cold estimate costs its listeners more than its silence (issue 29: a restarted
+        agent_4's first values took agent_5 from 8e-5 to 0.16-0.61 rad), and a silent neighbour
+        is left out of their steps, not waited for."""
+        return self.cold_since is not None and self.limits.warm_window > 0
 
     def outbox(self) -> dict[str, object]:
         """What this agent sends in round 1, formed at the state time (the time-consistent

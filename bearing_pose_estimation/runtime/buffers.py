@@ -39,6 +39,9 @@ class Limits:
     max_gyro_gap: float = 0.5       # after a longer gyro gap [s] the state time restarts
     jump_back: float = 1.0          # a stamp this much [s] before the newest: clock jumped back
     max_future: float = 1.0         # stamps further ahead [s] than the newest gyro: rejected
+    # An agent with no trustworthy estimate tries its method's warm start at every step for
+    # this long [s] (its neighbours may not be heard yet); 0: never.
+    warm_window: float = 2.0
 
 
 @dataclass(frozen=True)

@@ -60,6 +60,9 @@ def health(rt: AgentRuntime | None, rejected: Counter[str], events: Counter[str]
             for what, n in sorted((+rt.missing).items()):
                 values[f'missing_{what}'] = str(n)
             values['carried'] = str(rt.carried)   # late values carried to their instant
+            values['unpaired'] = str(rt.unpaired)   # newest values used for their instant's
+            if rt.warm_note:
+                values['warm_start'] = rt.warm_note
             values['incomplete_steps'] = str(sum(rt.incomplete.values()))
         values['non_finite_steps'] = str(rt.non_finite_steps)
         values['gyro_gaps_bridged'] = str(rt.gyro.bridged)
@@ -84,6 +87,7 @@ def summary(rt: AgentRuntime, rejected: Counter[str], events: Counter[str],
     return (f'{rt.k} steps ({rt.k * rt.h:.2f} s of state time) in {wall:.1f} s wall: '
             f'{rt.k / max(wall, 1e-9):.1f} steps/s; rejected: {dict(rejected) or 0}; events: '
             f'{dict(events) or 0}; lost-sample gaps bridged: gyro {rt.gyro.bridged}, odometry '
-            f'{rt.odometry.bridged}; unpaired neighbour values: {rt.unpaired}; waited for: '
+            f'{rt.odometry.bridged}; warm starts: {dict(rt.warm_starts) or 0}; unpaired '
+            f'neighbour values: {rt.unpaired}; waited for: '
             f'{dict(rt.waits) or 0}; left out: {dict(+rt.missing) or 0}; carried: {rt.carried}; '
             f'steps without an awaited input: {dict(rt.incomplete) or 0}')

@@ -24,7 +24,9 @@ check, rejection and time rule is the runtimes'. Faults:
 :func:`simulate_network` also counts the estimators' rejections (by cause), time-rule events
 and non-finite estimates; a crash of the agent logic ends the run. :func:`fault_cases` is the
 one fault list of ``bench/fault_matrix.py`` and the tests, with their measures
-:func:`reconvergence_time` and :func:`convergence_cost`."""
+:func:`reconvergence_time` (back to the fault-free run's error at the fault's end),
+:func:`catch_up_time` (back to the fault-free run at the same instant) and
+:func:`convergence_cost`."""
 from __future__ import annotations
 
 from collections import Counter
@@ -278,6 +280,7 @@ class NetRun:
     non_finite_estimates: int  # estimates with a NaN/inf, checked after every step
     non_finite_steps: int      # steps the estimators discarded as non-finite
     carried: int = 0           # link methods: late or lost neighbour values carried forward
+    warm_starts: Counter[str] = field(default_factory=Counter)   # by outcome (AgentRuntime)
 
 
 class _Network:
@@ -414,6 +417,8 @@ class _Network:
         """``name``'s round-1 topics that carry a channel ``which`` picks, with their
         values at its state time (a per-edge one with nothing in it: not sent)."""
         ag = self.agents[name]
+        if ag.withholding:
+            return
         values: dict[str, object] | None = None
         for topic, names in self.topics.get(1, {}).items():
             if not any(which(n) for n in names):
@@ -543,7 +548,8 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
     rec = Recording.of(times, [net.names[i] for i in followers], rows)
     return NetRun(rec, net.tally, non_finite_estimates=net.non_finite,
                   non_finite_steps=sum(ag.non_finite_steps for ag in net.agents.values()),
-                  carried=sum(ag.carried for ag in net.agents.values()))
+                  carried=sum(ag.carried for ag in net.agents.values()),
+                  warm_starts=sum((ag.warm_starts for ag in net.agents.values()), Counter()))
 
 
 def run_network(scenario: Scenario, duration: float, record_every: float = 0.1,
@@ -562,6 +568,10 @@ def run_case(scenario: Scenario, case: FaultCase, duration: float,
                             garbage=case.garbage)
 
 
+# How close to the fault-free run at the same instant counts as caught up (catch_up_time).
+CATCH_UP_FACTOR = 1.5
+
+
 def reconvergence_time(rec: Recording, ref: Recording, fault_end: float) -> float | None:
     """Time after ``fault_end`` until both mean errors of ``rec`` are at or below the
     fault-free run's (``ref``, same record times) at ``fault_end``: how long the fleet needs
@@ -574,6 +584,24 @@ def reconvergence_time(rec: Recording, ref: Recording, fault_end: float) -> floa
     back = np.flatnonzero((rec.t >= fault_end - 1e-9) & (att <= ref_att[k])
                           & (pos <= ref_pos[k]))
     return round(float(rec.t[back[0]] - fault_end), 9) if back.size else None
+
+
+def catch_up_time(rec: Recording, ref: Recording, fault_end: float,
+                  factor: float = CATCH_UP_FACTOR) -> float | None:
+    """Time after ``fault_end`` from which both mean errors of ``rec`` stay within ``factor``
+    times the fault-free run's at the same instant (``ref``, same record times): back to the
+    run it would have been, not only to where that run was when the fault ended (which a fleet
+    that stays behind also reaches). None if not by the end."""
+    att, pos = rec.mean_errors()
+    ref_att, ref_pos = ref.mean_errors()
+    after = rec.t >= fault_end - 1e-9
+    within = (att <= factor * ref_att) & (pos <= factor * ref_pos)
+    out = np.flatnonzero(after & ~within)
+    k = np.flatnonzero(after)
+    if not k.size or (out.size and out[-1] == len(rec.t) - 1):
+        return None
+    first = out[-1] + 1 if out.size else k[0]
+    return round(max(float(rec.t[first] - fault_end), 0.0), 9)
 
 
 def convergence_cost(rec: Recording, ref: Recording) -> float:
