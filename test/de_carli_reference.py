@@ -58,7 +58,8 @@ Array = NDArray[np.float64]
 Complex = NDArray[np.complex128]
 Index = NDArray[np.intp]
 
-from bearing_pose_estimation.estimators.de_carli import EXCITATION_M2_S, EXCITATION_WINDOW_S
+from bearing_pose_estimation.estimators.de_carli import (EXCITATION_M2_S, EXCITATION_WINDOW_S,
+                                                        NOISE_MARGIN)
 
 @dataclass(frozen=True)
 class Pairs:
@@ -162,39 +163,43 @@ def dead_reckoning(p_hat: Array, psi_hat: Array, delta: Array) -> Array:
 
 
 class ExcitationMonitor:
-    """Per pair: the excitation its sensed robots give it (§5), the pairs the consensus may
-    use (:attr:`active`) and those excited within the last window (:attr:`excited_now`).
+    """Per pair: the excitation its sensed robots give it (§5), since the start (:attr:`total`)
+    and over an exponential window of length τ (``recent_k = e^{-h/τ} recent_{k-1} + tick_k``);
+    the pairs excited within the window (:attr:`excited_now`): above ``threshold`` plus
+    ``NOISE_MARGIN`` times the window's mean of pure odometry noise of density ``noise``
+    (``2 noise²`` per tick and sensed robot, summed with the window's weights); and the pairs
+    the consensus may use (:attr:`active`): excited now at some tick so far.
 
     Args:
         pairs: the pairs of the sensing edges.
         h: the tick [s] (the excitation of a tick is ``|δ_xy|²/h``).
+        noise: the odometry's noise density [m/√s].
     """
 
     def __init__(self, pairs: Pairs, h: float, threshold: float = EXCITATION_M2_S,
-                 window: float = EXCITATION_WINDOW_S) -> None:
-        self.pairs, self.h, self.threshold = pairs, h, threshold
+                 window: float = EXCITATION_WINDOW_S, noise: float = 0.0) -> None:
+        self.pairs, self.h = pairs, h
         m = len(pairs)
         # The robot each edge senses: its motion excites the edge's pair.
         self._sensed = np.where(pairs.reversed_, pairs.a[pairs.edge_pair],
                                 pairs.b[pairs.edge_pair])
+        self._decay = np.exp(-h / window)
+        weights = sum(self._decay ** k for k in range(int(50 * window / h)))   # Σ e^{-kh/τ}
+        sensed = np.bincount(pairs.edge_pair, minlength=m)
+        self.threshold = threshold + NOISE_MARGIN * 2.0 * noise ** 2 * weights * sensed
         self.total = np.zeros(m)          # ∫ Σ |v_xy|² dt since the start [m²/s]
-        self._recent = np.zeros((max(1, int(round(window / h))), m))
-        self._k = 0
+        self.recent = np.zeros(m)         # the same over the window
+        self.active = np.zeros(m, dtype=bool)
 
     def add(self, delta: Complex) -> None:
         """One tick's horizontal displacements ``δ`` ``(N,)`` (complex) of every robot."""
         per_edge = np.abs(delta[self._sensed]) ** 2 / self.h
         tick = np.bincount(self.pairs.edge_pair, weights=per_edge, minlength=len(self.pairs))
         self.total += tick
-        self._recent[self._k % self._recent.shape[0]] = tick
-        self._k += 1
-
-    @property
-    def active(self) -> NDArray[np.bool_]:
-        """Pairs excited enough to have converged: the ones stage 2 uses."""
-        return self.total >= self.threshold
+        self.recent = self._decay * self.recent + tick
+        self.active |= self.excited_now
 
     @property
     def excited_now(self) -> NDArray[np.bool_]:
-        """Pairs excited within the last window (a diagnostic: the fleet may have stopped)."""
-        return self._recent.sum(axis=0) >= self.threshold
+        """Pairs excited within the window (a diagnostic: the fleet may have stopped)."""
+        return self.recent >= self.threshold

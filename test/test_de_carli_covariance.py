@@ -108,7 +108,7 @@ def test_the_robot_maps_are_the_step_s_own():
     out = _step(sim, x, inputs)
     edges = inputs.edges
     ag, sl = edges.agent, edges.slot
-    active = (x.excitation[ag, sl] >= est.gains.pe_threshold) & np.where(
+    active = x.excited[ag, sl] & np.where(
         edges.flag('owns'), x.ready_pair[ag, sl], np.hypot(*inputs.edge['relyaw'].T) > 0.5)
     z_mid = out.z_hat * np.exp(-1j * yaw_of(inputs.delta_R))   # before the step's rotation
     maps = est.robot_maps(x, h, inputs, active, z_mid)

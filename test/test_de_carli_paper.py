@@ -328,9 +328,8 @@ def test_a_hovering_robot_s_pairs_are_warned_about_left_out_and_reported():
     x, t = sim.x, sim.table
     links = {'agent': t.agent, 'other': t.other, **t.flags}
     excited = {(int(a), int(b)) for a, b, e in zip(links['agent'], links['other'],
-                                                  x.excitation[links['agent'],
-                                                               sim.edges.slot])
-               if e >= 0.05}
+                                                  x.excited[links['agent'], sim.edges.slot])
+               if e}
     unexcited = {tuple(sorted(p)) for p in zip(links['agent'].tolist(),
                                                links['other'].tolist())} - {
         tuple(sorted(p)) for p in excited}
@@ -339,3 +338,31 @@ def test_a_hovering_robot_s_pairs_are_warned_about_left_out_and_reported():
     assert att[-1] < 1e-6 and pos[-1] < 1e-2, (att[-1], pos[-1])
     biased = BatchSimulator(parse_scenario(hovering(config('exogenous', **ALL_PAIRS)))).run(5.0)
     assert biased.mean_errors()[0][-1] > 1e-2
+
+
+def test_a_hovering_robot_s_odometry_noise_never_admits_its_pairs():
+    """Robot 7 hovers and every odometry has 0.1 m/s of white noise per component (200 Hz):
+    robot 7's noise alone adds 0.02 m²/s per second, so the integral since the start passes
+    0.05 m²/s (the fixed threshold the monitor had) after 2.5 s. Its pairs {4, 7} and {6, 7}
+    stay out for 5 s (their windows stay below twice the noise's mean), and every other pair
+    is in after 0.1 s; the check warns about the same two."""
+    data = hovering(config('exogenous'))
+    data['sensors']['odometry']['std'] = 0.1
+    scenario = parse_scenario(data)
+    warned = {f.problem.split()[2] for f in check_scenario(scenario).warnings
+              if 'never excited' in f.problem}
+    assert warned == {'robot_4-robot_7', 'robot_6-robot_7'}
+    sim = BatchSimulator(scenario)
+    t = sim.table
+    pairs = {tuple(sorted(p)) for p in zip(t.agent.tolist(), t.other.tolist())}
+
+    def out() -> set[tuple[int, int]]:
+        excited = sim.x.excited[t.agent, sim.edges.slot]
+        return pairs - {tuple(sorted((int(a), int(b))))
+                        for a, b, e in zip(t.agent, t.other, excited) if e}
+
+    sim.run(0.1)
+    assert out() == {(4, 7), (6, 7)}
+    sim.run(4.9)
+    assert out() == {(4, 7), (6, 7)}
+    assert sim.x.excitation[t.agent, sim.edges.slot][t.other == 7].min() > 0.05

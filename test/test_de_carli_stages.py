@@ -161,22 +161,44 @@ def test_unit_guards_a_vanishing_modulus():
     np.testing.assert_allclose(unit(np.array([2j, 0.0, 1e-300])), [1j, 1.0, 1.0])
 
 
-def test_the_excitation_monitor_admits_a_pair_once_and_reports_the_present():
+def test_the_excitation_monitor_admits_a_pair_once_its_motion_is_measurable():
     """Pair {0, 1} (robot 0 senses robot 1, which moves at 0.3 m/s for 1 s, then stops) and
-    pair {1, 2} (robot 1 senses robot 2, which hovers): the first joins the consensus after
-    0.05/0.09 = 0.56 s and stays in; it is no longer "excited now" a window after the stop."""
+    pair {1, 2} (robot 1 senses robot 2, which hovers). Without noise the first joins the
+    consensus at its first tick of motion and stays in; it is no longer "excited now" once its
+    window has forgotten the motion (0.09 m²/s (1 - e^{-1}) decays to 1e-6 in 11 s); the
+    second never joins."""
     from de_carli_reference import ExcitationMonitor
 
     pairs = Pairs.of(np.array([0, 1]), np.array([1, 2]))
     monitor = ExcitationMonitor(pairs, H)
-    moving = np.array([0.0, 0.3 * H, 0.0], dtype=complex)
-    for k in range(200):
-        monitor.add(moving)
-        if k == 109:
-            assert not monitor.active[0]
-        if k == 112:
-            assert monitor.active[0]
+    monitor.add(np.array([0.0, 0.3 * H, 0.0], dtype=complex))
+    assert list(monitor.active) == [True, False]
+    for _ in range(199):
+        monitor.add(np.array([0.0, 0.3 * H, 0.0], dtype=complex))
     assert list(monitor.excited_now) == [True, False]
-    for _ in range(200):
+    for k in range(int(12.0 / H)):
         monitor.add(np.zeros(3, dtype=complex))
+        if k == int(10.0 / H):
+            assert monitor.excited_now[0]
     assert list(monitor.active) == [True, False] and not monitor.excited_now.any()
+
+
+def test_odometry_noise_alone_never_admits_a_hovering_robot_s_pair():
+    """The same pairs with config/de_carli_noisy.yaml's odometry noise (0.02 m/s per
+    component at 200 Hz) on every robot, for 100 s: robot 2's noise alone adds 8e-4 m²/s per
+    second, so the integral since the start passes 0.05 m²/s (the fixed threshold this monitor
+    replaced) after about 63 s, but its window never passes twice the noise's mean, while robot
+    1's 0.3 m/s gets the first pair in within 0.05 s."""
+    from de_carli_reference import ExcitationMonitor
+
+    sigma = 0.02
+    pairs = Pairs.of(np.array([0, 1]), np.array([1, 2]))
+    monitor = ExcitationMonitor(pairs, H, noise=sigma * np.sqrt(H))
+    rng = np.random.default_rng(0)
+    for k in range(int(100.0 / H)):
+        noise = sigma * H * (rng.normal(size=3) + 1j * rng.normal(size=3))
+        monitor.add(noise + np.array([0.0, 0.3 * H, 0.0]))
+        if k == int(0.05 / H):
+            assert list(monitor.active) == [True, False]
+    assert monitor.total[1] > 0.05
+    assert list(monitor.active) == [True, False]

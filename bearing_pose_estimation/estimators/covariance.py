@@ -65,7 +65,8 @@ class PoseCovarianceModel:
     base of the methods' gains dataclasses; keyword-only, so that the methods' own gains stay
     first in their constructors; ``model=True``: tables of gains leave them out). The noise
     densities default to a simulation's ``noise:`` and ``sensors:`` (scenario.parse), 0
-    otherwise."""
+    otherwise. One estimate reads them too: De Carli et al.'s excitation monitor, the
+    odometry's (what its noise alone looks like, de_carli.py)."""
 
     gyro_noise_density: float = gain(0.0, 'gyro angle random walk [rad/sqrt(s)] (gyro std / '
                                      'sqrt(IMU rate)), for the covariance', zero_allowed=True,

@@ -62,9 +62,18 @@ pair starts at ``unit(conj(ẑ_i) ẑ_j)`` from the first ``ẑ_j`` received (at
 the paper's scenario).
 
 Persistent excitation (Theorem 1, §5): only the sensed robots' horizontal motion excites a
-pair. Both ends integrate it from the odometry they both have (``∫|v_xy|² dt``: own and
-received); a pair joins the consensus once it reaches ``pe_threshold`` and stays in
-(:data:`EXCITATION_M2_S`); ``excitation_recent`` (a 1 s window) says whether it is excited now.
+pair. Both ends sum it from the odometry they both have (``|δ_xy|²/h`` per step: own and
+received), since the start (``excitation``, ``∫|v_xy|² dt``) and over an exponential window
+of :data:`EXCITATION_WINDOW_S` (``excitation_recent``). A pair joins the consensus as soon as
+its window's excitation is measurable, and stays in (``excited``): above ``pe_threshold`` plus
+:data:`NOISE_MARGIN` times what the odometry's noise alone puts in the window
+(:meth:`DeCarli.excitation_threshold`). Why (BENCHMARKS.md, "The excitation monitor"): the
+consensus follows stage 1 at ``k_z λ₂ = 80 s⁻¹``, so a pair whose relative yaw is converging
+costs it nothing, and waiting for a fixed amount of motion only delays the positions; the pair
+to keep out is one whose relative yaw never leaves its initial value, because its sensed
+robots do not move. A hovering robot's odometry is its noise, and a threshold on the integral
+since the start is crossed by that noise alone (0.05 m²/s after 63 s of
+``config/de_carli_noisy.yaml``'s odometry noise); a window's never is.
 
 Everything converges only up to one common yaw and translation
 (``EstimateFrame.COMMON_YAW_TRANSLATION``): the estimates live in an estimation frame whose
@@ -108,13 +117,18 @@ RELYAW = Channel('relyaw', per='edge', frame='body', shape=(2,), owner_only=True
 
 # |ẑ| below this has no usable angle (Remark 3): its unit value is taken as 1.
 MIN_MODULUS = 1e-12
-# Persistent excitation (Theorem 1, §5): a pair is excited by the horizontal motion of the
-# robots its edges sense; it joins the consensus once ∫ |v_xy|² dt over its sensed robots
-# reaches EXCITATION_M2_S (0.05 m²/s: e.g. 0.5 s at 0.3 m/s; the slow rate of stage 1 is
-# ≈ k_ψ |v_xy|²/k_pe, §2), and it stays in: the paper's own fleet stops once in formation.
-EXCITATION_M2_S = 0.05
-# The window of the "excited now" diagnostic [s].
+# Persistent excitation (Theorem 1, §5), the module docstring: the window [s] over which a
+# pair's excitation must be measurable, and the default floor it must exceed besides the
+# noise's, EXCITATION_M2_S [m²/s]: 1 mm/s held over the window, far above rounding (a hovering
+# robot's simulated odometry is exactly 0) and far below what a real odometry's noise lets one
+# see (the noise term: 0.028 m/s with config/de_carli_noisy.yaml's odometry).
 EXCITATION_WINDOW_S = 1.0
+EXCITATION_M2_S = 1e-6
+# The window's excitation must exceed this many times the noise's mean in it: the sensed robots'
+# mean square speed at least the odometry noise's (2σ² for a 2-D velocity with σ per component).
+# The noise's own share never gets there: its standard deviation in the window is
+# sqrt(h / (2 c τ)) times its mean (c sensed robots), 1/20 of it at 200 Hz, 1/10 at 50 Hz.
+NOISE_MARGIN = 2.0
 # The diagnostics' stage of a robot: the first stage whose residual is above its threshold
 # (the relative-position error of its pairs [m], the consensus disagreement of its yaw, the
 # position residual of (21) [m]), or 'converged'.
@@ -168,8 +182,9 @@ class DeCarliGains(PoseCovarianceModel):
     position_rate: float = gain(50.0, 'rate of the position correction (21) [Hz]; divides the '
                                       'estimator frequency')
     pe_threshold: float = gain(EXCITATION_M2_S, 'excitation a pair needs to join the yaw '
-                               'consensus, integral of |v_xy|^2 [m^2/s] (0: every pair from the '
-                               'start)', zero_allowed=True)
+                               'consensus, beyond the odometry noise\'s, integral of |v_xy|^2 '
+                               'over the last second [m^2/s] (0: every pair from the start)',
+                               zero_allowed=True)
     relative_position_std: float = gain(0.0, 'relative position noise std [m] per component, '
                                         'for the covariance', zero_allowed=True, model=True)
 
@@ -192,13 +207,16 @@ class DeCarliState(State):
     ready_in: NDArray[np.bool_]
     ready_pair: NDArray[np.bool_]
     excitation: Array         # (N, D) ∫ |v_xy|² dt of the pair's sensed robots [m²/s]
-    excitation_recent: Array  # (N, D) the same over a 1 s exponential window
+    excitation_recent: Array  # (N, D) the same over the exponential window
+    excited_now: NDArray[np.bool_]  # (N, D) the window's excitation is measurable
+    excited: NDArray[np.bool_]      # (N, D) it was once: in the consensus from then on
     P: Array                  # (N, 6, 6) the pose covariance (de_carli_covariance.py)
     P_pair: Array             # (N, D, 6, 6) each pair's (E_out, ζ, E_in); 0: not started
 
     LINK_FIELDS: ClassVar[tuple[str, ...]] = (
         'P_out', 'Pz_out', 'P_in', 'Pz_in', 'z_pair', 'd_other', 'ready_out', 'ready_in',
-        'ready_pair', 'excitation', 'excitation_recent', 'P_pair')
+        'ready_pair', 'excitation', 'excitation_recent', 'excited_now',
+        'excited', 'P_pair')
 
     @property
     def slots(self) -> int:
@@ -253,7 +271,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         n = R_hat.shape[0]
         psi = yaw_of(R_hat)
         links = {name: np.zeros((n, 0), complex if name.startswith(('P_', 'z_', 'd_'))
-                                else bool if name.startswith('ready') else float)
+                                else bool if name.startswith(('ready', 'excited')) else float)
                  for name in DeCarliState.LINK_FIELDS}
         links['P_pair'] = np.zeros((n, 0, cov.PAIR, cov.PAIR))
         return DeCarliState(R_hat=rot_z(psi), p_hat=np.array(p_hat, dtype=float),
@@ -282,6 +300,21 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         out.z_hat = np.exp(1j * yaw_of(delta_R)) * x.z_hat
         out.R_hat = rot_z(np.angle(out.z_hat))
         return out
+
+    def window_noise(self, h: float) -> float:
+        """The mean excitation the odometry's noise alone puts in a pair's window, per sensed
+        robot [m²/s]. A tick's ``|δ_xy|²/h`` of noise of density n has mean ``2n²`` (``h n²``
+        per component of δ, §7; less when the odometry is slower than the step), and the
+        window weighs the ticks by ``e^{-kh/τ}``: ``2n²/(1 - e^{-h/τ})``."""
+        return float(2.0 * self.gains.odometry_noise_density ** 2
+                     / -np.expm1(-h / EXCITATION_WINDOW_S))
+
+    def excitation_threshold(self, sensed: Array | float, h: float) -> Array:
+        """What a pair's window must reach to be excited (module docstring), ``sensed`` the
+        number of robots its edges sense: ``pe_threshold`` plus :data:`NOISE_MARGIN` times the
+        noise's share."""
+        return self.gains.pe_threshold + NOISE_MARGIN * self.window_noise(h) * np.asarray(
+            sensed, dtype=float)
 
     def every(self, rate: float, h: float) -> int:
         """Estimator steps per period of a stage running at ``rate``."""
@@ -384,7 +417,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
 
         # 2. Stage 2: the Jacobi step of (13) over the excited pairs.
         pair_u = np.where(owns, unit(out.z_pair[ag, sl]), np.conj(unit(as_complex(rec['relyaw']))))
-        active = (x.excitation[ag, sl] >= g.pe_threshold) & fresh & np.where(
+        active = (x.excited[ag, sl] | (g.pe_threshold == 0.0)) & fresh & np.where(
             owns, out.ready_pair[ag, sl], np.hypot(*rec['relyaw'].T) > 0.5)
         pull = np.where(active, np.conj(pair_u) * z_j, 0.0)
         yaw_target = edges.sum_by_agent(as_pair(pull))
@@ -425,6 +458,9 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         out.excitation[ag, sl] = x.excitation[ag, sl] + tick_excitation
         decay = np.exp(-h / EXCITATION_WINDOW_S)
         out.excitation_recent[ag, sl] = decay * x.excitation_recent[ag, sl] + tick_excitation
+        out.excited_now[ag, sl] = out.excitation_recent[ag, sl] >= self.excitation_threshold(
+            senses.astype(float) + sensed_by, h)
+        out.excited[ag, sl] = x.excited[ag, sl] | out.excited_now[ag, sl]
 
         # 4. Dead reckoning with the new yaw, then the yaw's rotation over the step.
         out.p_hat = out.p_hat + np.einsum('nab,nb->na', rot_z(np.angle(z_hat)), delta_i)
@@ -521,13 +557,15 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
     edge_error_label: ClassVar[str] = 'rel_yaw_err'
 
     def neighbour_report(self, x: DeCarliState, slots: int) -> dict[str, list[str]]:
-        """Each pair's excitation so far [m²/s] and whether it is excited now (Theorem 1)."""
-        total, recent = x.excitation[0], x.excitation_recent[0]
-        threshold = self.gains.pe_threshold
+        """Each pair's excitation so far [m²/s], whether the consensus uses it and whether it
+        is excited now (Theorem 1)."""
+        total, used, now = x.excitation[0], x.excited[0], x.excited_now[0]
+        every = self.gains.pe_threshold == 0.0
         return {'excitation': [
             f'{float(total[e]) if e < total.size else 0.0:.3g} m2/s, '
-            + ('excited now' if e < recent.size and recent[e] >= threshold
-               else 'not excited now') for e in range(slots)]}
+            + ('in the consensus, ' if every or (e < used.size and used[e]) else 'left out, ')
+            + ('excited now' if e < now.size and now[e] else 'not excited now')
+            for e in range(slots)]}
 
     def edge_errors(self, x: DeCarliState, R: Array, edges: Edges, other: Index) -> Array:
         """Fig. 2(a): per link, ``|ẑ_ij - e^{ι(ψ_j - ψ_i)}|`` (chordal, no alignment needed)
@@ -585,20 +623,33 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
                 f'lower k_p below {EULER_LIMIT / (h3 * lam):.3g} or raise position_rate'))
         if not fleet.moves:
             for a_, b_, sensed in pairs_and_sensed(fleet):
-                report.findings.append(unexcited(names, a_, b_, sensed, 0.0))
+                report.findings.append(unexcited(names, a_, b_, sensed, 0.0, max(
+                    self.gains.pe_threshold, EXCITATION_M2_S)))
         return report
 
     def check_motion(self, fleet: Fleet, times: Array, positions: Array) -> list[Finding]:
         """Warn for every pair whose sensed robots' horizontal motion along the sampled truth
-        stays below the excitation the consensus waits for (the paper's mode is checked with
-        the exogenous motion: the truth cannot depend on estimates here)."""
+        never makes its window's excitation measurable: its true excitation plus the noise's
+        mean never reaches :meth:`excitation_threshold` (the paper's mode is checked with the
+        exogenous motion: the truth cannot depend on estimates here)."""
         names = list(fleet.names)
-        step = np.diff(positions[:, :, :2], axis=0)
-        dt = np.diff(times)[:, None]
-        energy = (np.sum(step ** 2, axis=2) / np.maximum(dt, 1e-300)).sum(axis=0)  # (N,)
-        return [unexcited(names, a, b, sensed, float(energy[list(sensed)].sum()))
-                for a, b, sensed in pairs_and_sensed(fleet)
-                if energy[list(sensed)].sum() < EXCITATION_M2_S]
+        dt = np.diff(times)
+        energy = (np.sum(np.diff(positions[:, :, :2], axis=0) ** 2, axis=2)
+                  / np.maximum(dt, 1e-300)[:, None])   # (K-1, N): ∫|v_xy|² over each interval
+        window = np.zeros_like(energy)   # each robot's exponential window at each sample
+        now = np.zeros(energy.shape[1])
+        for k in range(len(dt)):
+            now = window[k] = np.exp(-dt[k] / EXCITATION_WINDOW_S) * now + energy[k]
+        found = []
+        for a, b, sensed in pairs_and_sensed(fleet):
+            peak = float(window[:, list(sensed)].sum(axis=1).max(initial=0.0))
+            # The true motion the window needs, the noise's mean adding to it; with
+            # pe_threshold 0 the pair is in anyway, its relative yaw as stuck.
+            needed = (max(self.gains.pe_threshold, EXCITATION_M2_S) + (NOISE_MARGIN - 1.0)
+                      * self.window_noise(fleet.step) * len(sensed))
+            if peak < needed:
+                found.append(unexcited(names, a, b, sensed, peak, needed))
+        return found
 
 
 def edge_laplacian(tail: Index, head: Index, n: int) -> Array:
@@ -618,11 +669,13 @@ def pairs_and_sensed(fleet: Fleet) -> list[tuple[int, int, set[int]]]:
     return [(a, b, sensed) for (a, b), sensed in sorted(pairs.items())]
 
 
-def unexcited(names: list[str], a: int, b: int, sensed: set[int], energy: float) -> Finding:
+def unexcited(names: list[str], a: int, b: int, sensed: set[int], peak: float,
+              needed: float) -> Finding:
     who = ' and '.join(names[k] for k in sorted(sensed))
     return Finding('warning', names[b], 'neighbours',
                    f'the pair {names[a]}-{names[b]} is never excited: {who} (what its edges '
-                   f'sense) moves {energy:.3g} m^2/s horizontally (integral of |v_xy|^2), '
-                   f'below {EXCITATION_M2_S:g}; its relative yaw cannot converge and the '
-                   'consensus leaves it out',
+                   f'sense) moves at most {peak:.3g} m^2/s horizontally (integral of |v_xy|^2 '
+                   f'over the last {EXCITATION_WINDOW_S:g} s), below the {needed:.3g} its '
+                   'odometry would show above its noise; its relative yaw cannot converge and '
+                   'the consensus leaves it out',
                    f'make {who} move horizontally, or add a sensing edge to a robot that does')
