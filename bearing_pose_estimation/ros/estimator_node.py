@@ -406,10 +406,12 @@ class EstimatorNode(Node):
         ``deferred``: the channels that waited for their own measurements."""
         rt = self.rt
         assert rt is not None
+        if rt.withholding:   # cold: no estimate yet rather than a wrong one
+            return
         t, frame = rt.t, self.s.estimate_frame
         if not deferred and (force or (self._published_k != rt.k and (grid or any(
                 rt.sends_now(c.name, grid) for c in self.pose_channels)))):
-            if self.pub_pose is not None and not rt.withholding:   # first: neighbours wait
+            if self.pub_pose is not None:   # first: what the neighbours' steps wait for
                 self.pub_pose.publish(cdr.encode_pose_covariance_raw(
                     t, frame, rt.R_hat[0], rt.p_hat[0], rt.covariance()))
             self.pub_estimate.publish(cdr.encode_pose_raw(t, frame, rt.R_hat[0], rt.p_hat[0]))
@@ -419,7 +421,7 @@ class EstimatorNode(Node):
             self._published_k = rt.k
         due = {topic: (pub, chans) for topic, (pub, chans) in self.topics.items()
                if any(c.round == 1 and (force or rt.sends_now(c.name, grid)) for c in chans)}
-        if not due or rt.withholding:
+        if not due:
             return
         if (not force and self.method.links == 'sensing' and rt.odometry_live()
                 and not rt.measured_at(t)):

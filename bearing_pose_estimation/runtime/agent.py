@@ -1146,10 +1146,10 @@ class AgentRuntime:
 
     @property
     def withholding(self) -> bool:
-        """Whether it sends nothing to its neighbours: cold, until its warm start is decided.
-        A cold estimate costs its listeners more than its silence (issue 29: a restarted
-        agent_4's first values took agent_5 from 8e-5 to 0.16-0.61 rad), and a silent neighbour
-        is left out of their steps, not waited for."""
+        """Whether it publishes nothing (estimate, channels): cold, until its warm start is
+        decided. A cold estimate costs its listeners more than its silence (issue 29: a
+        restarted agent_4's first values took agent_5 from 8e-5 to 0.16-0.61 rad), and a
+        silent neighbour is left out of their steps, not waited for."""
         return self.cold_since is not None and self.limits.warm_window > 0
 
     def outbox(self) -> dict[str, object]:
