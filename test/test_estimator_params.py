@@ -418,6 +418,43 @@ def test_the_monitor_is_ready_once_every_follower_s_t0_estimate_is_in(context, r
         node.destroy_node()
 
 
+def test_the_monitor_finishes_without_the_estimate_of_a_robot_that_is_gone(
+        context, repo_root, tmp_path, monkeypatch, capfd):
+    """The truth of t = duration is in but a follower's estimate is not (its process died and
+    was not started again): after END_PATIENCE_S of wall time the monitor writes its outputs
+    from the rows it has, naming whose estimate is missing, instead of waiting for ever."""
+    import json
+
+    from bearing_pose_estimation.ros import monitor_node
+
+    now = [100.0]
+    monkeypatch.setattr(monitor_node.time, 'monotonic', lambda: now[0])
+    node = monitor_node.MonitorNode(context=context, parameter_overrides=[
+        Parameter('scenario_file', value=str(repo_root / 'config' / 'paper_8_agents.yaml')),
+        Parameter('out_dir', value=str(tmp_path)), Parameter('plots', value=False),
+        Parameter('duration', value=0.2)])
+    try:
+        pose = cdr.encode_pose_raw
+        for t in (0.1, 0.2):
+            for k in range(len(node.watched)):
+                node._on_pose(node._truth, k, pose(t, 'world', np.eye(3), np.zeros(3)))
+            for k, name in enumerate(node.followers):
+                if t < 0.15 or name != 'agent_4':   # agent_4 died after 0.1 s
+                    node._on_pose(node._est, k, pose(t, 'world', np.eye(3), np.zeros(3)))
+        node.on_end_check()
+        now[0] += monitor_node.END_PATIENCE_S - 0.1
+        node.on_end_check()
+        assert not node.finished.done()
+        now[0] += 0.2
+        node.on_end_check()
+        assert node.finished.done()
+        assert 'no estimate of t = 0.2 s from agent_4 after' in capfd.readouterr().err
+        summary = json.loads((tmp_path / 'summary.json').read_text())
+        assert summary['complete'] is False and summary['duration_s'] == pytest.approx(0.1)
+    finally:
+        node.destroy_node()
+
+
 def _estimate_writers(context, names):
     """A node with an estimate writer for each of ``names`` (the estimators alive), once the
     graph shows them."""

@@ -82,6 +82,8 @@ if behaviour == 'shm':           # leaves a (fake) Fast DDS shared-memory file
     Path(os.environ['STANDIN_SHM'], 'fastrtps_standin').write_text('')
 if behaviour == 'port':          # leaves a lock-less port file, as Fast DDS does after clean exits
     Path(os.environ['STANDIN_SHM'], 'fastrtps_port7411').write_text('')
+if name == 'simulator' and behaviour != 'no_clock':   # the run has begun
+    print('[simulator]: all matched after 0.01 s; clock starts at t = 0', flush=True)
 tmp = Path(os.environ['STANDIN_DIR'], name + '.tmp')
 tmp.write_text(json.dumps(record))
 tmp.rename(tmp.with_suffix('.json'))
@@ -89,7 +91,8 @@ tmp.rename(tmp.with_suffix('.json'))
 if behaviour == 'crash':
     # Crash once the monitor is up (it records itself after installing its SIGINT handler):
     # the test checks that the monitor, stopped because of this crash, writes partial outputs.
-    monitor_up = Path(os.environ['STANDIN_DIR'], 'monitor.json')
+    after = os.environ.get('STANDIN_CRASH_AFTER', 'monitor')
+    monitor_up = Path(os.environ['STANDIN_DIR'], after + '.json')
     deadline = time.monotonic() + 30
     while not monitor_up.exists() and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -406,6 +409,7 @@ def test_a_robot_that_dies_is_reported_and_can_be_started_again(standins, tmp_pa
     environment). Started again with it, the robot runs until the run's end, which stops it
     too. The run's exit code (3) and summary.json (deaths) say what happened."""
     monkeypatch.setenv('STANDIN_AGENT_3', 'crash')
+    monkeypatch.setenv('STANDIN_CRASH_AFTER', 'simulator')   # once the clock runs
     monkeypatch.setenv('STANDIN_MONITOR_UNTIL', str(tmp_path / 'the_end'))
     out = tmp_path / 'out'
     script = out / 'logs' / 'restart_agent_3.sh'
@@ -442,6 +446,21 @@ def test_a_robot_that_dies_is_reported_and_can_be_started_again(standins, tmp_pa
     assert [(d['process'], d['how'], d['running_again_at_the_end'])
             for d in summary['deaths']] == [('agent_3', 'exited with code 3', True)]
     assert f'started again by hand, running until the end (pid {again["pid"]})' in err
+
+
+def test_a_robot_that_cannot_start_ends_the_run(standins, tmp_path, monkeypatch, capsys):
+    """An estimator that ends before the simulator started the clock did not start (a bad
+    parameter, a crash at start-up): the run cannot begin, and ends at once with its log."""
+    monkeypatch.setenv('STANDIN_AGENT_3', 'crash')
+    monkeypatch.setenv('STANDIN_SIMULATOR', 'no_clock')
+    monkeypatch.setenv('STANDIN_MONITOR_DELAY', '60')
+    t0 = time.monotonic()
+    assert main(['run', str(PAPER), '--out', str(tmp_path / 'out')]) == 1
+    assert time.monotonic() - t0 < 45   # not when the monitor would finish (60 s here)
+    err = capsys.readouterr().err
+    assert 'estimator agent_3 exited with code 3 before the clock started' in err
+    assert '| boom: something went wrong' in err and 'restart_agent_3.sh' not in err
+    assert_all_gone(records(standins))
 
 
 def test_the_simulator_dying_ends_the_run(standins, tmp_path, monkeypatch, capsys):

@@ -23,8 +23,8 @@ from typing import IO, Any
 
 from ..plan.dds import (CLEAN_EXITS, DDS_VARIABLES, TEARDOWN_HUNG, clean_shm, dds_env,
                         shm_files)
-from ..plan.processes import (LAUNCH_FILE, MARKERS, LaunchError, ProcessSpec, RunConfig,
-                              find_executable, fit_agents_per_process, launch_xml,
+from ..plan.processes import (CLOCK_STARTED, LAUNCH_FILE, MARKERS, LaunchError, ProcessSpec,
+                              RunConfig, find_executable, fit_agents_per_process, launch_xml,
                               plan_processes, write_params)
 from ..scenario.model import Scenario
 
@@ -238,11 +238,11 @@ class ProcessGroup:
 
     def wait_for(self, target: str, timeout: float, watch: Collection[str] = (),
                  survive: Collection[str] = (),
-                 on_exit: Callable[[str, int], None] | None = None) -> Failure | None:
+                 on_exit: Callable[[str, int], Failure | None] | None = None) -> Failure | None:
         """Wait until ``target`` exits. None if it exited with 0; a Failure if it exited
         otherwise, if a ``watch``ed child exited non-zero first, or after ``timeout`` s. The
-        exit of a child in ``survive``, whatever its code, goes to ``on_exit`` (once) and the
-        wait goes on."""
+        exit of a child in ``survive``, whatever its code, goes to ``on_exit`` (once), and
+        the wait goes on unless that returns a Failure."""
         deadline = time.monotonic() + timeout
         noted: set[str] = set()
         while True:
@@ -253,8 +253,9 @@ class ProcessGroup:
                 code = self.returncode(name)
                 if code is not None and name not in noted:
                     noted.add(name)
-                    if on_exit is not None:
-                        on_exit(name, code)
+                    failure = None if on_exit is None else on_exit(name, code)
+                    if failure is not None:
+                        return failure
             for name in watch:
                 code = self.returncode(name)
                 if code not in (None, *CLEAN_EXITS):
@@ -500,9 +501,14 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
     result = RunResult(ok=False, wall_s=0.0)
     by_name = {s.name: s for s in specs}
 
-    def died(name: str, code: int) -> None:
-        """A robot's process ended: say so and how to start it again; the run goes on."""
-        spec = by_name[name]
+    def died(name: str, code: int) -> Failure | None:
+        """A robot's process ended: say so and how to start it again; the run goes on. Before
+        the clock started, it failed to start: the run cannot (its log says why)."""
+        spec, started = by_name[name], False
+        with contextlib.suppress(OSError):
+            started = CLOCK_STARTED in by_name['simulator'].log.read_text(errors='replace')
+        if not started:
+            return group.failure(name, f'{describe_exit(code)} before the clock started')
         command = restart_command(spec, env, cfg.out_dir)
         death = Death(name, spec.label, describe_exit(code), time.perf_counter() - wall,
                       restart_script(spec, command, cfg.out_dir))
@@ -513,6 +519,7 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
               + f'.\n  To start it again (its command and DDS environment; output appended '
               f'to its log):\n    sh {death.restart}\n  which runs: {command}',
               file=sys.stderr)
+        return None
 
     try:
         with ProcessGroup(env) as group:

@@ -144,7 +144,8 @@ class MonitorNode(Node):
         if self._end_seen is None:
             self._end_seen = now
         elif now - self._end_seen >= END_PATIENCE_S:
-            missing = [n for k, n in enumerate(self.followers) if k not in self._est.get(end[0], {})]
+            have = self._est.get(end[0], {})
+            missing = [n for k, n in enumerate(self.followers) if k not in have]
             self.get_logger().warning(
                 f'no estimate of t = {end[0] * 1e-9:g} s from {", ".join(missing)} after '
                 f'{END_PATIENCE_S:g} s of wall time: finishing with the rows recorded (every '

@@ -52,6 +52,7 @@ from .monitor_node import watched
 from .node_main import (declare, run_node, scenario_parameter, wall_timer,
                         warn_unknown_parameters)
 from .wiring import listener_counts, recorded_topics
+from ..plan.processes import CLOCK_STARTED
 from ..sim.world import World
 
 # Sim time advanced per wall-timer callback at most: keeps the node responsive to Ctrl-C and to
@@ -220,7 +221,7 @@ class SimulatorNode(Node):
         self.state = 'running'
         self.sim_wall_start = time.monotonic()
         self.get_logger().info(f'all matched after {self.sim_wall_start - self.wall_start:.2f} s;'
-                               ' clock starts at t = 0')
+                               f' {CLOCK_STARTED}')
         self._publish(clock=True)
 
     # --------------------------------------------------------------------------- running
@@ -283,7 +284,8 @@ class SimulatorNode(Node):
     def _watch_lockstep(self) -> None:
         """Stop waiting for the estimators that hold the clock while their estimate writer is
         gone, or for :attr:`patience` of wall time (named in a warning); wait for an absent
-        one again once it has caught up with the slowest waited-for one."""
+        one again once it has stepped :attr:`rejoin_after` since it came back and caught up
+        with the slowest waited-for one."""
         slowest, now = self._slowest(), time.monotonic()
         moved = self.absent & (self.progress > self.left_at) & np.isinf(self.back_at)
         self.back_at[moved] = self.progress[moved]
