@@ -9,9 +9,10 @@ run (netsim's, which a fault-free lockstep DDS run equals to 2e-9).
         [--domain-id 96] [--harness]
 
 ``--harness``: no `bearing-pose run`, which before issue 29 ended the whole run at a death:
-the processes in a ProcessGroup, the simulator without lockstep at real time (lockstep froze
-the clock at the death), the victim started again with its own command line. It needs only
-what main had, so it measures main too (PYTHONPATH=<main checkout>).
+the processes in a ProcessGroup, the simulator without lockstep (lockstep froze the clock at
+the death) at ``--real-time-factor`` (default 1; on a loaded machine the fleet cannot keep up
+and diverges: 0.5), the victim started again with its own command line. It needs only what
+main had, so it measures main too (PYTHONPATH=<main checkout>).
 """
 from __future__ import annotations
 
@@ -85,6 +86,9 @@ def main() -> None:
     ap.add_argument('--signal', default='KILL', choices=['KILL', 'INT'])
     ap.add_argument('--domain-id', type=int, default=96)
     ap.add_argument('--harness', action='store_true')
+    ap.add_argument('--real-time-factor', type=float, default=1.0,
+                    help='--harness: the simulator\'s pace (without lockstep, a fleet that cannot '
+                    'keep up with it diverges)')
     ap.add_argument('--out', type=Path)
     args = ap.parse_args()
     out = (args.out or Path(tempfile.mkdtemp(prefix='restart_dds_'))).resolve()
@@ -167,11 +171,11 @@ def cli(args: argparse.Namespace, out: Path, watch: Watch, sig: signal.Signals,
 
 def harness(args: argparse.Namespace, out: Path, watch: Watch, sig: signal.Signals,
             marks: dict[str, float]) -> int:
-    """The processes in a ProcessGroup, the simulator without lockstep at real time."""
+    """The processes in a ProcessGroup, the simulator without lockstep."""
     scenario = load_scenario(args.scenario)
     cfg = plan.RunConfig(scenario_file=args.scenario.resolve(), out_dir=out,
                          duration=args.duration, domain_id=args.domain_id, plots=False,
-                         real_time_factor=1.0)
+                         real_time_factor=args.real_time_factor)
     cfg.logs_dir.mkdir(parents=True, exist_ok=True)
     params = plan.write_params(scenario, cfg)
     specs = {s.name: s for s in plan.plan_processes(scenario, params, cfg.logs_dir,

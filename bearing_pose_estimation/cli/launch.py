@@ -1,5 +1,7 @@
 """``bearing-pose run``: start the processes of a run (:mod:`plan.processes`), wait for the
 monitor, and stop everything cleanly. No rclpy: usable and testable without a DDS stack.
+A robot's process that ends mid-run does not end the run: it is reported with the command that
+starts it again (:func:`restart_script`), and a process so started is stopped at the end.
 
 :class:`ProcessGroup` owns child processes, watches them, and stops them in reverse start order
 (SIGINT, then SIGTERM, then SIGKILL as a last resort) so that no process is left behind.
