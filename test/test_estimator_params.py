@@ -3,6 +3,7 @@ the types a ROS parameter file gives, and the errors and warnings a user sees. B
 (no other node needed), except where the real executable's output is what matters."""
 import os
 import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -282,6 +283,44 @@ def test_input_frames_rate_limit_diagnostics_and_exchange_parameters(context):
         default.destroy_node()
 
 
+def test_a_late_start_counts_no_input_as_a_fault(context):
+    """A process started after t0 (a robot started again mid-run) has a runtime at t0 until its
+    first gyro sample: the bearings and neighbour values that come before it are ahead of it,
+    early, not bad (event_early_inputs; its health stays OK). The first gyro sample starts its
+    time (gyro_gap); from then on a stamp from the future is a rejected input again."""
+    from bearing_pose_estimation.runtime.health import OK, WARN, health
+
+    node = _node(context, **EXPLICIT)
+    on_pose = next(s for s in node.subscriptions if s.topic_name == '/agent_1/pose').callback
+
+    def bearing(t):
+        node.on_points(Sensor.BEARINGS, cdr.encode_vectors_raw(
+            t, 'agent_5/base_link', np.array([1]), np.array([[1.0, 0.0, 0.0]])))
+
+    def pose(t):
+        on_pose(cdr.encode_pose_covariance_raw(t, 'world', np.eye(3), [1.0, 2.0, 3.0],
+                                               0.1 * np.eye(6)))
+
+    try:
+        assert node.rt.t == 0.0
+        bearing(25.0)
+        pose(25.0)
+        assert node.rejected == {} and node.events == {'early_inputs': 2}
+        assert health(node.rt, node.rejected, node.events).level == OK
+        node.on_imu(cdr.encode_imu_raw(25.0, 'agent_5', np.zeros(3)))
+        assert node.events['gyro_gap'] == 1 and node.rt.t == pytest.approx(25.0)
+        bearing(25.0)
+        pose(25.0)
+        assert node.rejected == {}
+        assert node.rt.peers[0].values['p_hat'].newest_stamp == 25.0
+        bearing(40.0)
+        pose(40.0)
+        assert node.rejected == {'future_stamp': 2}
+        assert health(node.rt, node.rejected, node.events).level == WARN
+    finally:
+        node.destroy_node()
+
+
 @pytest.mark.parametrize('publish_clock', [True, False])
 def test_the_simulator_clock_can_be_turned_off(context, repo_root, publish_clock):
     """`publish_clock: false` (another node owns /clock, e.g. a bag replay): no /clock
@@ -379,32 +418,144 @@ def test_the_monitor_is_ready_once_every_follower_s_t0_estimate_is_in(context, r
         node.destroy_node()
 
 
+def test_the_monitor_finishes_without_the_estimate_of_a_robot_that_is_gone(
+        context, repo_root, tmp_path, monkeypatch, capfd):
+    """The truth of t = duration is in but a follower's estimate is not (its process died and
+    was not started again): after END_PATIENCE_S of wall time the monitor writes its outputs
+    from the rows it has, naming whose estimate is missing, instead of waiting for ever."""
+    import json
+
+    from bearing_pose_estimation.ros import monitor_node
+
+    now = [100.0]
+    monkeypatch.setattr(monitor_node.time, 'monotonic', lambda: now[0])
+    node = monitor_node.MonitorNode(context=context, parameter_overrides=[
+        Parameter('scenario_file', value=str(repo_root / 'config' / 'paper_8_agents.yaml')),
+        Parameter('out_dir', value=str(tmp_path)), Parameter('plots', value=False),
+        Parameter('duration', value=0.2)])
+    try:
+        pose = cdr.encode_pose_raw
+        for t in (0.1, 0.2):
+            for k in range(len(node.watched)):
+                node._on_pose(node._truth, k, pose(t, 'world', np.eye(3), np.zeros(3)))
+            for k, name in enumerate(node.followers):
+                if t < 0.15 or name != 'agent_4':   # agent_4 died after 0.1 s
+                    node._on_pose(node._est, k, pose(t, 'world', np.eye(3), np.zeros(3)))
+        node.on_end_check()
+        now[0] += monitor_node.END_PATIENCE_S - 0.1
+        node.on_end_check()
+        assert not node.finished.done()
+        now[0] += 0.2
+        node.on_end_check()
+        assert node.finished.done()
+        assert 'no estimate of t = 0.2 s from agent_4 after' in capfd.readouterr().err
+        summary = json.loads((tmp_path / 'summary.json').read_text())
+        assert summary['complete'] is False and summary['duration_s'] == pytest.approx(0.1)
+    finally:
+        node.destroy_node()
+
+
+def _estimate_writers(context, names):
+    """A node with an estimate writer for each of ``names`` (the estimators alive), once the
+    graph shows them."""
+    fleet = rclpy_node(context, 'fleet')
+    for name in names:
+        fleet.create_publisher(wire.PoseStamped, f'/{name}/estimate', wire.ESTIMATE_PUB_QOS)
+    for _ in range(1000):   # one context's graph: at once, or nearly
+        if all(fleet.count_publishers(f'/{name}/estimate') for name in names):
+            break
+        time.sleep(0.01)
+    return fleet
+
+
 def test_the_simulator_names_the_estimators_its_clock_waits_for(context, repo_root, capfd,
                                                               monkeypatch):
-    """A lockstep clock held by the slowest estimators for STALL_WARN_S of wall time gets a
-    warning naming them (a hung run says on whom); a moving one does not."""
+    """With lockstep_patience 0 (wait for ever), a lockstep clock held by the slowest living
+    estimators for LOCKSTEP_PATIENCE_S of wall time gets a warning naming them (a hung run
+    says on whom); a moving one does not."""
     from bearing_pose_estimation.ros import simulator_node
 
     now = [100.0]
     monkeypatch.setattr(simulator_node.time, 'monotonic', lambda: now[0])
     node = SimulatorNode(context=context, parameter_overrides=[
-        Parameter('scenario_file', value=str(repo_root / 'config' / 'paper_8_agents.yaml'))])
+        Parameter('scenario_file', value=str(repo_root / 'config' / 'paper_8_agents.yaml')),
+        Parameter('lockstep_patience', value=0.0)])
+    fleet = _estimate_writers(context, node.names)
     try:
+        node._start()
         node.progress[:] = 0.5
         node.progress[[2, 5]] = 0.1
-        node._warn_if_stalled()
-        now[0] += simulator_node.STALL_WARN_S - 0.1
-        node._warn_if_stalled()
+        for _ in range(20):     # to the lockstep limit
+            node.on_tick()
+        now[0] += simulator_node.LOCKSTEP_PATIENCE_S - 0.1
+        node.on_tick()
         assert 'waited' not in capfd.readouterr().err
         now[0] += 0.2
-        node._warn_if_stalled()
+        node.on_tick()
         err = capfd.readouterr().err
         assert 'for agent_3, agent_6 (newest estimate at t = 0.100 s)' in err, err
+        assert not node.absent.any()   # alive: waited for, for ever
         node.progress[[2, 5]] = 0.12   # they moved: the wait starts over
+        node.on_tick()
         now[0] += 1.0
-        node._warn_if_stalled()
+        node.on_tick()
         assert 'waited' not in capfd.readouterr().err
     finally:
+        fleet.destroy_node()
+        node.destroy_node()
+
+
+def test_the_lockstep_clock_goes_on_without_a_dead_estimator_until_it_is_back(
+        context, repo_root, capfd, monkeypatch):
+    """An estimator whose estimate writer is gone (a stopped process) holds the clock for
+    GRAPH_CHECK_S at most, one whose estimates stopped for lockstep_patience (a killed one,
+    which DDS sees only 20 s later); meanwhile the clock leads the others by absent_lag (more
+    than their link_wait: a step waiting for the absent one's values goes on). It waits for
+    one again once it has stepped rejoin_after since it came back and caught up."""
+    from bearing_pose_estimation.ros import simulator_node
+
+    now = [100.0]
+    monkeypatch.setattr(simulator_node.time, 'monotonic', lambda: now[0])
+    node = SimulatorNode(context=context, parameter_overrides=[
+        Parameter('scenario_file', value=str(repo_root / 'config' / 'paper_8_agents.yaml')),
+        Parameter('max_lag', value=0.05), Parameter('lockstep_patience', value=3.0)])
+    fleet = _estimate_writers(context, [n for n in node.names if n != 'agent_4'])
+
+    def run() -> float:
+        for _ in range(100):   # a tick advances at most _MAX_SIM_PER_TICK
+            node.on_tick()
+        return node.world.t
+
+    try:
+        node._start()
+        node.progress[:] = 0.2
+        node.progress[[3, 5]] = 0.1    # agent_4 died; agent_6 waits for it
+        assert run() == pytest.approx(0.15)
+        now[0] += simulator_node.GRAPH_CHECK_S
+        assert run() == pytest.approx(0.6)   # agent_6 + absent_lag
+        err = capfd.readouterr().err
+        assert ('the clock stops waiting for agent_4 at t = 0.150 s: its estimate writer is '
+                'gone') in err, err
+        assert list(node.absent) == [n == 'agent_4' for n in node.names]
+        now[0] += 2.9
+        assert run() == pytest.approx(0.6)
+        now[0] += 0.2   # agent_6 has not moved for lockstep_patience: not waited for either
+        assert run() == pytest.approx(0.7)
+        assert 'agent_6 at t = 0.600 s: its estimates stopped at t = 0.100 s' in \
+            capfd.readouterr().err
+        node.progress[:] = 0.65    # agent_6 steps again, and agent_4 is back (restarted)
+        node.progress[5] = 0.7
+        run()
+        assert node.absent[[3, 5]].all()   # caught up, but back for less than rejoin_after
+        node.progress[:] = 1.65
+        node.progress[5] = 1.7
+        run()
+        assert 'agent_4 is back (estimates from t = 0.650 s) and has caught up' in \
+            capfd.readouterr().err
+        assert not node.absent.any()
+        assert run() == pytest.approx(1.7)   # max_lag again
+    finally:
+        fleet.destroy_node()
         node.destroy_node()
 
 

@@ -3,14 +3,20 @@
 Each test asserts the outcome the README's fault matrix reports: no crash (every process exits
 0 on SIGINT), no non-finite estimate, the fault seen in /diagnostics, and convergence after.
 """
+import json
 import os
+import signal
+import subprocess
+import sys
 import time
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rosgraph_msgs.msg import Clock
 
 from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation import msg_defs as wire
@@ -19,8 +25,9 @@ from bearing_pose_estimation.plan import dds
 from bearing_pose_estimation.plan import processes as plan
 from bearing_pose_estimation.scenario import load_scenario, parse_scenario
 from bearing_pose_estimation.sim.batch import BatchSimulator
+from bearing_pose_estimation.studies.summary import read_metrics_csv
 
-from ros_helpers import assert_no_shm_left, error_at, observer, paired_errors
+from ros_helpers import ProcessWatch, assert_no_shm_left, error_at, observer, paired_errors
 
 pytestmark = pytest.mark.dds
 
@@ -44,7 +51,8 @@ TOPICS = {**{f'/agent_{k}/estimate': (wire.PoseStamped, wire.ESTIMATE_QOS) for k
 def _fleet(tmp_path, lockstep: bool = False, real_time_factor: float = 0.75,
            follower_params: dict | None = None):
     """Start the four-agent fleet (no monitor). By default the simulator runs at 0.75x real time
-    without lockstep, so a dead agent cannot stop the clock. ``follower_params`` are added to
+    without lockstep (with it, the clock stops waiting for a dead agent, and waits for it again
+    once it is back). ``follower_params`` are added to
     both followers' parameter files. Yields (group, observer, specs); on leaving, every process
     must exit 0 on SIGINT and nothing may be left in /dev/shm."""
     scenario_file = tmp_path / 'four.yaml'
@@ -156,34 +164,39 @@ def test_bad_input_is_rejected_counted_and_reported(fleet):
     assert all(c is None for c in (group.returncode(n) for n in group.pids))  # all alive
 
 
-def test_neighbour_killed_then_restarted(fleet):
+@pytest.mark.parametrize('lockstep', [False, True])
+def test_neighbour_killed_then_restarted(tmp_path, lockstep):
     """agent_3 (agent_4's neighbour) is stopped at ~6 s: agent_4 reports it stale, keeps
     publishing finite estimates from its gyro and its other neighbour. agent_3 is started
     again, a process that starts after t = 0: its first estimate is its warm start from its
     bearings and the leaders' messages (exact to rounding here: the leaders know their pose),
-    and agent_4 re-converges."""
-    group, obs, specs = fleet
-    _wait_sim(obs, 6.0)
-    pre = _errors(obs, 'agent_4')[-1]
-    assert group.stop('agent_3') == 0  # a clean SIGINT exit
-    killed_at = _latest_t(obs, '/agent_4/ground_truth')
-    assert obs.spin_until(lambda: 'agent_3' in _diagnostics(obs, 'agent_4')
-                          .get('stale_neighbours', ''), 30)
-    _wait_sim(obs, killed_at + 3.0)
-    during = _errors(obs, 'agent_4', since=killed_at)
-    assert len(during) > 10  # agent_4 kept publishing
-    group.start(specs['agent_3'])
-    restarted_at = _latest_t(obs, '/agent_4/ground_truth')
-    # 16 s to re-converge (14 s left agent_3 at 1.3e-2 rad once; from the start the batch
-    # simulator's fleet is at 2.5e-3 rad after 14 s).
-    _wait_sim(obs, restarted_at + 16.0, timeout=240)
-    after3 = _errors(obs, 'agent_3', since=restarted_at)
-    after4 = _errors(obs, 'agent_4', since=restarted_at)
-    assert after3[0][1] < 1e-9 and after3[0][2] < 1e-9, after3[0]   # not its initial one
-    assert _diagnostics(obs, 'agent_3')['warm_start'].startswith('accepted at t = ')
-    assert after3[-1][1] < 0.02 and after3[-1][2] < 0.1, after3[-1]
-    assert after4[-1][1] < max(0.02, pre[1]) and after4[-1][2] < max(0.1, pre[2]), after4[-1]
-    assert not _diagnostics(obs, 'agent_4').get('stale_neighbours')
+    and agent_4 re-converges. Under lockstep too: the clock stops waiting for agent_3 while it
+    is gone, and waits for it again once it is back."""
+    with _fleet(tmp_path, lockstep=lockstep) as (group, obs, specs):
+        _wait_sim(obs, 6.0)
+        pre = _errors(obs, 'agent_4')[-1]
+        assert group.stop('agent_3') == 0  # a clean SIGINT exit
+        killed_at = _latest_t(obs, '/agent_4/ground_truth')
+        assert obs.spin_until(lambda: 'agent_3' in _diagnostics(obs, 'agent_4')
+                              .get('stale_neighbours', ''), 30)
+        _wait_sim(obs, killed_at + 3.0)
+        during = _errors(obs, 'agent_4', since=killed_at)
+        assert len(during) > 10  # agent_4 kept publishing
+        group.start(specs['agent_3'])
+        restarted_at = _latest_t(obs, '/agent_4/ground_truth')
+        # 16 s to re-converge (14 s left agent_3 at 1.3e-2 rad once; from the start the batch
+        # simulator's fleet is at 2.5e-3 rad after 14 s).
+        _wait_sim(obs, restarted_at + 16.0, timeout=240)
+        after3 = _errors(obs, 'agent_3', since=restarted_at)
+        after4 = _errors(obs, 'agent_4', since=restarted_at)
+        assert after3[0][1] < 1e-9 and after3[0][2] < 1e-9, after3[0]   # not its initial one
+        assert _diagnostics(obs, 'agent_3')['warm_start'].startswith('accepted at t = ')
+        assert after3[-1][1] < 0.02 and after3[-1][2] < 0.1, after3[-1]
+        assert after4[-1][1] < max(0.02, pre[1]) and after4[-1][2] < max(0.1, pre[2]), after4[-1]
+        assert not _diagnostics(obs, 'agent_4').get('stale_neighbours')
+        if lockstep:
+            log = specs['simulator'].log.read_text()
+            assert 'the clock stops waiting for agent_3' in log and 'agent_3 is back' in log
 
 
 def test_simulator_restart_jumps_the_clock_back(fleet):
@@ -246,3 +259,71 @@ def test_lossy_and_late_neighbour_links_over_dds(tmp_path):
               f'({pos / pos_ref:.2f}x, cost {_cost_s(pos, T, ref.t, ref.pos_err[:, k]):.2f} s)')
         assert att < 1.6 * att_ref and pos < 1.6 * pos_ref, (agent, att, att_ref, pos, pos_ref)
         assert att < 0.1 * att0 and pos < 0.1 * pos0, (agent, att, att0, pos, pos0)
+
+
+def test_a_robot_stopped_and_started_again_under_lockstep(tmp_path):
+    """`bearing-pose run` of the four-agent fleet under lockstep (the default); agent_3, which
+    agent_4 listens to, is stopped at 3 s (SIGINT, as a robot shut down) and started again at
+    5 s with the command the run printed. The run says so and goes on to its end: the clock
+    stops waiting for agent_3 (and agent_4 goes on without its values), then waits for it
+    again once it is back. The restarted agent_3 publishes again, counts none of its first
+    inputs as bad, and is stopped by the run at its end; the exit code (3) and summary.json
+    say what happened. (At most real time: the clock runs on while the process starts, which
+    takes seconds of wall time here, and the run must not end before it is back.)"""
+    T, STOP, START = 20.0, 3.0, 5.0
+    scenario_file, out = tmp_path / 'four.yaml', tmp_path / 'run'
+    scenario_file.write_text(yaml.safe_dump(FOUR))
+    params = str(out / 'params' / 'agent_3.yaml')
+    shm = dds.shm_files()
+    with ProcessWatch(str(tmp_path)) as processes, observer() as obs, \
+            open(tmp_path / 'run.log', 'w') as log:
+        for topic, (msg_type, qos) in TOPICS.items():
+            obs.subscribe(msg_type, topic, qos)
+        obs.subscribe(Clock, '/clock', wire.CLOCK_QOS)
+
+        def clock() -> float:
+            msgs = obs.messages['/clock']
+            return wire.from_stamp(msgs[-1].clock) if msgs else -1.0
+
+        run = subprocess.Popen([sys.executable, '-m', 'bearing_pose_estimation.cli.main', 'run',
+                                str(scenario_file), '--duration', str(T), '--out', str(out),
+                                '--no-plots', '--domain-id', str(DOMAIN),
+                                '--real-time-factor', '1'],
+                               stdout=log, stderr=subprocess.STDOUT, text=True)
+        try:
+            assert obs.spin_until(lambda: clock() >= STOP, 120), 'the clock never got there'
+            (victim,) = [pid for pid in processes.scan() if params in processes.seen[pid]]
+            os.kill(victim, signal.SIGINT)
+            script = out / 'logs' / 'restart_agent_3.sh'
+            assert obs.spin_until(script.exists, 60), 'no restart script'
+            assert obs.spin_until(lambda: clock() >= START, 60), 'the clock froze'
+            again = subprocess.Popen(['sh', str(script)])
+            assert obs.spin_until(lambda: run.poll() is not None, 180), 'the run did not end'
+            assert again.wait(30) == 0   # stopped by the run, cleanly
+        finally:
+            for proc in (run, locals().get('again')):
+                if proc is not None and proc.poll() is None:
+                    proc.send_signal(signal.SIGINT)
+                    proc.wait(60)
+        text = (tmp_path / 'run.log').read_text()
+        assert run.returncode == 3, text
+        stamps = [wire.from_stamp(m.header.stamp) for m in obs.messages['/agent_3/estimate']]
+        diagnostics = _diagnostics(obs, 'agent_3')
+        listener = [wire.from_stamp(m.header.stamp) for m in obs.messages['/agent_4/estimate']]
+    assert_no_shm_left([], shm)
+    assert processes.left() == []   # the restarted agent_3 was stopped too
+    assert 'warning: estimator agent_3 exited with code 0' in text and f'sh {script}' in text
+    assert 'started again by hand, running until the end' in text
+    sim = (out / 'logs' / 'simulator.log').read_text()
+    assert "the clock stops waiting for agent_3" in sim and 'agent_3 is back' in sim, sim
+    assert any(t > START for t in stamps)   # published again
+    assert any(STOP + 0.5 < t < START for t in listener)   # agent_4 went on meanwhile
+    # Its first inputs are not faults: its health says nothing was rejected.
+    assert not [k for k in diagnostics if k.startswith('rejected_')], diagnostics
+    assert diagnostics['_level'] == DiagnosticStatus.OK, diagnostics
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['complete'] and summary['duration_s'] == pytest.approx(T)
+    assert [(d['process'], d['running_again_at_the_end']) for d in summary['deaths']] == [
+        ('agent_3', True)]
+    metrics = read_metrics_csv(out / 'metrics.csv')
+    assert metrics.t[-1] == pytest.approx(T) and (metrics.t > START).sum() > 10

@@ -16,6 +16,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -81,6 +82,8 @@ if behaviour == 'shm':           # leaves a (fake) Fast DDS shared-memory file
     Path(os.environ['STANDIN_SHM'], 'fastrtps_standin').write_text('')
 if behaviour == 'port':          # leaves a lock-less port file, as Fast DDS does after clean exits
     Path(os.environ['STANDIN_SHM'], 'fastrtps_port7411').write_text('')
+if name == 'simulator' and behaviour != 'no_clock':   # the run has begun
+    print('[simulator]: all matched after 0.01 s; clock starts at t = 0', flush=True)
 tmp = Path(os.environ['STANDIN_DIR'], name + '.tmp')
 tmp.write_text(json.dumps(record))
 tmp.rename(tmp.with_suffix('.json'))
@@ -88,7 +91,8 @@ tmp.rename(tmp.with_suffix('.json'))
 if behaviour == 'crash':
     # Crash once the monitor is up (it records itself after installing its SIGINT handler):
     # the test checks that the monitor, stopped because of this crash, writes partial outputs.
-    monitor_up = Path(os.environ['STANDIN_DIR'], 'monitor.json')
+    after = os.environ.get('STANDIN_CRASH_AFTER', 'monitor')
+    monitor_up = Path(os.environ['STANDIN_DIR'], after + '.json')
     deadline = time.monotonic() + 30
     while not monitor_up.exists() and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -98,6 +102,9 @@ if behaviour == 'spawn':
     sys.exit(0)
 if behaviour == 'monitor':
     delay = float(os.environ.get('STANDIN_MONITOR_DELAY', '0.3'))
+    until = os.environ.get('STANDIN_MONITOR_UNTIL')   # a file: the end of the simulated time
+    while until and not Path(until).exists():
+        time.sleep(0.01)
     for k in range(3):
         print(f'  t = {{k}} s progress line', flush=True)
         time.sleep(delay / 3)
@@ -135,19 +142,10 @@ def records(folder: Path) -> dict[str, dict]:
     return {p.stem: json.loads(p.read_text()) for p in folder.glob('*.json')}
 
 
-def alive(pid: int) -> bool:
-    """From /proc (no psutil): a zombie counts as gone."""
-    try:
-        stat = Path(f'/proc/{pid}/stat').read_text()
-    except OSError:
-        return False
-    return stat[stat.rindex(')') + 2] not in 'ZX'
-
-
 def assert_all_gone(recs: dict[str, dict]) -> None:
     pids = [r['pid'] for r in recs.values()] + [r['grandchild'] for r in recs.values()
                                                  if 'grandchild' in r]
-    assert pids and not [p for p in pids if alive(p)]
+    assert pids and not [p for p in pids if launch.alive(p)]
 
 
 def wait_for_records(folder: Path, n: int, timeout: float = 10.0) -> dict[str, dict]:
@@ -404,9 +402,72 @@ def test_run_that_does_not_stop_cleanly_fails(standins, tmp_path, monkeypatch, c
     assert_all_gone(records(standins))
 
 
-def test_early_crash_is_reported_and_everything_stopped(standins, tmp_path, monkeypatch,
-                                                        capsys):
+def test_a_robot_that_dies_is_reported_and_can_be_started_again(standins, tmp_path,
+                                                               monkeypatch, capsys):
+    """An estimator that crashes does not end the run: the run says which, how, and the
+    command that starts it again (written to logs/restart_<name>.sh: its command line and DDS
+    environment). Started again with it, the robot runs until the run's end, which stops it
+    too. The run's exit code (3) and summary.json (deaths) say what happened."""
     monkeypatch.setenv('STANDIN_AGENT_3', 'crash')
+    monkeypatch.setenv('STANDIN_CRASH_AFTER', 'simulator')   # once the clock runs
+    monkeypatch.setenv('STANDIN_MONITOR_UNTIL', str(tmp_path / 'the_end'))
+    out = tmp_path / 'out'
+    script = out / 'logs' / 'restart_agent_3.sh'
+    first: dict = {}
+
+    def robot_started_again() -> None:   # the user, in another terminal
+        deadline = time.monotonic() + 60
+        while not script.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        first.update(records(standins)['agent_3'])
+        (standins / 'agent_3.json').unlink()
+        subprocess.Popen(['sh', str(script)], env={**os.environ, 'STANDIN_AGENT_3': 'loop'})
+        wait_for_records(standins, 10, timeout=30)
+        (tmp_path / 'the_end').touch()
+
+    user = threading.Thread(target=robot_started_again)
+    user.start()
+    try:
+        assert main(['run', str(PAPER), '--out', str(out), '--domain-id', '77']) == 3
+    finally:
+        (tmp_path / 'the_end').touch()
+        user.join()
+    err = capsys.readouterr().err
+    assert 'warning: estimator agent_3 exited with code 3' in err and 'run goes on' in err
+    assert '| boom: something went wrong' in err
+    assert f'sh {script}' in err
+    recs = records(standins)
+    again = recs['agent_3']
+    assert again['pid'] != first['pid'] and again['argv'] == first['argv']
+    assert again['env'] == first['env'] and again['env']['ROS_DOMAIN_ID'] == '77'
+    assert_all_gone(recs)   # the one started again by hand too
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['complete'] is True   # the monitor was not stopped
+    assert [(d['process'], d['how'], d['running_again_at_the_end'])
+            for d in summary['deaths']] == [('agent_3', 'exited with code 3', True)]
+    assert f'started again by hand, running until the end (pid {again["pid"]})' in err
+
+
+def test_a_robot_that_cannot_start_ends_the_run(standins, tmp_path, monkeypatch, capsys):
+    """An estimator that ends before the simulator started the clock did not start (a bad
+    parameter, a crash at start-up): the run cannot begin, and ends at once with its log."""
+    monkeypatch.setenv('STANDIN_AGENT_3', 'crash')
+    monkeypatch.setenv('STANDIN_SIMULATOR', 'no_clock')
+    monkeypatch.setenv('STANDIN_MONITOR_DELAY', '60')
+    t0 = time.monotonic()
+    assert main(['run', str(PAPER), '--out', str(tmp_path / 'out')]) == 1
+    assert time.monotonic() - t0 < 45   # not when the monitor would finish (60 s here)
+    err = capsys.readouterr().err
+    assert 'estimator agent_3 exited with code 3 before the clock started' in err
+    assert '| boom: something went wrong' in err and 'restart_agent_3.sh' not in err
+    assert_all_gone(records(standins))
+
+
+def test_the_simulator_dying_ends_the_run(standins, tmp_path, monkeypatch, capsys):
+    """Without the simulator (the clock, the truth and the sensors) nothing can go on: its
+    death ends the run at once, and every process is stopped (the monitor writes what it
+    has)."""
+    monkeypatch.setenv('STANDIN_SIMULATOR', 'crash')
     monkeypatch.setenv('STANDIN_MONITOR_DELAY', '60')
     out = tmp_path / 'out'
     t0 = time.monotonic()
@@ -414,12 +475,9 @@ def test_early_crash_is_reported_and_everything_stopped(standins, tmp_path, monk
     # Reported as soon as it happens, not when the monitor would finish (60 s here).
     assert time.monotonic() - t0 < 45
     err = capsys.readouterr().err
-    assert 'estimator agent_3 exited with code 3 early' in err
+    assert 'simulator exited with code 3 early' in err
     assert '| boom: something went wrong' in err
-    recs = records(standins)
-    assert {r['env']['ROS_DOMAIN_ID'] for r in recs.values()} == {'77'}
-    assert_all_gone(recs)
-    # The monitor was stopped with SIGINT and wrote its partial outputs.
+    assert_all_gone(records(standins))
     assert json.loads((out / 'summary.json').read_text())['complete'] is False
 
 
@@ -450,7 +508,7 @@ def test_shutdown_escalates_and_reports_sigkill(standins, tmp_path, monkeypatch,
                                          f'__node:={b}', '--params-file', str(params)),
                                          tmp_path / 'logs' / f'{b}.log'))
         recs = wait_for_records(standins, len(behaviours))
-        assert alive(recs['spawn']['grandchild'])
+        assert launch.alive(recs['spawn']['grandchild'])
         killed = group.shutdown(grace=0.5, term_grace=0.5)
     assert killed == ['stubborn']
     assert group.returncode('loop') == 0

@@ -1,5 +1,7 @@
 """``bearing-pose run``: start the processes of a run (:mod:`plan.processes`), wait for the
 monitor, and stop everything cleanly. No rclpy: usable and testable without a DDS stack.
+A robot's process that ends mid-run does not end the run: it is reported with the command that
+starts it again (:func:`restart_script`), and a process so started is stopped at the end.
 
 :class:`ProcessGroup` owns child processes, watches them, and stops them in reverse start order
 (SIGINT, then SIGTERM, then SIGKILL as a last resort) so that no process is left behind.
@@ -8,7 +10,9 @@ from __future__ import annotations
 
 import contextlib
 import glob
+import json
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -19,15 +23,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from ..plan.dds import CLEAN_EXITS, TEARDOWN_HUNG, clean_shm, dds_env, shm_files
-from ..plan.processes import (LAUNCH_FILE, MARKERS, LaunchError, ProcessSpec, RunConfig,
-                              find_executable, fit_agents_per_process, launch_xml,
+from ..plan.dds import (CLEAN_EXITS, DDS_VARIABLES, TEARDOWN_HUNG, clean_shm, dds_env,
+                        shm_files)
+from ..plan.processes import (CLOCK_STARTED, LAUNCH_FILE, MARKERS, LaunchError, ProcessSpec,
+                              RunConfig, find_executable, fit_agents_per_process, launch_xml,
                               plan_processes, write_params)
 from ..scenario.model import Scenario
 
 LOG_TAIL_LINES = 20
 TIMEOUT_TAIL_LINES = 8    # of every process's log, after a run that timed out
 POLL_S = 0.05
+# In the environment of every process of a run: its output directory. A process started
+# again by hand (its restart script) also carries its name, so that the run finds and stops
+# it at the end like its own children.
+RUN_MARKER, PROCESS_MARKER = 'BEARING_POSE_RUN', 'BEARING_POSE_PROCESS'
+# The processes a run goes on without (robots, and the RViz markers); without the simulator
+# (the clock and the truth) or the monitor (the results) it cannot.
+SURVIVABLE = ('estimator', 'estimators', MARKERS)
 
 
 @dataclass(frozen=True)
@@ -226,16 +238,26 @@ class ProcessGroup:
         spec = self._children[name].spec
         return Failure(spec.label, reason, spec.log, log_tail(spec.log))
 
-    def wait_for(self, target: str, timeout: float,
-                 watch: Collection[str] = ()) -> Failure | None:
+    def wait_for(self, target: str, timeout: float, watch: Collection[str] = (),
+                 survive: Collection[str] = (),
+                 on_exit: Callable[[str, int], Failure | None] | None = None) -> Failure | None:
         """Wait until ``target`` exits. None if it exited with 0; a Failure if it exited
-        otherwise, if a ``watch``ed child exited non-zero first, or after ``timeout`` s."""
+        otherwise, if a ``watch``ed child exited non-zero first, or after ``timeout`` s. The
+        exit of a child in ``survive``, whatever its code, goes to ``on_exit`` (once), and
+        the wait goes on unless that returns a Failure."""
         deadline = time.monotonic() + timeout
         noted: set[str] = set()
         while True:
             code = self.returncode(target)
             if code is not None:
                 return None if code in CLEAN_EXITS else self.failure(target, describe_exit(code))
+            for name in survive:
+                code = self.returncode(name)
+                if code is not None and name not in noted:
+                    noted.add(name)
+                    failure = None if on_exit is None else on_exit(name, code)
+                    if failure is not None:
+                        return failure
             for name in watch:
                 code = self.returncode(name)
                 if code not in (None, *CLEAN_EXITS):
@@ -360,9 +382,95 @@ def sigterm_as_interrupt() -> contextlib.AbstractContextManager[None]:
 
 
 @dataclass
+class Death:
+    """A robot's process that ended before the run did (the run went on without it)."""
+
+    name: str
+    label: str
+    how: str                     # describe_exit's words
+    wall_s: float                # into the run
+    restart: Path                # the script that starts it again
+    restarted_pid: int | None = None   # started again by hand, and running at the end
+
+    def record(self) -> dict[str, Any]:
+        """For summary.json."""
+        return {'process': self.name, 'how': self.how, 'wall_s': round(self.wall_s, 3),
+                'restart_script': str(self.restart),
+                'running_again_at_the_end': self.restarted_pid is not None}
+
+
+def restart_command(spec: ProcessSpec, env: Mapping[str, str], run_dir: Path) -> str:
+    """``spec``'s command line for a shell, with the DDS variables of ``env`` (and those that
+    differ from ours, and PYTHONPATH: which code runs) and the run's markers
+    (:data:`RUN_MARKER`): it works from any shell."""
+    changed = {k: v for k, v in env.items()
+               if k in (*DDS_VARIABLES, 'PYTHONPATH') or os.environ.get(k) != v}
+    changed |= {RUN_MARKER: str(run_dir), PROCESS_MARKER: spec.name}
+    return shlex.join(['env', *(f'{k}={v}' for k, v in sorted(changed.items())), *spec.argv])
+
+
+def restart_script(spec: ProcessSpec, command: str, run_dir: Path) -> Path:
+    """``<logs>/restart_<name>.sh``: ``command`` (:func:`restart_command`), its output
+    appended to the process's log."""
+    path = spec.log.parent / f'restart_{spec.name}.sh'
+    path.write_text(f'#!/bin/sh\n# Starts {spec.label} of the run in {run_dir} again, as '
+                    '`bearing-pose run` started it.\n# The run stops it at its end (it finds it '
+                    f'by {RUN_MARKER}).\nexec {command} >> {shlex.quote(str(spec.log))} 2>&1\n')
+    path.chmod(0o755)
+    return path
+
+
+def restarted_processes(run_dir: Path) -> dict[int, str]:
+    """pid -> name of the live processes started by a restart script of the run in
+    ``run_dir`` (their environment says so; /proc)."""
+    want = f'{RUN_MARKER}={run_dir}'.encode()
+    name_key = f'{PROCESS_MARKER}='.encode()
+    found = {}
+    for path in glob.glob('/proc/[0-9]*/environ'):
+        try:
+            items = Path(path).read_bytes().split(b'\0')
+        except OSError:
+            continue
+        if want in items:
+            name = next((i[len(name_key):] for i in items if i.startswith(name_key)), None)
+            if name is not None:
+                found[int(path.split('/')[2])] = name.decode(errors='replace')
+    return found
+
+
+def stop_restarted(run_dir: Path, grace: float = 10.0, err: IO[str] | None = None
+                   ) -> dict[str, int]:
+    """Stop (SIGINT; SIGKILL after ``grace`` s, loudly) the processes started again by hand;
+    return name -> pid of those that were running."""
+    found = restarted_processes(run_dir)
+    for pid in found:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGINT)
+    deadline = time.monotonic() + grace
+    while (left := [pid for pid in found if alive(pid)]) and time.monotonic() < deadline:
+        time.sleep(POLL_S)
+    for pid in left:
+        print(f'WARNING: {found[pid]} (pid {pid}, started again by hand) ignored SIGINT; '
+              'KILLING it with SIGKILL', file=err or sys.stderr)
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGKILL)
+    return {name: pid for pid, name in found.items()}
+
+
+def alive(pid: int) -> bool:
+    """Running: alive and not a zombie (/proc; no psutil)."""
+    try:
+        stat = Path(f'/proc/{pid}/stat').read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(')') + 2] not in 'ZX'
+
+
+@dataclass
 class RunResult:
     """ok: the monitor wrote summary.json, every process then stopped cleanly (none needed
-    SIGKILL), and nothing the run left in /dev/shm remains."""
+    SIGKILL), and nothing the run left in /dev/shm remains. ``deaths``: the robots' processes
+    that ended early (the run went on without them; it is ok, but not a clean run)."""
 
     ok: bool
     wall_s: float
@@ -372,6 +480,7 @@ class RunResult:
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per live process
     rss_mb: dict[str, float] = field(default_factory=dict)  # resident memory per process, at end
     exit_codes: dict[str, int | None] = field(default_factory=dict)  # per process, after stop
+    deaths: list[Death] = field(default_factory=list)
 
 
 def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = None) -> RunResult:
@@ -386,20 +495,43 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
     params = write_params(scenario, cfg)
     specs = plan_processes(scenario, params, cfg.logs_dir, exes.__getitem__,
                            cfg.agents_per_process, cfg.fleet_namespace)
-    env = dds_env(cfg.domain_id, cfg.logs_dir / 'ros')
+    env = dds_env(cfg.domain_id, cfg.logs_dir / 'ros') | {RUN_MARKER: str(cfg.out_dir)}
     shm_before = shm_files()
     started = time.time()
     (cfg.out_dir / LAUNCH_FILE).write_text(launch_xml(specs, env))
     wall = time.perf_counter()
     result = RunResult(ok=False, wall_s=0.0)
+    by_name = {s.name: s for s in specs}
+
+    def died(name: str, code: int) -> Failure | None:
+        """A robot's process ended: say so and how to start it again; the run goes on. Before
+        the clock started, it failed to start: the run cannot (its log says why)."""
+        spec, started = by_name[name], False
+        with contextlib.suppress(OSError):
+            started = CLOCK_STARTED in by_name['simulator'].log.read_text(errors='replace')
+        if not started:
+            return group.failure(name, f'{describe_exit(code)} before the clock started')
+        command = restart_command(spec, env, cfg.out_dir)
+        death = Death(name, spec.label, describe_exit(code), time.perf_counter() - wall,
+                      restart_script(spec, command, cfg.out_dir))
+        result.deaths.append(death)
+        tail = log_tail(spec.log) if code > 0 else ()   # a crash's traceback
+        print(f'warning: {spec.label} {death.how} {death.wall_s:.1f} s into the run; the run '
+              'goes on without it' + (f'; {quote_tail(spec.log, tail)}' if tail else '')
+              + f'.\n  To start it again (its command and DDS environment; output appended '
+              f'to its log):\n    sh {death.restart}\n  which runs: {command}',
+              file=sys.stderr)
+        return None
+
     try:
         with ProcessGroup(env) as group:
             for spec in specs:
                 group.start(spec)
             print(f'started {len(specs)} processes (logs in {cfg.logs_dir}); waiting for the '
                   f'monitor (timeout {cfg.wall_timeout:g} s)', file=sys.stderr)
-            watch = [s.name for s in specs if s.name != 'monitor']
-            result.failure = group.wait_for('monitor', cfg.wall_timeout, watch)
+            survive = [s.name for s in specs if s.kind in SURVIVABLE]
+            watch = [s.name for s in specs if s.name != 'monitor' and s.name not in survive]
+            result.failure = group.wait_for('monitor', cfg.wall_timeout, watch, survive, died)
             if result.failure is not None:
                 hint = ('; stopping everything. Fix: check the logs; if the run is only slow, '
                         'raise --timeout') if result.failure.timed_out else ''
@@ -415,6 +547,9 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
                     print(quote_tail(spec.log, log_tail(spec.log, TIMEOUT_TAIL_LINES)),
                           file=sys.stderr)
     finally:
+        again = stop_restarted(cfg.out_dir)   # also on Ctrl-C
+        for death in result.deaths:
+            death.restarted_pid = again.get(death.name)
         result.wall_s = time.perf_counter() - wall
         left_in_shm = clean_shm(shm_before)
     # Top-level outputs this run modified (the slack: timestamps that lag the clock by a tick).
@@ -427,7 +562,26 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
         if result.failure is not None:
             print(f'error: {result.failure.format()}', file=sys.stderr)
     result.ok = result.failure is None
+    if result.deaths:
+        _report_deaths(cfg, result.deaths)
     return result
+
+
+def _report_deaths(cfg: RunConfig, deaths: list[Death]) -> None:
+    """The deaths, at the end of the run's output and in its summary.json (``deaths``): the
+    errors are not a clean run's."""
+    for d in deaths:
+        again = (f'started again by hand, running until the end (pid {d.restarted_pid})'
+                 if d.restarted_pid is not None else
+                 f'not running at the end (never started again, or it ended again); {d.restart}'
+                 ' starts it')
+        print(f'note: {d.label} {d.how} {d.wall_s:.1f} s into the run; {again}',
+              file=sys.stderr)
+    summary = cfg.out_dir / 'summary.json'
+    with contextlib.suppress(OSError, ValueError):
+        data = json.loads(summary.read_text())
+        data['deaths'] = [d.record() for d in deaths]
+        summary.write_text(json.dumps(data, indent=2) + '\n')
 
 
 def _failure_after_stop(cfg: RunConfig, specs: list[ProcessSpec], result: RunResult,
@@ -438,7 +592,9 @@ def _failure_after_stop(cfg: RunConfig, specs: list[ProcessSpec], result: RunRes
                        f'{cfg.out_dir / "summary.json"}')
     if cfg.record and cfg.bag_dir not in result.files:
         return Failure('monitor', f'exited with code 0 but finished no bag in {cfg.bag_dir}')
-    unclean = [s for s in specs if result.exit_codes.get(s.name) not in (*CLEAN_EXITS, None)]
+    dead = {d.name for d in result.deaths}   # reported as deaths: not a failure to stop
+    unclean = [s for s in specs if s.name not in dead
+               and result.exit_codes.get(s.name) not in (*CLEAN_EXITS, None)]
     if unclean:
         s = unclean[0]
         more = f' (and {len(unclean) - 1} more process(es))' if len(unclean) > 1 else ''

@@ -1,7 +1,9 @@
 """``bearing-pose``: check, simulate and generate scenarios, compare estimators, run Monte Carlo
 and noise studies, and run scenarios over DDS. No file is overwritten without ``--force``.
 
-Exit codes: 0 success; 1 invalid scenario, failed check or refused overwrite; 2 bad command line.
+Exit codes: 0 success; 1 invalid scenario, failed check or refused overwrite; 2 bad command line;
+3 a run over DDS finished, but a robot's process ended during it (``run`` says which and how to
+start it again; its summary.json lists them under ``deaths``).
 """
 from __future__ import annotations
 
@@ -64,6 +66,7 @@ def _out_dir(arg: str | Path, outputs: list[str], force: bool) -> Path:
 
 
 PLOT_FILES = ['fig2_attitude_error.png', 'fig3_position_error.png']
+DIED = 3   # exit code: a run over DDS finished without one of its robots for a while
 
 
 def _done(text: str, wall: float, files: list[Path]) -> int:
@@ -191,6 +194,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     wall = time.perf_counter()
     runs = compare.run_batch({m: s for m, (_, s) in derived.items()}, duration,
                              args.record_every)
+    died = False
     for method, (data, method_scenario) in derived.items() if args.distributed else ():
         method_dir = out / method
         method_dir.mkdir(exist_ok=True)
@@ -203,6 +207,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
             print(f'{method} over DDS failed after {result.wall_s:.1f} s; logs in '
                   f'{method_dir / "logs"}', file=sys.stderr)
             return 1
+        died = died or bool(result.deaths)
         runs.append(compare.Run(method, 'dds', method_scenario,
                                 read_metrics_csv(method_dir / 'metrics.csv')))
     wall = time.perf_counter() - wall
@@ -213,7 +218,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     if not args.no_plots:
         files.append(write_compare_plot({r.label: r.rec for r in runs}, out / 'compare_errors.png',
                                         frozenset(r.label for r in runs if r.mode == 'dds')))
-    return _done(text, wall, files)
+    return _done(text, wall, files) or (DIED if died else 0)
 
 
 def cmd_noise_study(args: argparse.Namespace) -> int:
@@ -377,7 +382,7 @@ def cmd_run(args: argparse.Namespace) -> int:
               f'over {result.wall_s:.1f} s wall for {duration:g} s simulated')
     print(f'wall time {result.wall_s:.1f} s; wrote ' + ', '.join(str(f) for f in result.files)
           + f'; parameter files in {out.resolve() / "params"}; logs in {logs}')
-    return 0
+    return DIED if result.deaths else 0
 
 
 def cmd_export_tum(args: argparse.Namespace) -> int:

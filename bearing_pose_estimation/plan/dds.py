@@ -26,12 +26,16 @@ def private_domain_id() -> int:
     return 1 + os.getpid() % 101
 
 
+# What dds_env sets.
+DDS_VARIABLES = ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID', 'ROS_LOG_DIR',
+                 'PYTHONUNBUFFERED')
+
+
 def dds_env(domain_id: int, ros_log_dir: Path,
             base: Mapping[str, str] | None = None) -> dict[str, str]:
     """The children's environment: DDS stays on loopback, on our domain; logs in the run dir."""
     env = dict(os.environ if base is None else base)
-    env.update(ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', ROS_DOMAIN_ID=str(domain_id),
-               ROS_LOG_DIR=str(ros_log_dir), PYTHONUNBUFFERED='1')
+    env.update(zip(DDS_VARIABLES, ('LOCALHOST', str(domain_id), str(ros_log_dir), '1')))
     return env
 
 

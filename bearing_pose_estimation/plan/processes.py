@@ -73,6 +73,9 @@ def find_executable(name: str, bin_dir: Path | None = None) -> Path:
 
 
 BAG_DIR = 'bag'   # `run --record`: the rosbag2 directory in the output directory
+# The simulator's log line when its clock starts: the run has begun (a robot that dies before
+# it did not start; one that dies after it is a robot lost mid-run).
+CLOCK_STARTED = 'clock starts at t = 0'
 MARKERS = 'fleet_markers'   # `run --rviz`: the process (and node) that draws the fleet
 
 

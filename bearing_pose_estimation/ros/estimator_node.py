@@ -66,6 +66,9 @@ class EstimatorNode(Node):
         self.rt = self._runtime(s.start_time) if s.start_time >= 0.0 else None
         self.rejected: Counter[str] = Counter()
         self.events: Counter[str] = Counter()
+        # A gyro sample has set the runtime's time: until then (a process started after t0,
+        # as a restarted robot is), a stamp ahead of its start is early, not a bad input.
+        self._timed = False
         self._published_k = -1
         self._deferred = -1   # the step whose channels wait for its own measurements
         self._wall_first_step: float | None = None
@@ -197,11 +200,15 @@ class EstimatorNode(Node):
         ns = self.get_clock().now().nanoseconds
         return ns * 1e-9 if ns > 0 else None
 
-    def _counted(self, causes: Sequence[str | None], what: str) -> None:
+    def _counted(self, causes: Sequence[str | None], what: str, by_gyro: bool = False) -> None:
+        """Count what the runtime did not use; ``by_gyro``: it judged the stamps against its
+        newest gyro sample (before the first one, a future stamp is only early)."""
         if not any(causes):
             return   # every input used (the common case: no Counter)
         for cause, n in Counter(c for c in causes if c is not None).items():
-            if cause in TIME_EVENTS:
+            if cause == 'future_stamp' and by_gyro and not self._timed:
+                self.events['early_inputs'] += n   # not a fault: no warning, no WARN
+            elif cause in TIME_EVENTS:
                 self.events[cause] += n
                 self.get_logger().warning(f'{TIME_EVENTS[cause]} ({what})')
                 self._published_k = -1
@@ -214,7 +221,7 @@ class EstimatorNode(Node):
             return
         t, omega = decoded
         if self.rt is None:
-            self.rt = self._runtime(t)
+            self.rt, self._timed = self._runtime(t), True
             return
         if not self.ready_timer.is_canceled():
             self.ready_timer.cancel()
@@ -222,7 +229,9 @@ class EstimatorNode(Node):
                 # Once more now that the clock runs: the simulator started it only after the
                 # monitor's readers matched, so this one reaches them.
                 self._publish(grid=True, force=True)
-        self._counted([self.rt.add_gyro(t, omega, now=self._now())], f'imu sample at {t:.6f}')
+        cause = self.rt.add_gyro(t, omega, now=self._now())
+        self._timed = self._timed or cause is None or cause in TIME_EVENTS
+        self._counted([cause], f'imu sample at {t:.6f}')
         self.run_ready_steps()
 
     def on_points(self, sensor: Sensor, msg: Any) -> None:
@@ -232,7 +241,8 @@ class EstimatorNode(Node):
         if decoded is None or rt is None:
             return
         t, ids, vectors = decoded
-        self._counted(rt.add_points(sensor, t, ids, vectors), f'{sensor.value} at {t:.6f}')
+        self._counted(rt.add_points(sensor, t, ids, vectors), f'{sensor.value} at {t:.6f}',
+                      by_gyro=True)
         if rt.k == 0 and rt.gyro.end <= rt.t0:
             self._publish(grid=True)   # the t0 channels, before the first step
         elif self._deferred == rt.k and rt.measured_at(rt.t):
@@ -279,7 +289,8 @@ class EstimatorNode(Node):
         for name, problem in problems.items():
             self._reject('malformed', f'{name} of {what} ({problem})')
         if values:
-            self._counted([self.rt.add_message(sub.source_id, t, values)], f'{what} at {t:.6f}')
+            self._counted([self.rt.add_message(sub.source_id, t, values)], f'{what} at {t:.6f}',
+                          by_gyro=True)
             self.run_ready_steps()
 
     def on_peer_points(self, sub: Subscription, msg: Any) -> None:

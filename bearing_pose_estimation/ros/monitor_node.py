@@ -4,7 +4,9 @@ Subscribes to every follower's ``/<agent>/estimate`` and ``/<agent>/ground_truth
 at identical stamps on a ``record_every`` grid (estimates come every estimator step, truth every
 ground-truth period, so the grid instants carry both), and writes ``metrics.csv``,
 ``summary.json`` and the plots to ``out_dir`` once ``t = duration`` is recorded, then exits.
-Interrupted, it writes what it has. Progress goes to stdout. Errors come from
+Interrupted, it writes what it has; so it does once the truth of ``t = duration`` has waited
+:data:`END_PATIENCE_S` of wall time for an estimate that does not come (a robot whose process
+died and was not started again), naming whose. Progress goes to stdout. Errors come from
 :func:`metrics.results.pose_errors`, as in the batch simulator. A moving fleet, or a method whose
 estimates are not world poses, needs the whole fleet's truth (:func:`watched`): the trajectories
 then go to ``trajectories.png``, and the alignment covers every agent, as in the batch
@@ -44,6 +46,9 @@ from .node_main import (declare, run_node, scenario_parameter, wall_timer,
 BAG_QUIET_S, BAG_DRAIN_MAX_S = 0.5, 10.0
 # How many recorded instants the monitor remembers to ignore their repeats (25.6 s at 10 Hz).
 _RECENT = 256
+# Wall time [s] the last instant's truth waits for the estimates before the monitor finishes
+# without them (an estimate trails the clock by milliseconds; under load, a second).
+END_PATIENCE_S = 10.0
 
 
 def watched(scenario: Scenario) -> list[str]:
@@ -119,12 +124,33 @@ class MonitorNode(Node):
         self.pub_ready = self.create_publisher(
             Empty, wire.fleet_topic(wire.MONITOR_READY, self.fleet), wire.LATCHED_QOS)
         self.ready_timer = wall_timer(self, 0.05, self.on_ready_check)
+        self._end_seen: float | None = None   # wall time the last instant's truth was all in
+        wall_timer(self, 1.0, self.on_end_check)
 
     def on_ready_check(self) -> None:
         if (all(sub.get_publisher_count() > 0 for sub in self.subscriptions)
                 and len(self._est.get(0, {})) == len(self.followers)):
             self.pub_ready.publish(Empty())
             self.ready_timer.cancel()
+
+    def on_end_check(self) -> None:
+        """Finish without the estimates the last instant still lacks after
+        :data:`END_PATIENCE_S` (their robots are gone), saying whose."""
+        end = [ns for ns, truth in self._truth.items()
+               if ns >= self.duration * 1e9 - 1e3 and len(truth) == len(self.watched)]
+        if self.done or not end:
+            return
+        now = time.monotonic()
+        if self._end_seen is None:
+            self._end_seen = now
+        elif now - self._end_seen >= END_PATIENCE_S:
+            have = self._est.get(end[0], {})
+            missing = [n for k, n in enumerate(self.followers) if k not in have]
+            self.get_logger().warning(
+                f'no estimate of t = {end[0] * 1e-9:g} s from {", ".join(missing)} after '
+                f'{END_PATIENCE_S:g} s of wall time: finishing with the rows recorded (every '
+                'instant with each follower\'s estimate)')
+            self.finish()
 
     def _on_pose(self, table: dict, k: int, msg: bytes) -> None:
         try:

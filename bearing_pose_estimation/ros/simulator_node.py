@@ -18,11 +18,23 @@ the slowest estimator's published state, like Gazebo's lockstep: runs go as fast
 estimators can. (The results do not depend on the machine's load because each estimator's step
 waits for the inputs of fixed instants, ``fixed_exchange``, not because of the pacing.)
 ``real_time_factor`` > 0 also caps the clock at that multiple of wall time.
+
+A robot whose process died must not stop the fleet's clock: the clock stops waiting for the
+estimators that hold it and whose estimate writer is gone from the graph (a process stopped
+cleanly), or whose estimates have not moved for ``lockstep_patience`` of wall time (a killed
+one: DDS notices its death only after a 20 s lease). While one is not waited for, the clock
+leads the others by ``absent_lag``, more than their ``link_wait``, so that a step waiting for the
+absent robot's values goes on without them. The clock waits for it again once it has stepped
+for ``rejoin_after`` of simulated time since it came back and its estimates are no later than
+the slowest waited-for one's. (Restarted, a robot's subscriptions match one by one: what a
+neighbour sent before never comes, and the robot steps past such a hole only when its own
+sensors lead by its ``link_wait``, which a clock that waits for it would not allow.)
 """
 from __future__ import annotations
 
 import time
 from collections import Counter
+from collections.abc import Sequence
 from functools import partial
 from typing import Any
 
@@ -40,14 +52,18 @@ from .monitor_node import watched
 from .node_main import (declare, run_node, scenario_parameter, wall_timer,
                         warn_unknown_parameters)
 from .wiring import listener_counts, recorded_topics
+from ..plan.processes import CLOCK_STARTED
 from ..sim.world import World
 
 # Sim time advanced per wall-timer callback at most: keeps the node responsive to Ctrl-C and to
 # the estimators' progress messages.
 _MAX_SIM_PER_TICK = 0.02
-# Wall time [s] the lockstep clock may wait for the slowest estimator before the simulator
-# names it in a warning (a healthy run waits milliseconds; a loaded one a second at most).
-STALL_WARN_S = 5.0
+# Wall time [s] the lockstep clock waits for the slowest estimators before it names them and
+# stops waiting for them (a healthy run waits milliseconds; a loaded one a second at most).
+LOCKSTEP_PATIENCE_S = 5.0
+# Wall time [s] a stalled clock waits before it asks the graph whether the estimators it waits
+# for still have their estimate writers, and between two such questions.
+GRAPH_CHECK_S = 0.2
 
 
 class SimulatorNode(Node):
@@ -62,6 +78,12 @@ class SimulatorNode(Node):
         self.lockstep = p('lockstep', True, 'keep the clock at most max_lag ahead of the '
                           'slowest estimator')
         self.max_lag = p('max_lag', 3.0 / s.publish_rate, 'lockstep lead [s]', 0.0, 1e6)
+        self.patience = p('lockstep_patience', LOCKSTEP_PATIENCE_S, 'wall time [s] the clock '
+                          'waits for estimators whose estimates stopped; 0: for ever', 0.0, 1e6)
+        self.absent_lag = p('absent_lag', 0.5, 'lockstep lead [s] while an estimator is not '
+                            "waited for: above the estimators' link_wait", 0.0, 1e6)
+        self.rejoin_after = p('rejoin_after', 1.0, 'simulated time [s] an absent estimator '
+                              'steps before the clock waits for it again', 0.0, 1e6)
         self.rtf = p('real_time_factor', 0.0, 'cap on sim seconds per wall second; 0: none',
                      0.0, 1e6)
         self.wait_for_monitor = p('wait_for_monitor', True,
@@ -125,6 +147,12 @@ class SimulatorNode(Node):
         self.sim_wall_start = 0.0
         # (slowest estimate time, wall time it was first seen): a stalled lockstep clock.
         self._stall = (-np.inf, 0.0)
+        self._graph_checked = 0.0   # wall time of the last look for gone estimate writers
+        # The estimators the lockstep clock does not wait for (dead, or stalled too long),
+        # and their estimate time then (the first one after it: back).
+        self.absent = np.zeros(len(self.names), dtype=bool)
+        self.left_at = np.full(len(self.names), np.inf)
+        self.back_at = np.full(len(self.names), np.inf)
         # /clock once per estimator step: finer ticks only cost every node callbacks.
         self.steps_per_clock = max(1, int(round(s.step / self.world.dt)))
         # A wall-clock timer: the simulator owns sim time, so it must not wait on it. A quarter
@@ -193,7 +221,7 @@ class SimulatorNode(Node):
         self.state = 'running'
         self.sim_wall_start = time.monotonic()
         self.get_logger().info(f'all matched after {self.sim_wall_start - self.wall_start:.2f} s;'
-                               ' clock starts at t = 0')
+                               f' {CLOCK_STARTED}')
         self._publish(clock=True)
 
     # --------------------------------------------------------------------------- running
@@ -217,15 +245,16 @@ class SimulatorNode(Node):
         w = self.world
         limit = min(self.duration, w.t + _MAX_SIM_PER_TICK)
         if self.lockstep:
-            limit = min(limit, float(self.progress.min()) + self.max_lag)
+            lead = self.absent_lag if self.absent.any() else self.max_lag
+            limit = min(limit, self._slowest() + lead)
         if self.rtf > 0.0:
             limit = min(limit, (time.monotonic() - self.sim_wall_start) * self.rtf)
         while w.t + w.dt <= limit + 1e-9:
             w.step()
             self._publish(clock=w.tick % self.steps_per_clock == 0)
         if self.lockstep and w.t < self.duration - 1e-9:
-            self._warn_if_stalled()
-        behind = w.t - float(self.progress.min())
+            self._watch_lockstep()
+        behind = w.t - self._slowest()
         if np.isfinite(behind):   # not before every estimator has published (no lockstep)
             self.lags[int(round(behind * 1e6))] += 1
         if w.t >= self.duration - 1e-9:
@@ -246,18 +275,61 @@ class SimulatorNode(Node):
                          f'{missed:.2f} % of ticks')
             self.get_logger().info(text)
 
-    def _warn_if_stalled(self) -> None:
-        """Name the estimators the lockstep clock has waited for :data:`STALL_WARN_S` of
-        wall time or longer: a run that hangs says on whom."""
-        slowest, now = float(self.progress.min()), time.monotonic()
-        if slowest != self._stall[0]:
+    def _slowest(self) -> float:
+        """The newest estimate time of the slowest estimator the clock waits for (with none
+        waited for, of the most advanced one: the clock still waits for someone)."""
+        waited = self.progress[~self.absent]
+        return float(waited.min() if waited.size else self.progress.max())
+
+    def _watch_lockstep(self) -> None:
+        """Stop waiting for the estimators that hold the clock while their estimate writer is
+        gone, or for :attr:`patience` of wall time (named in a warning); wait for an absent
+        one again once it has stepped :attr:`rejoin_after` since it came back and caught up
+        with the slowest waited-for one."""
+        slowest, now = self._slowest(), time.monotonic()
+        moved = self.absent & (self.progress > self.left_at) & np.isinf(self.back_at)
+        self.back_at[moved] = self.progress[moved]
+        back = self.absent & (self.progress >= slowest - 1e-9) & (
+            self.progress >= self.back_at + self.rejoin_after - 1e-9)
+        for k in np.flatnonzero(back):
+            self.absent[k] = False
+            self.get_logger().info(
+                f'{self.names[k]} is back (estimates from t = {self.back_at[k]:.3f} s) and '
+                f'has caught up (t = {self.progress[k]:.3f} s): the clock waits for it again')
+        lead = self.absent_lag if self.absent.any() else self.max_lag
+        held = self.world.t + self.world.dt > slowest + lead + 1e-9   # not by real time
+        if slowest != self._stall[0] or not held:
             self._stall = (slowest, now)
-        elif now - self._stall[1] >= STALL_WARN_S:
-            late = [n for n, t in zip(self.names, self.progress) if t <= slowest]
+            return
+        late = [int(k) for k in np.flatnonzero(~self.absent & (self.progress <= slowest))]
+        waited_s = now - self._stall[1]
+        if self.patience > 0.0 and waited_s >= self.patience:
+            self._absent(late, f'its estimates stopped at t = {slowest:.3f} s {waited_s:.0f} s '
+                         'of wall time ago')
+        elif waited_s >= LOCKSTEP_PATIENCE_S:   # waiting for ever (patience 0): say on whom
             self.get_logger().warning(
-                f'the clock has waited {now - self._stall[1]:.0f} s at t = {self.world.t:.3f} s '
-                f'for {", ".join(late)} (newest estimate at t = {slowest:.3f} s): those '
-                'estimators are not stepping; their logs say why', throttle_duration_sec=10.0)
+                f'the clock has waited {waited_s:.0f} s at t = {self.world.t:.3f} s for '
+                f'{", ".join(self.names[k] for k in late)} (newest estimate at t = '
+                f'{slowest:.3f} s): those estimators are not stepping; their logs say why',
+                throttle_duration_sec=10.0)
+        if waited_s >= GRAPH_CHECK_S and now - self._graph_checked >= GRAPH_CHECK_S:
+            self._graph_checked = now
+            self._absent([k for k in late if not self.absent[k] and self.count_publishers(
+                wire.topic(self.names[k], wire.ESTIMATE, self.fleet)) == 0],
+                'its estimate writer is gone (the process stopped)')
+
+    def _absent(self, ks: Sequence[int], why: str) -> None:
+        """The clock stops waiting for these estimators (:meth:`_watch_lockstep`)."""
+        if not ks:
+            return
+        for k in ks:
+            self.absent[k] = True
+            self.left_at[k], self.back_at[k] = self.progress[k], np.inf
+            self.get_logger().warning(
+                f'the clock stops waiting for {self.names[k]} at t = {self.world.t:.3f} s: '
+                f'{why}; it leads the others by {self.absent_lag:g} s until {self.names[k]} '
+                'is back (restarted with its command) and has caught up')
+        self._stall = (self._slowest(), time.monotonic())
 
     def _publish(self, clock: bool) -> None:
         w, t = self.world, self.world.t
