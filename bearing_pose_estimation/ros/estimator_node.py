@@ -11,10 +11,9 @@ covariance), its other channels when a neighbour's step reads them, and its heal
 
 In a simulation (``fixed_exchange``, default: ``use_sim_time``) a step's inputs are fixed by
 their stamps and waited for, as netsim feeds the same runtime: a run equals netsim's to rounding
-however loaded the machine is. A step waiting with its own sensors standing still goes on
-without what it waits for after ``neighbour_wait`` of wall time ('exact' channels) or
-:data:`EXCHANGE_PATIENCE` (``event_impatient_steps``). Bad input is rejected, counted by cause
-and warned about; it never stops the node nor reaches the estimate. Parameters:
+however loaded the machine is (a wait with the own sensors standing still ends after
+``neighbour_wait`` or :data:`EXCHANGE_PATIENCE` of wall time). Bad input is rejected and
+counted by cause; it never stops the node nor reaches the estimate. Parameters:
 :mod:`.estimator_params`.
 """
 from __future__ import annotations
@@ -66,14 +65,10 @@ class EstimatorNode(Node):
         self.rt = self._runtime(s.start_time) if s.start_time >= 0.0 else None
         self.rejected: Counter[str] = Counter()
         self.events: Counter[str] = Counter()
-        # A gyro sample has set the runtime's time: until then (a process started after t0,
-        # as a restarted robot is), a stamp ahead of its start is early, not a bad input.
-        self._timed = False
         self._published_k = -1
         self._deferred = -1   # the step whose channels wait for its own measurements
         self._wall_first_step: float | None = None
         self._diag_steps = (0, time.monotonic())
-        self._stuck: tuple[int, float, float] | None = None   # (k, gyro end, wall time)
         self._make_publishers()
         self.batch = batch
         if batch is not None:
@@ -200,14 +195,12 @@ class EstimatorNode(Node):
         ns = self.get_clock().now().nanoseconds
         return ns * 1e-9 if ns > 0 else None
 
-    def _counted(self, causes: Sequence[str | None], what: str, by_gyro: bool = False) -> None:
-        """Count what the runtime did not use; ``by_gyro``: it judged the stamps against its
-        newest gyro sample (before the first one, a future stamp is only early)."""
+    def _counted(self, causes: Sequence[str | None], what: str) -> None:
         if not any(causes):
             return   # every input used (the common case: no Counter)
         for cause, n in Counter(c for c in causes if c is not None).items():
-            if cause == 'future_stamp' and by_gyro and not self._timed:
-                self.events['early_inputs'] += n   # not a fault: no warning, no WARN
+            if cause == 'early':   # before the first gyro sample: not a fault, no WARN
+                self.events['early_inputs'] += n
             elif cause in TIME_EVENTS:
                 self.events[cause] += n
                 self.get_logger().warning(f'{TIME_EVENTS[cause]} ({what})')
@@ -221,7 +214,7 @@ class EstimatorNode(Node):
             return
         t, omega = decoded
         if self.rt is None:
-            self.rt, self._timed = self._runtime(t), True
+            self.rt = self._runtime(t)
             return
         if not self.ready_timer.is_canceled():
             self.ready_timer.cancel()
@@ -229,9 +222,7 @@ class EstimatorNode(Node):
                 # Once more now that the clock runs: the simulator started it only after the
                 # monitor's readers matched, so this one reaches them.
                 self._publish(grid=True, force=True)
-        cause = self.rt.add_gyro(t, omega, now=self._now())
-        self._timed = self._timed or cause is None or cause in TIME_EVENTS
-        self._counted([cause], f'imu sample at {t:.6f}')
+        self._counted([self.rt.add_gyro(t, omega, now=self._now())], f'imu sample at {t:.6f}')
         self.run_ready_steps()
 
     def on_points(self, sensor: Sensor, msg: Any) -> None:
@@ -241,8 +232,7 @@ class EstimatorNode(Node):
         if decoded is None or rt is None:
             return
         t, ids, vectors = decoded
-        self._counted(rt.add_points(sensor, t, ids, vectors), f'{sensor.value} at {t:.6f}',
-                      by_gyro=True)
+        self._counted(rt.add_points(sensor, t, ids, vectors), f'{sensor.value} at {t:.6f}')
         if rt.k == 0 and rt.gyro.end <= rt.t0:
             self._publish(grid=True)   # the t0 channels, before the first step
         elif self._deferred == rt.k and rt.measured_at(rt.t):
@@ -289,8 +279,7 @@ class EstimatorNode(Node):
         for name, problem in problems.items():
             self._reject('malformed', f'{name} of {what} ({problem})')
         if values:
-            self._counted([self.rt.add_message(sub.source_id, t, values)], f'{what} at {t:.6f}',
-                          by_gyro=True)
+            self._counted([self.rt.add_message(sub.source_id, t, values)], f'{what} at {t:.6f}')
             self.run_ready_steps()
 
     def on_peer_points(self, sub: Subscription, msg: Any) -> None:
@@ -352,7 +341,6 @@ class EstimatorNode(Node):
         assert rt is not None
         if self._wall_first_step is None:
             self._wall_first_step = time.monotonic()
-        self._stuck = None
         self._publish(grid=round((rt.t - rt.origin) / rt.h) % self.s.publish_every == 0)
         self._send_reply()
 
@@ -372,19 +360,13 @@ class EstimatorNode(Node):
         this agent) goes on after ``neighbour_wait`` ('exact' channels) or
         :data:`EXCHANGE_PATIENCE` of wall time; else the runtime's ``link_wait`` rules."""
         rt = self.rt
-        if rt is None or not rt.own_inputs_ready() or rt.steps_ready() > 0:
-            self._stuck = None
-            return
-        now = time.monotonic()
-        if self._stuck is None or self._stuck[:2] != (rt.k, rt.gyro.end):
-            self._stuck = (rt.k, rt.gyro.end, now)
-        elif now - self._stuck[2] >= (self.s.neighbour_wait if self.exact
-                                      else EXCHANGE_PATIENCE):
+        waited = None if rt is None else rt.waited_out(
+            time.monotonic(), self.s.neighbour_wait if self.exact else EXCHANGE_PATIENCE)
+        if rt is not None and waited is not None:
             self.get_logger().warning(
-                f'the step at t = {rt.t:.3f} s waited {now - self._stuck[2]:.3g} s of wall time '
-                f'for {rt.awaited or "a neighbour"} with its own sensors standing still: going '
-                'on without it (counted in event_impatient_steps)', throttle_duration_sec=5.0)
-            self._stuck = None
+                f'the step at t = {rt.t:.3f} s waited {waited:.3g} s of wall time for '
+                f'{rt.awaited or "a neighbour"} with its own sensors standing still: going on '
+                'without it (counted in event_impatient_steps)', throttle_duration_sec=5.0)
             self.run_ready_steps(impatient=True)
             self.run_ready_steps()
 

@@ -254,8 +254,10 @@ class AgentRuntime:
         # jump. Until then, or warm_window, each step first tries the method's warm start.
         self.cold_since: float | None = self.t0 if self.t0 > SAME and not self.leader else None
         self.warm_note = ''                       # the latest warm start's outcome
+        self.clocked = False                      # a gyro sample has set its time
         self.warm_starts: Counter[str] = Counter()   # accepted, refused, unavailable
         self.impatient = False
+        self._stuck: tuple[int, float, float] | None = None   # (k, gyro end, wall) waiting
         self._pending: StepInputs | None = None   # the inputs of step _pending_k
         self._pending_k = -1
         self._round1: StepInputs | None = None    # round 1 of step _replied_k, replied to
@@ -311,6 +313,13 @@ class AgentRuntime:
                 self.anchor_odometry.reset(self.t0)
         self.last = StepInfo(t=self.t)
 
+    @property
+    def _future(self) -> str:
+        """Why a stamp ahead of the newest gyro sample is not used: ``early`` before the first
+        one (a process started late, as a restarted robot's: the gyro sets its time), else
+        ``future_stamp``."""
+        return 'future_stamp' if self.clocked else 'early'
+
     # ------------------------------------------------------------------------------ own motion
     def add_gyro(self, stamp: float, omega: Array, now: float | None = None) -> str | None:
         """An interval-average gyro sample (see :mod:`core.gyro`). ``now``: the receiver's
@@ -324,6 +333,7 @@ class AgentRuntime:
             return 'absurd_rate'
         if now is not None and stamp > now + lim.max_future:
             return 'future_stamp'
+        self.clocked = True   # its time is the gyro's from now on
         end = self.gyro.end
         if stamp <= end:
             if stamp < end - lim.jump_back:
@@ -399,7 +409,7 @@ class AgentRuntime:
         if not math.isfinite(stamp):
             return ['non_finite'] * n
         if stamp > self.gyro.end + self.limits.max_future:
-            return ['future_stamp'] * n
+            return [self._future] * n
         if stamp < self.gyro.start:
             return ['stale'] * n
         stamps = self._own_stamps[sensor]
@@ -482,7 +492,7 @@ class AgentRuntime:
             if problem is not None:
                 return problem
         if not in_time:
-            return 'future_stamp'
+            return self._future
         for name, v in mine.items():
             hist = peer.values.setdefault(name, Stamped())
             if hist and stamp < hist.newest_stamp - SAME:
@@ -679,6 +689,22 @@ class AgentRuntime:
         finally:
             self.impatient = False
         return ran
+
+    def waited_out(self, wall: float, patience: float) -> float | None:
+        """How long [s of wall time ``wall``] the next step has waited with its own inputs in
+        and nothing else changing (a lockstep clock waiting for this agent), once that reaches
+        ``patience``: then the caller runs it impatient. Else None."""
+        if not self.own_inputs_ready() or self.steps_ready() > 0:
+            self._stuck = None
+            return None
+        if self._stuck is None or self._stuck[:2] != (self.k, self.gyro.end):
+            self._stuck = (self.k, self.gyro.end, wall)
+            return None
+        waited = wall - self._stuck[2]
+        if waited < patience:
+            return None
+        self._stuck = None
+        return waited
 
     def pending_reply(self, impatient: bool = False) -> dict[str, dict[int, Array]] | None:
         """Round 2 of the current step, once: ``{channel: {listener id: value}}`` for every
