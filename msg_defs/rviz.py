@@ -1,16 +1,9 @@
 """What RViz and TF users see of a fleet: the estimate as a TF transform, and the fleet as one
-``visualization_msgs/MarkerArray`` (RViz cannot draw the FLOAT64 point clouds the sensors
-use; these markers draw what they say).
-
-Markers, by namespace (``ns``), ids stable across messages so each replaces the last:
-
-- ``estimate``: an arrow along each agent's estimated body x axis, blue, in the estimate frame;
-- ``label``: its name above it;
-- ``truth``: the same arrow at the true pose, green and translucent, in the world frame (from
-  the simulator's ``ground_truth``; absent on a real fleet);
-- ``edges``: the sensing graph, one grey line per edge i → j between the estimated positions;
-- ``bearings``: each measured bearing ray, yellow, from p̂_i along R̂_i b_ij, as long as the
-  estimated distance to j (1 m while j has no estimate).
+``visualization_msgs/MarkerArray`` (RViz cannot draw the FLOAT64 point clouds the sensors use).
+Markers by namespace, ids stable so each replaces the last: ``estimate`` (a blue arrow along
+the estimated body x axis), ``label``, ``truth`` (green, translucent, in the world frame),
+``edges`` (the sensing graph between the estimated positions) and ``bearings`` (each measured
+ray from p̂_i along R̂_i b_ij, as long as the estimated distance to j, else 1 m).
 """
 from __future__ import annotations
 

@@ -61,21 +61,9 @@ def reachable_from(source: str, names: Sequence[str],
     return seen
 
 
-def collocated_pairs(positions: NDArray[np.float64]) -> list[tuple[int, int]]:
-    """Index pairs ``(i, j)``, ``i < j``, of positions closer than :data:`COLLOCATED_M`."""
-    return sorted(cKDTree(positions).query_pairs(COLLOCATED_M))
-
-
-def widest_angle(b: NDArray[np.float64]) -> float:
-    """The largest angle [rad, in [0, π/2]] between the lines of any two unit vectors ``b``
-    ``(M, 3)``: 0 when they are all collinear."""
-    sines = np.linalg.norm(np.cross(b[:, None, :], b[None, :, :]), axis=-1)
-    return float(np.arcsin(np.clip(sines.max(), 0.0, 1.0)))
-
-
 def widest_angles(b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """:func:`widest_angle` of many sets at once: ``b`` ``(..., M, 3)`` unit vectors, ``M >= 2``;
-    returns ``(...)`` [rad, in [0, π/2]]."""
+    """The largest angle ``(...)`` [rad, in [0, π/2]] between the lines of any two of the unit
+    vectors ``b`` ``(..., M, 3)``, ``M >= 2``: 0 when they are all collinear."""
     first, second = np.triu_indices(b.shape[-2], 1)
     sines = np.linalg.norm(np.cross(b[..., first, :], b[..., second, :]), axis=-1)
     return np.arcsin(np.clip(sines.max(axis=-1), 0.0, 1.0))

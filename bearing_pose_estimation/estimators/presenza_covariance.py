@@ -21,17 +21,13 @@ velocity term's distance factor ``‖q̂_i − q̂_j‖`` moves with ``q̂_i``),
 the error of the reconstructed velocity (11) from what the sensing robots j know.
 
 **What comes from elsewhere**, as for the other methods (covariance.py, de_carli_covariance.py):
-white noise per step (bearings, bearing rates, the anchor's relative positions, odometry,
-gyros) and slow inputs, the neighbours' errors, which enter over a window of the robot's own
-loop as white noise of ``c / ρ`` times their covariance, ``ρ`` the loop's decay per step
-(matrix-valued here: ``A_q = G_q D̂`` for the position, ``A_Q = G_Q K`` for the attitude, the
-inputs scaled by ``A^{-1/2}``); ``c_Q = 2`` for the attitude (a fast loop under slow position
-errors: their steady state, exactly), ``c_q = 1.3`` for the position, whose inputs decay with
-it (De Carli et al.'s rule is 1: on config/presenza_noisy.yaml, 10 runs, the position NEES
-was 4.06 with it, 3.01 with 1.3; at 2 the robots' covariances feed each other without bound;
-BENCHMARKS.md).
-The robots that see i send it, with their second round, what only they know
-(:data:`TERM_COV`, per listener):
+white noise per step and slow inputs, the neighbours' errors, which enter as white noise of
+``c / ρ`` times their covariance, ``ρ`` the loop's decay per step (here matrix-valued, ``A_q =
+G_q D̂`` and ``A_Q = G_Q K``, the inputs scaled by ``A^{-1/2}``): ``c_Q = 2`` (a fast loop under
+slow position errors: their steady state, exactly), ``c_q = 1.3`` for the position, whose
+inputs decay with it (on config/presenza_noisy.yaml, 10 runs, the position NEES was 4.06 with
+De Carli et al.'s 1, 3.01 with 1.3; at 2 the covariances feed each other without bound). The
+robots that see i send it, in their second round, what only they know (:data:`TERM_COV`):
 
 - the covariance of their angle terms of ``ζ_i`` (6): white from their bearings' noise
   (``dα_jik = β_kᵀ ν_i + β_iᵀ ν_k``), slow from their own and the other robot's position
@@ -113,9 +109,8 @@ def projector(b: Array) -> Array:
 
 
 class AngleTerms(NamedTuple):
-    """A robot's own angles (pairs of its sensing links ``e1 < e2``), as the step forms them:
-    the Jacobian blocks ``χ_jk``, ``χ_kj`` (``g`` of j, of k), ``g_own = −(χ_jk + χ_kj)`` and
-    the estimated cosine ``𝔮̂_ijᵀ 𝔮̂_ik`` ``(A, 1)``."""
+    """A robot's own angles (pairs of its sensing links ``e1 < e2``): the Jacobian blocks
+    ``χ_jk``, ``χ_kj``, ``g_own = −(χ_jk + χ_kj)`` and the estimated cosine ``(A, 1)``."""
 
     e1: Index
     e2: Index
@@ -178,13 +173,11 @@ def sender_terms(n_edges: int, angles: AngleTerms, bearings: Array, P_own: Array
                  P_other: Array, agent: Index, velocity: VelocityTerms | None,
                  bearing_var: float, rate_var: float, odometry_density2: float,
                  gyro_density2: float, h: float) -> Array:
-    """:data:`TERM_COV` per link ``(E, 27)`` of a sensing robot j to each robot i it sees, from
-    j's own ``angles`` (:func:`angle_terms`), its body bearings ``β_ji`` ``(E, 3)``, the senders'
-    own covariance ``P_own`` ``(N, 6, 6)``, the covariance each listener sent ``P_other``
-    ``(E, 6, 6)`` (round 1, ``pose_cov``), the free listeners' ``velocity`` terms per link
-    (None: no bearing rates, no velocity terms), ``bearing_var``, ``rate_var`` per component
-    [rad²], [1/s²] and the squared noise densities ``*_density2`` of odometry [m²/s] and gyro
-    [rad²/s]."""
+    """:data:`TERM_COV` ``(E, 27)`` of a sensing robot j to each robot i it sees, from j's
+    ``angles``, body bearings ``β_ji`` ``(E, 3)`` and ``P_own`` ``(N, 6, 6)``, each listener's
+    ``pose_cov`` ``P_other`` ``(E, 6, 6)``, the free listeners' ``velocity`` terms (None: no
+    bearing rates), the variances per component [rad²], [1/s²] and the squared noise densities
+    of odometry [m²/s] and gyro [rad²/s]."""
     out = np.zeros((n_edges, TERM_SIZE))
     e1, e2, chi_jk, chi_kj, g_own, _ = angles
     if len(e1):
@@ -224,11 +217,9 @@ def sender_terms(n_edges: int, angles: AngleTerms, bearings: Array, P_own: Array
 
 
 class OwnLinearisation(NamedTuple):
-    """A robot's linearised step (module docstring) before ``ΔR_aᵀ``: ``F`` ``(N, 6, 6)`` of its
-    own error, the position and attitude gains ``G_q``, ``G_Q`` ``(N, 3, 3)`` (from ζ and from
-    the anchor-frame ``Q̂ Ω``), the slow inputs' scaling ``T`` ``(N, 6, 6)`` (``√c A^{-1/2}`` of
-    the loops' decays ``A_q = G_q D̂``, ``A_Q = G_Q K``) and, for free robots, the map of
-    ``Σ_j dn'_ji`` ``(N, 6, 3)`` (zeros for sensing robots)."""
+    """A robot's linearised step (module docstring) before ``ΔR_aᵀ``: ``F`` ``(N, 6, 6)``, the
+    gains ``G_q``, ``G_Q`` ``(N, 3, 3)``, the slow inputs' scaling ``T = √c A^{-1/2}`` ``(N, 6,
+    6)`` and, for free robots, the map of ``Σ_j dn'_ji`` ``(N, 6, 3)``."""
 
     F: Array
     G_q: Array
@@ -242,15 +233,12 @@ def own_linearisation(h: float, kappa_q: float, kappa_Q: Array, w: float, D: Arr
                       moved: Array, gamma: Array, omega_a: Array, P_inv: Array,
                       reconstructed: Mask, b_in: Array, r_in: Array, valid: Mask
                       ) -> OwnLinearisation:
-    """:class:`OwnLinearisation` of every robot from ``kappa_Q`` ``(N,)``, each robot's attitude
-    gain; ``D`` ``(N, 3, 3)``, ``D̂_i``; ``K_a`` ``(N, 3, 3)``, ``K_i`` in the anchor frame;
-    ``b_own`` ``(E, 3)``, the sensing links' ``Q̂_i β_ij`` (``used``); ``moved`` ``(N, 3)``,
-    ``Q̂_i δ_i``; ``gamma`` ``(N, 3)``, ``γ̂_i`` (a free robot's ``Q̂_i Ω_i = Q̂_i u_i × γ̂_i``:
-    its map of ``φ`` is taken as ``−K``, symmetric, which it is at the truth where ``Q̂ u = γ̂``;
-    the exact ``[γ̂]x [Q̂ u]x`` at the estimate gave robot_3 of presenza_noisy an attitude NEES
-    of 150, its poor velocity reconstruction turning the loop); ``P_inv`` ``(N, 3, 3)``,
-    ``P̂_i⁻¹`` where ``reconstructed``; ``b_in``, ``r_in`` ``(E, 3)``, the received ``𝔟̂_ji``
-    and ``ṙ_ji`` (``valid``)."""
+    """:class:`OwnLinearisation` of every robot from its attitude gain ``kappa_Q``, ``D̂_i``
+    ``D``, ``K_i`` in the anchor frame ``K_a``, the sensing links' ``Q̂_i β_ij`` ``b_own``,
+    ``Q̂_i δ_i`` ``moved``, ``γ̂_i`` ``gamma`` (a free robot's map of ``φ`` through ``Q̂_i Ω_i =
+    Q̂_i u_i × γ̂_i`` is taken as ``−K``, symmetric, as at the truth where ``Q̂ u = γ̂``: the exact
+    ``[γ̂]x [Q̂ u]x`` gave robot_3 of presenza_noisy an attitude NEES of 150), ``P̂_i⁻¹``
+    ``P_inv`` where ``reconstructed``, and the received ``𝔟̂_ji``, ``ṙ_ji``."""
     n = D.shape[0]
     # D̂ and K commute with their gains: one eigendecomposition gives G, A and A^{-1/2}.
     lam, V = np.linalg.eigh(np.concatenate([D, K_a]))
@@ -338,14 +326,11 @@ def propagate(P: Array, lin: OwnLinearisation, dR_a: Array, agent: Index, *, use
               R_hat: Array, q_next: Array, model: PresenzaCovarianceModel, kappa_s: float,
               h: float, pinned: Mask) -> Array:
     """``P⁺`` ``(N, 6, 6)`` of every robot (module docstring) from its ``P``, its linearised
-    step ``lin``, the anchor's rotation ``ΔR_a`` ``(N, 3, 3)`` and what it has of the others.
-
-    Per link ``(E, ...)``: ``used`` its own sensing links, ``b_own`` ``Q̂_i β_ij``,
-    ``own_bearings`` ``β_ij`` (body), ``d_own`` ``‖q̂_j − q̂_i‖``, ``P_nbr`` the covariance the
-    other robot sent (``pose_cov``), ``terms`` what it sent of :data:`TERM_COV`, ``sensed_by``
-    (its angle terms), ``valid`` (its velocity terms), ``ranged_by`` (the anchor's relative
-    position). ``gamma``, ``R_hat``: ``γ̂_i``, ``Q̂_i``; ``q_next``: ``q̂_i⁺`` (the anchor's
-    gyro noise turns it)."""
+    step ``lin``, the anchor's rotation ``ΔR_a`` ``(N, 3, 3)`` and per link ``(E, ...)``:
+    ``used`` (own sensing), ``b_own`` ``Q̂_i β_ij``, ``own_bearings`` ``β_ij``, ``d_own``
+    ``‖q̂_j − q̂_i‖``, what the other robot sent, ``P_nbr`` (``pose_cov``) and ``terms``
+    (:data:`TERM_COV`, its angle terms where ``sensed_by``, its velocity terms where ``valid``),
+    and ``ranged_by``; ``q_next``: ``q̂_i⁺``, which the anchor's gyro noise turns."""
     n = P.shape[0]
     F, G_q, G_Q, T, B_v = lin
     V, Gn = own_input_maps(lin, agent, used, b_own, own_bearings, angles, d_own, R_hat)
@@ -388,9 +373,8 @@ def propagate(P: Array, lin: OwnLinearisation, dR_a: Array, agent: Index, *, use
 
 
 def capped(P: Array) -> Array:
-    """``P`` with each variance at most its cap (:data:`MAX_POSITION_STD`,
-    :data:`MAX_ATTITUDE_STD`), its rows and columns scaled with it (``S P S``, still positive
-    semi-definite)."""
+    """``P`` with each variance at most its cap, its rows and columns scaled with it (``S P S``,
+    still positive semi-definite)."""
     cap = np.array([MAX_POSITION_STD ** 2] * 3 + [MAX_ATTITUDE_STD ** 2] * 3)
     var = np.einsum('nii->ni', P)
     if np.all(var <= cap):

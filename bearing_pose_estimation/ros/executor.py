@@ -2,18 +2,13 @@
 until rclpy's EventsExecutor measured cheaper (``node_main.EXECUTORS``, BENCHMARKS.md); it stays
 as ``BEARING_POSE_EXECUTOR=draining``.
 
-rclpy's ``SingleThreadedExecutor`` rebuilds its wait set in Python on every wake-up and then
-runs *one* callback, wrapped in a Task; its cost per message grows with the entities in the
-process (``bench/executor_ceiling.py``, receiver CPU per message, all threads): 262 µs with one
-subscription, 436-553 µs with 8 (one agent), 1 644 µs with 40 (five agents), against 99-144 µs
-for this loop, which waits once and then takes *every* queued message of each ready
-subscription, handed to their callbacks in arrival order across subscriptions (DDS reception
-stamps): a node sees the same sequence as with a one-message-at-a-time executor.
-
-Kept from rclpy: timers (``call_timer`` then the callback), services (the parameter services),
-QoS event handlers (waitables), guard-condition callbacks, ``wake()``/``shutdown()``. Not
-supported: clients (adding a node with one raises) and callback groups' mutual exclusion
-(irrelevant on one thread). A coroutine callback raises ``TypeError``.
+rclpy's ``SingleThreadedExecutor`` rebuilds its wait set in Python on every wake-up and runs
+*one* callback: 262 µs of receiver CPU per message with one subscription, 436-553 µs with 8,
+1 644 µs with 40 (``bench/executor_ceiling.py``), against 99-144 µs for this loop, which takes
+*every* queued message of each ready subscription, in arrival order across subscriptions (the
+sequence a one-message-at-a-time executor gives). Timers, services, QoS events, guard
+conditions, ``wake()``/``shutdown()`` are kept; clients (adding a node with one raises) and
+coroutine callbacks (``TypeError``) are not.
 """
 from __future__ import annotations
 

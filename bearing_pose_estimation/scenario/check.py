@@ -1,14 +1,12 @@
-"""``check_scenario``: no two agents collocated (bearings between them are undefined), then the
-method's own assumptions (:meth:`Estimator.check`: Assumption 2 and M_i for Boughellaba &
-Tayebi, K_i for Tran et al., ...). A moving scenario is also checked along its sampled motion:
-close approaches, and what the motion breaks (:meth:`Estimator.check_motion`).
-"""
+"""``check_scenario``: no two agents collocated, then the method's own assumptions; a moving
+scenario also along its sampled motion (close approaches, :meth:`Estimator.check_motion`)."""
 from __future__ import annotations
 
 import math
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from ..core import graph
 from ..estimators.base import CheckReport, Finding, Sensor
@@ -27,7 +25,7 @@ def check_scenario(scenario: Scenario) -> CheckReport:
     """Every finding on ``scenario`` for its method, collocated agents first."""
     pos = np.stack([a.position for a in scenario.agents])
     collocated = []
-    for i, j in graph.collocated_pairs(pos):
+    for i, j in sorted(cKDTree(pos).query_pairs(graph.COLLOCATED_M)):
         a, b = scenario.agents[i].name, scenario.agents[j].name
         collocated.append(Finding('error', b, 'position', f'collocated with {a}',
                                   f'move {b} or {a}: bearings between them are undefined'))

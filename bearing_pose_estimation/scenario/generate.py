@@ -51,16 +51,14 @@ def _positions(n: int, rng: np.random.Generator) -> np.ndarray:
     return pts[[first, second] + rest]
 
 
-def _spread_ok(p: np.ndarray, i: int, nbrs: list[int]) -> bool:
-    d = p[nbrs] - p[i]
+def _valid(p: np.ndarray, i: int, pick: list[int]) -> bool:
+    # Reachable from both leaders (0, 1): sees both, or a follower (by induction).
+    if not (any(j >= 2 for j in pick) or {0, 1} <= set(pick)):
+        return False
+    d = p[pick] - p[i]
     b = d / np.linalg.norm(d, axis=1, keepdims=True)
     sines = np.linalg.norm(np.cross(b[:, None, :], b[None, :, :]), axis=-1)
     return bool(sines.max() >= np.sin(np.radians(MIN_SPREAD_DEG)))
-
-
-def _valid(p: np.ndarray, i: int, pick: list[int]) -> bool:
-    # Reachable from both leaders (0, 1): sees both, or a follower (by induction).
-    return (any(j >= 2 for j in pick) or {0, 1} <= set(pick)) and _spread_ok(p, i, pick)
 
 
 def _choose_neighbours(p: np.ndarray, i: int, placed: np.ndarray, tree: cKDTree,

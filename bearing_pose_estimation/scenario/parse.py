@@ -1,9 +1,6 @@
-"""Scenario files: YAML → validated, typed :class:`.model.Scenario`.
-
-The format: the README ("Scenario format") and ``config/paper_8_agents.yaml``. Every error names
-the file, the field (``agents[3] (agent_4).neighbours[1]``) and the fix. Structural checks live
-here; each method's graph assumptions in its estimator's ``check`` (:func:`.check_scenario`).
-"""
+"""Scenario files (README, "Scenario format"): YAML → validated, typed :class:`.model.Scenario`.
+Every error names the file, the field (``agents[3] (agent_4).neighbours[1]``) and the fix. The
+methods' graph assumptions are their estimators' ``check`` (:func:`.check_scenario`)."""
 from __future__ import annotations
 
 import dataclasses
