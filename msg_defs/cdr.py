@@ -1,14 +1,12 @@
 """The codecs of the package's messages: values to a message's serialised bytes and back, with
-numpy on the CDR layout (issue 15: no rclpy message object is built, BENCHMARKS.md "Raw CDR").
-Every decoder also takes an rclpy message object, serialised first (``msg_defs.raw``).
-
-The bytes are ``rclpy.serialization.serialize_message``'s (rmw_fastrtps, Jazzy): plain CDR
-(XCDR1), little endian, after the encapsulation header ``00 01 00 00``; every value aligned to
-its own size from the first byte after it, padding zero (rmw_fastrtps leaves it uninitialised:
-the only difference); a string is a uint32 length counting its NUL, its UTF-8 bytes and the NUL.
-Each decoder raises :class:`WireError`, never another error, on values it rejects and on
-malformed bytes (``test/test_cdr.py`` checks every codec against rclpy's own serialisation).
-"""
+numpy on the CDR layout (issue 15: no rclpy message object is built, BENCHMARKS.md "Raw CDR"); a
+decoder also takes an rclpy message object. The bytes are
+``rclpy.serialization.serialize_message``'s (rmw_fastrtps, Jazzy): plain CDR (XCDR1), little
+endian, after the encapsulation header ``00 01 00 00``; every value aligned to its own size from
+the first byte after it, padding zero (rmw_fastrtps leaves it uninitialised: the only difference);
+a string is a uint32 length counting its NUL, its UTF-8 bytes and the NUL. Each decoder raises
+:class:`WireError`, never another error, on values it rejects and on malformed bytes
+(``test/test_cdr.py`` checks every codec against rclpy's own serialisation)."""
 from __future__ import annotations
 
 import math
@@ -303,13 +301,10 @@ _ODOMETRY[6] = 1.0   # orientation w
 def encode_odometry_raw(t: float, agent: str, v: Array, omega: Array,
                         R_odom: Array | None = None, p_odom: Array | None = None,
                         v_std: float = 0.0, omega_std: float = 0.0) -> bytes:
-    """nav_msgs/Odometry sample stamped ``t_k``: the body twist ``v`` [m/s], ``omega``
-    [rad/s] in ``child_frame_id`` = ``<agent>/base_link`` (REP-105), an interval average like
-    the Imu gyro samples (the constant twist whose SE(3) exponential is the true pose increment
-    over ``(t_{k-1}, t_k]``, :mod:`core.odometry`), with the diagonal ``twist.covariance`` of
-    ``v_std``, ``omega_std``; the dead-reckoned pose ``R_odom``, ``p_odom`` (for RViz; default
-    identity, zero) in ``header.frame_id`` = ``<agent>/odom``, its covariance zero (the
-    estimator does not read the pose)."""
+    """nav_msgs/Odometry sample: the body twist ``v`` [m/s], ``omega`` [rad/s] in
+    ``<agent>/base_link`` (REP-105), an interval average like the gyro's (:mod:`core.odometry`),
+    with the diagonal ``twist.covariance`` of ``v_std``, ``omega_std``; the dead-reckoned pose
+    (for RViz; default identity, zero) in ``<agent>/odom``, its covariance zero."""
     values = _ODOMETRY.copy()
     if p_odom is not None:
         values[0:3] = np.asarray(p_odom, dtype=float).reshape(3)
@@ -438,9 +433,8 @@ def _point_fields(data: bytes, pos: int) -> tuple[bytes, dict[str, tuple[int, in
 
 def _point_dtype(fields: Mapping[str, tuple[int, int, int]], want: Mapping[str, int],
                  point_step: int) -> np.dtype:
-    """The numpy view of the wanted fields of points of ``point_step`` bytes: each wanted
-    field present, of an accepted datatype, count 1, within the point and overlapping no
-    other wanted field."""
+    """The numpy view of the wanted fields, each present, of an accepted datatype, count 1,
+    within the ``point_step`` bytes and overlapping no other."""
     for name, datatype in want.items():
         accepted = _ACCEPTED.get(datatype, (datatype,))
         if name not in fields or fields[name][1] not in accepted or fields[name][2] != 1:
@@ -464,11 +458,10 @@ def _point_dtype(fields: Mapping[str, tuple[int, int, int]], want: Mapping[str, 
 
 
 def decode_cloud_raw(data: Data, want: Mapping[str, int]) -> tuple[float, np.ndarray]:
-    """The stamp and the points of a PointCloud2 as a structured array (a read-only view of
-    ``data``) of the fields ``want`` (``{name: PointField datatype}``), in any order and with
-    any padding (a user's detector, PCL; FLOAT64 may come as FLOAT32). WireError: malformed
-    bytes, missing, mistyped or overlapping fields, a data length other than width x height x
-    point_step, or big-endian data."""
+    """The stamp and the points of a PointCloud2, a read-only structured view of the fields
+    ``want`` (``{name: PointField datatype}``) in any order and padding (a detector, PCL;
+    FLOAT64 may come as FLOAT32). WireError: malformed bytes, bad fields, a data length other
+    than width x height x point_step, or big-endian data."""
     what = 'PointCloud2'
     data = _as_bytes(data)
     sec, nanosec, _, pos = _header(data, what)

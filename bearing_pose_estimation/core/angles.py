@@ -58,9 +58,8 @@ def normalised(q: Array) -> Array:
 
 
 def iar_margin(q: Array, triples: Index) -> float:
-    """``σ_{3N-7}(A)/σ_1(A)`` on the normalised positions: positive and above
-    :data:`IAR_TOLERANCE` iff the framework is infinitesimally angle rigid (Definition 1);
-    0 when there are fewer than ``3N - 7`` angles."""
+    """``σ_{3N-7}(A)/σ_1(A)`` on the normalised positions, above :data:`IAR_TOLERANCE` iff
+    infinitesimally angle rigid (Definition 1); 0 with fewer than ``3N - 7`` angles."""
     n = q.shape[0]
     if len(triples) < 3 * n - 7 or not len(triples):
         return 0.0

@@ -1,8 +1,6 @@
-"""Bearing rates from consecutive bearings, for robots without a bearing-rate sensor
-(Presenza et al.'s free-robot velocity reconstruction (11) needs them).
-
-The notes (``presenza-2026.md`` §9) difference consecutive bearings after rotating the older
-one into the current body frame with the gyro:
+"""Bearing rates for robots without a bearing-rate sensor (Presenza et al.'s (11) needs them):
+the notes (``presenza-2026.md`` §9) difference consecutive bearings, the older one rotated into
+the current body frame with the gyro:
 
     β̇°_k = Π(β_k) (β_k - ΔRᵀ β_{k-1}) / Δt,      ΔR = R_{k-1}ᵀ R_k (the body's rotation)
 
@@ -35,9 +33,8 @@ class BearingRateFilter:
 
     def update(self, t: float, b: Array, delta_R: Array,
                rows: NDArray[np.bool_] | None = None) -> tuple[Array, NDArray[np.bool_]]:
-        """The bearings ``b`` ``(n, 3)`` measured at ``t`` (only ``rows`` of them, default all),
-        with each body's rotation ``delta_R`` ``(n, 3, 3)`` since its previous sample: the
-        filtered de-rotated rates ``(n, 3)`` [1/s] and which rows have one (others: zero)."""
+        """Take the bearings ``b`` ``(n, 3)`` at ``t`` (``rows``: default all), ``delta_R`` the
+        rotation since each one's previous sample: the rates [1/s] and which rows have one."""
         rows = np.ones(len(b), dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
         have = rows & ~np.isnan(self.t_prev)
         dt = np.where(have, t - np.nan_to_num(self.t_prev), 1.0)[:, None]

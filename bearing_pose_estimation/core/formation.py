@@ -9,9 +9,7 @@ robot i commands the body-frame velocity
 ``E_ik = +1`` if i is the tail a, -1 if the head b; ``sat_ν(x) = x · min(1, ν/|x|)`` (3-D norm).
 The printed (31) expresses its in-neighbour sum in robot j's frame (the factor ``R̂_iᵀ R̂_j`` is
 missing: with it the formation is never reached) and (30) saturates μ instead of ``k_c μ``.
-
-Modes: ``paper``, the closed loop of Sec. IV on each robot's *estimated* yaw; ``exogenous``,
-on the true yaws (the world velocity ``sat(k_c Σ_k E_ik ((p*_a - p*_b) - (p_a - p_b)))``)."""
+``R̂`` holds the *estimated* yaws (``paper`` mode, Sec. IV) or the true ones (``exogenous``)."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,10 +1,8 @@
-"""Motion profiles (angular and linear velocities) and their exact-enough integration.
-
-A profile is declarative (no ``eval``): each component is a constant plus a sum of sinusoids
-``amplitude · sin(frequency · t + phase)``; :class:`ProfileSet` evaluates all agents at once.
-``dR/dt = R [ω(t)]x`` is integrated by the 4th-order Magnus expansion, a world-frame velocity
-in closed form, a body-frame one by 3-point Gauss-Legendre quadrature: O(h⁵) locally, far below
-the observers' first-order error at the same step."""
+"""Motion profiles and their exact-enough integration. A profile is declarative (no ``eval``):
+each component a constant plus sinusoids ``amplitude · sin(frequency · t + phase)``. Rotations
+are integrated by the 4th-order Magnus expansion, a world-frame velocity in closed form, a
+body-frame one by 3-point Gauss-Legendre quadrature: O(h⁵) locally, far below the observers'
+first-order error at the same step."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -101,8 +99,7 @@ class ProfileSet:
         return not self._has_terms
 
     def __call__(self, t: float | NDArray[np.float64]) -> NDArray[np.float64]:
-        """ω of every agent at time ``t``, shape ``(N, 3)``; at times ``t`` ``(K,)``, shape
-        ``(K, N, 3)`` (the same numbers as K calls: one elementwise expression)."""
+        """The profiles at ``t``, ``(N, 3)``; at times ``(K,)``, ``(K, N, 3)`` (as K calls)."""
         if np.ndim(t) == 0:
             out = self.constant.copy()
             tt: float | NDArray[np.float64] = t
@@ -158,8 +155,7 @@ def body_displacement(omega: ProfileSet, v_body: ProfileSet, t: float | NDArray[
 
 def held_body_displacement(omega: ProfileSet, t: float, h: float,
                            u: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``∫_0^h ΔR(τ) dτ · u`` ``(N, 3)``: the displacement over ``[t, t+h]``, in the body frame
-    at t, of agents holding the body-frame velocity ``u`` (as :func:`body_displacement`)."""
+    """``∫_0^h ΔR(τ) dτ · u`` ``(N, 3)``: :func:`body_displacement` with a held ``u``."""
     if omega.is_zero:
         return h * u
     out = np.zeros_like(u)

@@ -1,10 +1,8 @@
-"""Odometry sample buffer: exact body-frame displacements between any two times.
-
-As for the gyro (:mod:`core.gyro`), a sample ``(v_k, ω_k)`` stamped ``t_k`` is the *interval
-average* over ``(t_{k-1}, t_k]``, the constant twist whose SE(3) exponential is the true pose
-increment (``J(ω_k Δ) v_k Δ`` the displacement, :func:`so3.jacobian_apply`): exact between
-sample stamps for any motion, where a held instantaneous velocity leaves an O(h) bias
-(``../shared/estimators/de-carli-2024.md``, section 7)."""
+"""Odometry sample buffer: exact body-frame displacements between any two times. As for the gyro
+(:mod:`core.gyro`), a sample ``(v_k, ω_k)`` stamped ``t_k`` is the *interval average* over
+``(t_{k-1}, t_k]``, the constant twist whose SE(3) exponential is the true pose increment
+(displacement ``J(ω_k Δ) v_k Δ``, :func:`so3.jacobian_apply`): exact between stamps for any
+motion, where a held velocity leaves an O(h) bias (de-carli-2024.md §7)."""
 from __future__ import annotations
 
 import numpy as np

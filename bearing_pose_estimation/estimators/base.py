@@ -80,15 +80,14 @@ class Channel:
     - ``on``: the receiver's edge flag (:func:`edge_table`) it travels on (``'senses'``: from
       the agents it senses, ``'sensed_by'``: from those that sense it; None: every edge);
       ``owner_only``: only the owner of the pair's shared state sends it.
-    - ``sensor``: j's own measurement of i by that sensor, on j's sensor topic, paired like a
-      measurement (interpolated at the step's instant).
+    - ``sensor``: j's own measurement of i, on j's sensor topic, paired like a measurement.
     - ``pairing`` with the step at t: ``'instant'``, the sender's newest instant at or before t
       at which it sent every required channel (a simulation waits for it, a robot takes what
       is here); ``'exact'``, the value of t itself: once a later one came it is lost, and the
       sender's newest earlier one is carried to t (:meth:`Estimator.carry`) or the edge goes
       without it.
-    - ``optional`` (a covariance): never waited for; the value of the step's instant if here,
-      else the newest carried or as it is, else :meth:`Estimator.missing`.
+    - ``optional`` (a covariance): never waited for; the step's instant's, else the newest,
+      else :meth:`Estimator.missing`.
     - ``frame``: ``'world'``, ``'body'`` (the sender's) or ``'estimate'``; ``unit``: unit
       vectors (checked on reception); ``bound``: the largest component a receiver accepts;
       ``psd_blocks``: leading packed symmetric 3x3 blocks (xx, yy, zz, xy, xz, yz) that must
@@ -170,9 +169,8 @@ def format_gains(gains: Any) -> str:
 
 
 # ----------------------------------------------------------------------------- edges, state
-# Above this many edges, sums over each agent's edges use a sparse incidence matrix: once
-# built (~100 µs), its product beats np.add.at from about 64 edges on (5 against 5 µs at 64,
-# 6 against 30 µs at 512), what the batch simulator's fleets need (Edges.sum_by_agent).
+# Above this many edges, sums over each agent's edges use a sparse incidence matrix: built once
+# (~100 µs), its product beats np.add.at from about 64 edges on (6 against 30 µs at 512).
 SPARSE_SUM_EDGES = 64
 
 
@@ -326,10 +324,8 @@ class StepInputs:
       :data:`P_OWN` (a moving fleet: ``p̂_i`` moved back to the stamp of j's values by the own
       odometry, so the pairing is exact at the true poses while the corrections are not
       delayed) and :data:`HELD` (a node holds samples slower than its steps, and their noise).
-    - ``mask[key]`` ``(E,)``: which edges have ``edge[key]`` (no mask: all); where off, the
-      value is zeros (or the method's stand-in).
-
-    The batch simulator builds them for the whole fleet, a node for its one agent."""
+    - ``mask[key]`` ``(E,)``: which edges have ``edge[key]`` (no mask: all; off: zeros or the
+      method's stand-in)."""
 
     edges: Edges
     agent: Mapping[str, Array]
@@ -495,11 +491,9 @@ class Estimator(ABC, Generic[G, S]):
     peer_odometry: ClassVar[Literal['none', 'links', 'anchor']] = 'none'
     # The step takes edges with inputs missing (masks); False: only the complete ones.
     partial_edges: ClassVar[bool] = False
-    # The step reads its start time (``inputs.t``: multirate stages): only steps of one instant
-    # share a call (otherwise agents a step apart do, as an ``estimators`` process flushes them).
+    # The step reads ``inputs.t`` (multirate stages): only steps of one instant share a call.
     timed_step: ClassVar[bool] = False
-    # The sensor whose measurement of the listener the per-edge channels are formed from
-    # (outbox's ``bearings``): what each agent sends, and what travels on its sensor topic.
+    # The sensor whose measurement of the listener outbox's per-edge channels are formed from.
     partner_sensor: ClassVar[Sensor | None] = None
     reference_scenario: ClassVar[str]      # the file in config/ with the paper's simulation
     # How far the truth drifts from a fixed point of the step in a moving fleet, over 300
@@ -558,15 +552,13 @@ class Estimator(ABC, Generic[G, S]):
         rotations back onto SO(3) (the batch simulator: every few steps only)."""
 
     def reply(self, x: S, h: float, inputs: StepInputs) -> dict[str, Array]:
-        """Two-round methods: the round-2 channels, per edge ``(E, ...)``, that each edge's
-        agent sends the edge's other end, formed from its state, its own measurements and the
-        round-1 values it received (``inputs`` as :meth:`step` gets them, without round 2)."""
+        """Two-round methods: the round-2 channels ``(E, ...)`` each edge's agent sends its other
+        end, from its state and the round-1 ``inputs`` (as :meth:`step` gets them)."""
         raise NotImplementedError(f'{self.method} exchanges one round of messages')
 
     def warm_start(self, x: S, inputs: StepInputs) -> WarmStart | None:
-        """A state built from what one agent with no trustworthy estimate (started late,
-        restarted, after a gyro gap or a clock jump) measures and hears at its step's start
-        (``inputs``, complete edges), or why not; None: the method has no warm start."""
+        """A state for one agent with no trustworthy estimate (started late, after a gyro gap
+        or a clock jump) from its step's complete ``inputs``, or why not; None: no warm start."""
         return None
 
     def missing(self, channel: str) -> Array:
@@ -591,9 +583,8 @@ class Estimator(ABC, Generic[G, S]):
         warnings for what weakens it, each naming the agent, the field and the fix."""
 
     def conditioning(self, bearings: Array, k: Array) -> Array | None:
-        """The local matrix whose spectrum the method's convergence proof needs, from one
-        agent's bearings to its neighbours ``(M, 3)`` and their gains ``(M,)`` (any frame: the
-        spectrum is rotation invariant); None when the method has none."""
+        """The local matrix whose spectrum the convergence proof needs, from one agent's
+        bearings ``(M, 3)`` (any frame) and gains ``(M,)``; None when the method has none."""
         return None
 
     def conditioning_problem(self, eig: Array) -> str | None:
@@ -616,9 +607,8 @@ class Estimator(ABC, Generic[G, S]):
     edge_error_label: ClassVar[str] = ''   # e.g. 'rel_yaw_err': the column prefix per pair
 
     def edge_errors(self, x: S, R: Array, edges: Edges, other: Index) -> Array | None:
-        """Per edge ``(E,)``, the error of a per-pair state the method keeps, against the true
-        attitudes ``R`` (NaN where the edge's agent keeps none; ``other``: each edge's other
-        end); None when the method has no such state."""
+        """Per edge ``(E,)``, the error of a per-pair state against the true attitudes ``R``
+        (NaN where the edge's agent keeps none); None when the method keeps none."""
         return None
 
     def neighbour_report(self, x: S, slots: int) -> dict[str, list[str]]:

@@ -1,14 +1,13 @@
-"""The setting Boughellaba & Tayebi and Tran, Anderson & Ahn share: gyros and bearings, two
-leaders that know their pose, followers that each see at least two earlier agents.
-
-Sensing is two-way on every edge: j sends i ``R̂_j b^j_ji`` (formed at one instant, so that
-attitude and bearing pair in time) and ``p̂_j``; i uses ``d_ij = R̂_j b^j_ij = -R̂_j b^j_ji``.
+"""The setting Boughellaba & Tayebi and Tran, Anderson & Ahn share: gyros and bearings, two leaders
+that know their pose, followers that each see at least two earlier agents. Sensing is two-way on
+every edge: j sends i ``R̂_j b^j_ji`` (formed at one instant, so that attitude and bearing pair in
+time) and ``p̂_j``; i uses ``d_ij = R̂_j b^j_ij = -R̂_j b^j_ji``.
 
 Assumption 2 of Boughellaba & Tayebi (Tran et al. assume the same graph class): (a) the sensing
-graph is acyclic and every follower is reachable from both leaders; (b) leaders have no
-neighbours (enforced when parsing); (d) no two agents are collocated, every follower has
-``|N_i| >= 2`` neighbours, all earlier in the agent order, with at least two non-collinear
-bearings. Each method adds the spectrum condition of its own lemma (:meth:`Estimator.conditioning`).
+graph is acyclic and every follower is reachable from both leaders; (b) leaders have no neighbours
+(enforced when parsing); (d) no two agents are collocated, every follower has ``|N_i| >= 2``
+neighbours, all earlier in the agent order, with at least two non-collinear bearings. Each method
+adds the spectrum condition of its own lemma (:meth:`Estimator.conditioning`).
 """
 from __future__ import annotations
 
@@ -45,9 +44,8 @@ WARM_SIGMAS = 4.0
 WARM_FLOOR_RAD = 1e-3
 # check_motion works on (samples × followers) blocks of about this many bearing sets.
 MOTION_BLOCK = 200_000
-# The local matrix depends on the bearings only: along the motion its spectrum is evaluated at
-# the samples where one of the follower's bearings has turned by this much [deg] since the
-# last evaluation (at most every sample; a formation that keeps its shape costs nothing).
+# Along the motion, the local matrix's spectrum is evaluated where one of the follower's
+# bearings has turned by this much [deg] since (a formation that keeps its shape costs nothing).
 SPECTRUM_STEP_DEG = 0.5
 
 

@@ -1,9 +1,7 @@
 """Boughellaba & Tayebi: cascaded attitude/position observer from gyros and bearings.
 
-``method: boughellaba_tayebi`` (the default). Leaders 1, 2 know their pose; every follower
-estimates ``(R̂_i, p̂_i)`` from its gyro, its bearings ``b^i_ij`` to its neighbours and what
-they send (:mod:`.bearing_leaders`). Notation: ``[x]x`` is the skew matrix of ``x``;
-``P_x = I - x xᵀ/‖x‖²``; ``R̃_i = R_i R̂_iᵀ``.
+``method: boughellaba_tayebi`` (the default), in the setting of :mod:`.bearing_leaders`.
+Notation: ``[x]x`` is the skew matrix of ``x``; ``P_x = I - x xᵀ/‖x‖²``; ``R̃_i = R_i R̂_iᵀ``.
 
 Continuous time, equations of the paper (the position observer in its v2 form: the projector
 uses the estimated world bearing ``R̂_i b^i_ij``, since ``R̂_i P_{b^i_ij} R̂_iᵀ = P_{R̂_i b^i_ij}``;
@@ -83,15 +81,12 @@ def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Ed
                  b_body: Array, d_world: Array, p_hat_nbr: Array, gains: CascadeGains,
                  reorthonormalize: bool = True, displacement: Array | None = None,
                  p_own: Array | None = None) -> tuple[Array, Array, Array]:
-    """Advance the observers of all agents by one step ``h`` [s] (module docstring): ``(R̂, p̂)``
-    at ``t + h`` and the innovation ``σ`` used (world frame). At t: ``R_hat`` ``(N, 3, 3)``,
-    ``p_hat`` ``(N, 3)`` [m], ``delta_R`` the gyro increments ``R(t)ᵀ R(t+h)``; per edge
-    ``(E, 3)``: ``b_body`` the own unit bearings ``b^i_ij``, ``d_world`` the neighbours' world
-    bearings ``R̂_j b^j_ij = -R̂_j b^j_ji``, ``p_hat_nbr`` their ``p̂_j`` [m], ``p_own`` the
-    owner's ``p̂_i`` to pair with them (late messages, :data:`base.P_OWN`; None: ``p_hat``);
-    ``displacement`` ``(N, 3)`` the odometry ``δ_i`` over the step (body frame at t) [m], fed
-    forward with ``k_v`` (None: static). ``reorthonormalize``: pull R̂ back onto SO(3) (``Q`` and
-    ``ΔR`` are rotations to rounding, so a caller may do it every few steps only)."""
+    """One step ``h`` [s] of every agent (module docstring): ``(R̂, p̂)`` at ``t + h`` and the
+    innovation ``σ`` (world frame), from the state and ``delta_R`` ``R(t)ᵀ R(t+h)`` at t and, per
+    edge ``(E, 3)``, the own unit ``b^i_ij``, the neighbours' ``R̂_j b^j_ij = -R̂_j b^j_ji``, their
+    ``p̂_j`` [m] and the owner's ``p̂_i`` to pair with them (:data:`base.P_OWN`; None: ``p_hat``);
+    ``displacement``: the odometry ``δ_i`` [m] (None: static). ``reorthonormalize``: ``Q`` and
+    ``ΔR`` are rotations to rounding, so a caller may pull R̂ back every few steps only."""
     sigma, y = innovation(R_hat, edges, b_body, d_world)
     Q = so3.exp(-h * gains.k_R * sigma)
     p_pred = position_step(p_hat, edges, y, p_hat_nbr, h * gains.k_p, gains.bias_std,

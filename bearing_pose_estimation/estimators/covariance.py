@@ -23,13 +23,12 @@ from its own geometry and noise model (``W_i``; ``N_g`` the gyro's angle random 
 ``E[x_i x_jᵀ]`` and without ``c_i`` the recursion is exact to first order; an agent has neither
 those nor its neighbours' dynamics, so ``c_i`` stands for them:
 
-- a neighbour's error is slow (correlated over ~1/a), not white: over its own window agent i
-  sees it as white noise of density ``2 P_j / (a_i + a_j)``; with ``a_j`` unknown, ``a_j`` is
-  taken as agent i's slowest rate and ``a_i`` as its median rate (the eigenvalues of ``k_p M_i``
-  and ``k_R Q_i``), so ``2 / (h (a_slow + a_median))``;
-- the neighbours' errors are correlated with each other (shared ancestors) in an unknown way:
-  covariance intersection with equal weights multiplies by the number of neighbours whose
-  covariance is not zero (leaders send zeros), which bounds any correlation.
+- a neighbour's error is slow (correlated over ~1/a): over agent i's window, white noise of
+  density ``2 P_j / (a_i + a_j)``, with ``a_j`` taken as i's slowest rate and ``a_i`` as its
+  median (of ``k_p M_i``'s and ``k_R Q_i``'s eigenvalues): ``2 / (h (a_slow + a_median))``;
+- the neighbours' errors are correlated with each other (shared ancestors): covariance
+  intersection with equal weights multiplies by the number of neighbours whose covariance is not
+  zero (leaders send zeros), which bounds any correlation.
 """
 from __future__ import annotations
 
@@ -81,8 +80,7 @@ class CovarianceModel(PoseCovarianceModel):
 
 
 def initial_covariance(n: int, position_std: float, attitude_std: float, dof: int = DOF) -> Array:
-    """``(n, dof, dof)`` diagonal prior: ``position_std`` [m] and ``attitude_std`` [rad] per
-    axis, 0 for the states beyond the pose (they start at their true value, e.g. ``Ω̃ = 0``)."""
+    """``(n, dof, dof)`` diagonal prior; 0 beyond the pose (true at the start, e.g. ``Ω̃ = 0``)."""
     diag = np.zeros(dof)
     diag[:3], diag[3:6] = position_std ** 2, attitude_std ** 2
     return np.tile(np.diag(diag), (n, 1, 1))
@@ -179,14 +177,12 @@ def tran_jacobians(h: float, edges: Edges, y: Array, dist: Array, R_hat: Array,
         Ω̃_i⁺ = (1 − h k_ω) Ω̃_i + h R̂_iᵀ (σ_i + σ_c,i)
         e_i⁺ = e_i − h k_p Σ_j (P_b (e_i − e_j) + d_ij (ν_ij − [b]x φ_i))
 
-    with ``σ_i`` of the module docstring (the torque is ``R̂_iᵀ Σ_j k_ij d_ij × y_ij``) and, for
-    two-neighbour followers, the third direction ``c = unit(b_1 × b_2)``: with ``s = ‖b_1 ×
-    b_2‖``, ``L_1 = −[b_2]x / s``, ``L_2 = [b_1]x / s`` and ``δ_k = −[b_k]x (φ_i − φ_jk) + ν_k −
-    ν'_k``, ``σ_c = k_c [c]x (L_1 δ_1 + L_2 δ_2)`` (its ``φ_i`` part is ``k_c P_c φ_i``).
-    ``pairs``: :class:`.tran_anderson_ahn.TwoNeighbourPairs`. Returns as
-    :func:`cascade_jacobians`, with 9 rows; the rates are those of ``k_p M_i`` and the real
-    parts of the roots of ``s² + k_ω s + λ = 0`` for each eigenvalue λ of ``Q_i`` (+ ``k_c
-    P_c``): the attitude loop is ``φ̈ + k_ω φ̇ + Q φ = 0`` (with ``R̂`` frozen over the decay)."""
+    with ``σ_i`` of the module docstring and, for two-neighbour followers, ``c = unit(b_1 ×
+    b_2)``: with ``s = ‖b_1 × b_2‖``, ``L_1 = −[b_2]x / s``, ``L_2 = [b_1]x / s`` and ``δ_k =
+    −[b_k]x (φ_i − φ_jk) + ν_k − ν'_k``, ``σ_c = k_c [c]x (L_1 δ_1 + L_2 δ_2)``. Returns as
+    :func:`cascade_jacobians`, 9 rows; the rates: ``k_p M_i``'s and the real parts of the roots
+    of ``s² + k_ω s + λ = 0`` for each eigenvalue λ of ``Q_i`` (+ ``k_c P_c``), the attitude
+    loop being ``φ̈ + k_ω φ̇ + Q φ = 0`` (with ``R̂`` frozen over the decay)."""
     k, P_b, B, M, Q, A = _edge_terms(edges, y, dist)
     # σ's maps per edge: of φ_i (Q), of φ_j (Gφ), of ν (S) and ν' (−S); the pairs add σ_c.
     Gphi = -k * P_b

@@ -77,8 +77,7 @@ def times_i(a: Num) -> Array:
 
 
 def pair_prior(k: int, relative_std: float, yaw_std: float) -> Array:
-    """``(k, 6, 6)``: a new pair's covariance, its relative positions from one measurement and
-    its relative yaw from two initial yaws (each of std ``yaw_std``)."""
+    """``(k, 6, 6)``: a new pair's covariance, from one measurement and two initial yaws."""
     P = np.zeros((k, PAIR, PAIR))
     P[:, [0, 1, 4, 5], [0, 1, 4, 5]] = relative_std ** 2
     P[:, [2, 3], [2, 3]] = min(2.0 * yaw_std ** 2, ZETA_PRIOR_MAX)
@@ -163,9 +162,8 @@ def robot_maps(edges: Edges, h3: float, k_p: float, position: bool, c_yaw: float
                active: Array, moved: Array | None, relative_var: float) -> RobotMaps:
     """:class:`RobotMaps` of a step: ``position`` at a stage-3 tick, ``c_yaw`` stage 2's ``c =
     h₂ k_z`` at its ticks (else None); per edge ``d_nbr`` ``p̂_j − p̂_i``, the fresh terms
-    ``y_term`` (i senses j), ``m_term`` (j senses i), ``z_nbr`` ``ẑ_j``, ``active`` (excited);
-    ``moved`` ``R̂_i δ_i`` (None: no odometry). The measurement noise is isotropic: ``R̂`` drops
-    out."""
+    ``y_term`` (i senses j), ``m_term`` (j senses i), ``active`` (excited); ``moved`` ``R̂_i δ_i``
+    (None: no odometry). The measurement noise is isotropic: ``R̂`` drops out."""
     n, E = len(z_own), len(edges.agent)
     ag = edges.agent
     eye = np.eye(3)

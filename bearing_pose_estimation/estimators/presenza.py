@@ -9,13 +9,10 @@ O_i`` (directed) and their rates ``β̇_ij``; the anchor ``a`` also measures the
 **free robots'** positions come from the angles the sensing robots measure of them, their
 attitudes from the velocity the sensing robots reconstruct from bearing rates (11).
 
-Links (``links = 'communication'``): one per communication neighbour (i senses j, j senses i,
-or the anchor ranges the other). Two rounds of messages per step (§10, the channels below):
-``q̂_j`` and the anchor's ranged ``q_i``, then what each sensing robot j forms for each
+One link per communication neighbour; two rounds of messages per step (§10, the channels
+below): ``q̂_j`` and the anchor's ranged ``q_i``, then what each sensing robot j forms for each
 ``i ∈ O_j`` (:meth:`Presenza.reply`), e.g. ``n_ji = Π(𝔟̂_ji) υ̂_j + ‖q̂_i - q̂_j‖ (Q̂_j (β̇_ji +
-ω_j × β_ji) - ω_a × 𝔟̂_ji)`` (11, with the estimated distance, §4.2). Every robot also receives
-the anchor's gyro increment and odometry (:data:`base.ANCHOR_DELTA_R`,
-:data:`base.ANCHOR_DISPLACEMENT`).
+ω_j × β_ji) - ω_a × 𝔟̂_ji)`` (11, with the estimated distance, §4.2); and the anchor's odometry.
 
 One step ``h``, everything on the right at the step's start:
 
@@ -103,8 +100,7 @@ EULER_LIMIT = 2.0
 
 @dataclass(frozen=True)
 class PresenzaGains(cov.PresenzaCovarianceModel):
-    """Gains of (16)-(19) (§7: κ_Q has different units in the two attitude loops); the
-    covariance's model (:mod:`.presenza_covariance`)."""
+    """Gains of (16)-(19) (§7: κ_Q has different units in the two attitude loops)."""
 
     kappa_q: float = gain(500.0, 'position gain kappa_q of (16), (18) on the angle part of the '
                                  'gradient [m^2/s]')
@@ -238,9 +234,8 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
 
     @staticmethod
     def _structure(x: PresenzaState, inputs: StepInputs) -> tuple[Mask, Mask, Mask]:
-        """Per link whether its sensing terms are used this step (i senses j, and has its
-        bearing, bearing rate and ``q̂_j``) and ``sensed_by``; per robot ``sensing`` (two or
-        more out-neighbours: a role, whatever this step lacks)."""
+        """Per link whether its sensing terms are used this step (i senses j and has all it
+        needs) and ``sensed_by``; per robot ``sensing`` (a role, whatever this step lacks)."""
         edges = inputs.edges
         senses = edges.flag('senses')
         count = np.bincount(edges.agent[senses], minlength=x.p_hat.shape[0])
@@ -250,8 +245,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
 
     @staticmethod
     def _motion(h: float, inputs: StepInputs) -> tuple[Array, Array, Array, Array, Array, Array]:
-        """Own ``ω_i``, ``u_i``, the anchor's ``ω_a``, ``u_a`` (step averages, ``(N, 3)``) and
-        the anchor's increments ``ΔR_a``, ``δ_a``."""
+        """Step averages ``ω_i``, ``u_i``, ``ω_a``, ``u_a`` ``(N, 3)`` and ``ΔR_a``, ``δ_a``."""
         a_R, a_d = inputs.agent[ANCHOR_DELTA_R], inputs.agent[ANCHOR_DISPLACEMENT]
         delta = inputs.displacement if inputs.displacement is not None else np.zeros_like(a_d)
         return (so3.log_small(inputs.delta_R) / h, delta / h, so3.log_small(a_R) / h,
@@ -259,9 +253,8 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
 
     def _angle_terms(self, x: PresenzaState, inputs: StepInputs, senses: NDArray[np.bool_]
                      ) -> tuple[Array, Array, Array, Array, cov.AngleTerms]:
-        """Each robot's own angle terms of ``ζ_i`` and ``D̂_i`` ``(N, 3)``, ``(N, 3, 3)``, per
-        link what it sends the other end (``g``, its Gauss-Newton block), and the angles'
-        Jacobian blocks (for the covariance)."""
+        """Each robot's own terms of ``ζ_i``, ``D̂_i``, per link what it sends the other end
+        (``g``, its Gauss-Newton block), and the angles' Jacobian blocks (the covariance's)."""
         n, n_edges = x.p_hat.shape[0], len(inputs.edges)
         agent = inputs.edges.agent
         e1, e2 = _pairs(agent.tobytes(), np.ascontiguousarray(senses).tobytes())
@@ -414,9 +407,8 @@ def _eig(bearings: Array) -> Array:
 
 
 def check_angle_graph(gains: PresenzaGains, fleet: Fleet) -> CheckReport:
-    """The method's assumptions at t = 0 (§2, §3): the anchor senses, A3, enough angles and
-    infinitesimal angle rigidity (Definition 1), A5, L2, and the explicit update's step limit
-    (§9)."""
+    """The assumptions at t = 0 (§2, §3): the anchor senses, A3, angle rigidity (Definition
+    1), A5, L2, and the explicit update's step limit (§9)."""
     report = CheckReport(spectra_of='Σ_j Π(β_ij) (sensing robots, A5) and P_i = Σ_j Π(𝔮_ji) '
                                     '(free robots, L2)')
     names = list(fleet.names)

@@ -37,12 +37,10 @@ robots that see i send it, in their second round, what only they know (:data:`TE
   bearing rate ``ṙ_ji``. The range rate's part ``δ𝔟 ḋ`` is left out (the sensing robot does
   not know ``ḋ``; with the paper's motions it is about a tenth of the attitude's part).
 
-A variance past :data:`MAX_POSITION_STD` or :data:`MAX_ATTITUDE_STD` (the robot is lost) is
-capped there. Not modelled: held samples (the node's bearings are at the step rate in every
-scenario here), a free robot holding ``γ̂`` while ``λ_min(P̂_i)`` is small, and bearing rates
-differenced from noisy bearings, which are correlated in time (``bearing_rate_std`` then
-defaults to their per-sample std ``σ √2 f``).
-"""
+Variances are capped (:data:`MAX_POSITION_STD`: the robot is lost). Not modelled: held samples
+(the node's bearings are at the step rate in every scenario here), a free robot holding ``γ̂``
+while ``λ_min(P̂_i)`` is small, and bearing rates differenced from noisy bearings, which are
+correlated in time (``bearing_rate_std`` then defaults to their per-sample std ``σ √2 f``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -85,8 +83,7 @@ TERM_COV = Channel('term_cov', per='edge', frame='estimate', round=2, shape=(TER
 
 @dataclass(frozen=True, kw_only=True)
 class PresenzaCovarianceModel(CovarianceModel):
-    """The leader-follower model (bearings, gyro, odometry, prior) and what Presenza et al.
-    measure besides: the anchor's relative positions and the bearing rates."""
+    """The leader-follower model and the anchor's relative positions and the bearing rates."""
 
     relative_position_std: float = gain(0.0, "relative position noise std [m] per component "
                                         "(the anchor's ranged robots), for the covariance",
@@ -122,8 +119,7 @@ class AngleTerms(NamedTuple):
 
 def angle_terms(x_p: Array, q_other: Array, agent: Index, e1: Index, e2: Index,
                 min_distance: float) -> AngleTerms:
-    """:class:`AngleTerms` of the angles ``(e1, e2)`` from the estimates (the step's own
-    formulas, (3) and (6))."""
+    """:class:`AngleTerms` of the angles ``(e1, e2)`` from the estimates ((3), (6))."""
     i = agent[e1]
     d1, d2 = q_other[e1] - x_p[i], q_other[e2] - x_p[i]
     r1 = np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), min_distance)
@@ -135,9 +131,9 @@ def angle_terms(x_p: Array, q_other: Array, agent: Index, e1: Index, e2: Index,
 
 
 class VelocityTerms(NamedTuple):
-    """What a sensing robot j's velocity term ``n_ji`` of (11) is made of, per link:
-    ``𝔟̂_ji = Q̂_j β_ji``, ``d = ‖q̂_i − q̂_j‖``, the bearing's rate ``ṙ_ji = s − ω_a × 𝔟̂_ji``,
-    ``s = Q̂_j (β̇_ji + ω_j × β_ji)``, ``Q̂_j``, ``Q̂_j u_j``, ``ω_j`` (body) and ``ω_a``."""
+    """A sensing robot j's velocity term ``n_ji`` of (11), per link: ``𝔟̂_ji``, ``d``,
+    ``ṙ_ji = s − ω_a × 𝔟̂_ji``, ``s = Q̂_j (β̇_ji + ω_j × β_ji)``, ``Q̂_j``, ``Q̂_j u_j``,
+    ``ω_j``, ``ω_a``."""
 
     b_hat: Array
     d: Array
@@ -275,11 +271,9 @@ def own_linearisation(h: float, kappa_q: float, kappa_Q: Array, w: float, D: Arr
 
 
 def binned(index: Index, n: int, *rows: Array) -> list[Array]:
-    """``out[k] = Σ_{m: index[m] = k} rows[m]`` of each ``(M, ...)`` array, ``(n, ...)`` each
-    (e.g. over each robot's links), each robot's rows summed in their order by one
-    ``np.add.reduceat``: its sums do not depend on the other robots' (a dense product's BLAS
-    blocking does, and robots stepped together must get what they get alone), at a fraction of
-    ``np.add.at``'s cost."""
+    """``out[k] = Σ_{m: index[m] = k} rows[m]`` ``(n, ...)`` of each ``(M, ...)`` array, by one
+    ``np.add.reduceat`` in row order: a robot's sums do not depend on the others' (a dense
+    product's BLAS blocking does, and robots stepped together must get what they get alone)."""
     M = len(index)
     sizes = [int(np.prod(x.shape[1:], dtype=int)) for x in rows]   # (M = 0: no -1 reshape)
     flat = np.zeros((n, sum(sizes)))
@@ -296,10 +290,9 @@ def binned(index: Index, n: int, *rows: Array) -> list[Array]:
 def own_input_maps(lin: OwnLinearisation, agent: Index, used: Mask, b_own: Array,
                    own_bearings: Array, angles: AngleTerms, d_own: Array, R_hat: Array
                    ) -> tuple[Array, Array]:
-    """``(E, 6, 3)`` maps into a sensing robot's ``(q̃, φ)⁺`` (before ``ΔR_aᵀ``) of the noise
-    ``ν_ij`` of each own bearing (body) and of each sensed robot's position error ``q̃_j``:
-    through the robot's angles (``dα_ijk = β_kᵀ ν_j + β_jᵀ ν_k``, ``dζ_i = g_own (g_jᵀ q̃_j +
-    g_kᵀ q̃_k − dα)``) and its innovation (``Q̂_i Ω_i ∋ [𝔟_ij]x q̃_j − d_ij [𝔟_ij]x Q̂_i ν``)."""
+    """``(E, 6, 3)`` maps into a sensing robot's ``(q̃, φ)⁺`` of each own bearing's noise ``ν_ij``
+    and each sensed robot's ``q̃_j``, through its angles (``dζ_i = g_own (g_jᵀ q̃_j + g_kᵀ q̃_k −
+    dα)``) and its innovation (``Q̂_i Ω_i ∋ [𝔟_ij]x q̃_j − d_ij [𝔟_ij]x Q̂_i ν``)."""
     G_q, G_Q = lin.G_q, lin.G_Q
     E = len(agent)
     V, Gn = np.zeros((E, DOF, 3)), np.zeros((E, DOF, 3))

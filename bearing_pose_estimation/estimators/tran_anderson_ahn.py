@@ -19,10 +19,9 @@ Discretisation over a step ``h`` (``ΔR`` the gyro increment)::
     Ω̃_i ← Ω̃_i + h (-k_ω Ω̃_i + torque_i)
     p̂_i ← p̂_i - h k_p Σ_j P_{y_ij} (p̂_i - p̂_j)
 
-Why ``exp(-h Ω̃) ΔR`` in that order: with the truth propagated by the same ``ΔR``, the error
-``R̃ = R R̂ᵀ`` then obeys exactly ``R̃⁺ = R̃ exp(h [R̂ Ω̃]x)``, the Lie-Euler step of
-``dR̃/dt = R̃ [R̂ Ω̃]x``: the gyro cancels out of the error dynamics and the truth (with
-``Ω̃ = 0``) is an exact fixed point.
+Why ``exp(-h Ω̃) ΔR`` in that order: with the truth propagated by the same ``ΔR``, ``R̃ = R R̂ᵀ``
+obeys exactly ``R̃⁺ = R̃ exp(h [R̂ Ω̃]x)`` (Lie-Euler): the gyro cancels out of the error
+dynamics and the truth (with ``Ω̃ = 0``) is an exact fixed point.
 
 Moving agents (an extension, as in :mod:`.boughellaba_tayebi`: ``v_i`` fed forward with
 ``k_v``, discretised with the odometry displacement ``δ_i``)::
@@ -73,9 +72,8 @@ class TranState(CovState):
 
 @dataclass(frozen=True)
 class TwoNeighbourPairs:
-    """The followers with exactly two neighbours, as edge index pairs ``(first[m], second[m])``
-    owned by agent ``agent[m]`` (edge order fixes the sign of ``c``; both ``c^i`` and ``c`` use
-    the same order, so the term does not depend on it)."""
+    """The followers with exactly two neighbours: edge pairs ``(first[m], second[m])`` of agent
+    ``agent[m]`` (in edge order, for both ``c^i`` and ``c``: the term does not depend on it)."""
 
     agent: NDArray[np.intp]
     first: NDArray[np.intp]
@@ -157,8 +155,7 @@ class TranAndersonAhn(BearingLeaderEstimator[TranGains, TranState]):
         return TranState(R_hat=R_hat, p_hat=p_hat, P=P, Omega_tilde=Omega), {'innovation': torque}
 
     def conditioning(self, bearings: Array, k: Array) -> Array:
-        """``K_i = Σ_j k_ij b_ij b_ijᵀ``, plus ``k_c c cᵀ`` along ``c = b_ij × b_ik`` for
-        exactly two neighbours ((9) and Lemma 2)."""
+        """``K_i = Σ_j k_ij b_ij b_ijᵀ`` (+ ``k_c c cᵀ``, ``c = b_ij × b_ik``, two neighbours)."""
         K = super().conditioning(bearings, k)
         if len(bearings) == 2:
             c = np.cross(bearings[0], bearings[1])

@@ -7,9 +7,8 @@ yaw offsets ``ψ̂_i - ψ_i``, minimises ``Σ_i |e^{ιψ̂_i} - e^{ι(ψ_i + a)}
 (p̂_i - R_z(a*) p_i)``; one ``a*`` for attitudes and positions, so a yaw/position inconsistency
 is not hidden. ``ANCHOR_BODY`` estimates take the anchor's true pose (it fixes the gauge).
 
-Per agent, ``att_err`` is the angle of ``R_i R̂_iᵀ`` [rad], ``pos_err`` ``‖p_i − p̂_i‖`` [m],
-``att_dist_I`` Boughellaba & Tayebi's ``|R̃_i|_I`` (Fig. 2) and ``pos_err_paper`` their
-``‖p_i − R̃_i p̂_i‖`` (Fig. 3)."""
+Per agent: the angle of ``R_i R̂_iᵀ`` [rad], ``‖p_i − p̂_i‖`` [m], and Boughellaba & Tayebi's
+``|R̃_i|_I`` (Fig. 2) and ``‖p_i − R̃_i p̂_i‖`` (Fig. 3)."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence

@@ -1,14 +1,9 @@
 """A lean single-threaded executor: one wait, then every ready queue drained. The nodes ran it
-until rclpy's EventsExecutor measured cheaper (``node_main.EXECUTORS``, BENCHMARKS.md); it stays
-as ``BEARING_POSE_EXECUTOR=draining``.
-
-rclpy's ``SingleThreadedExecutor`` rebuilds its wait set in Python on every wake-up and runs
-*one* callback: 262 µs of receiver CPU per message with one subscription, 436-553 µs with 8,
-1 644 µs with 40 (``bench/executor_ceiling.py``), against 99-144 µs for this loop, which takes
-*every* queued message of each ready subscription, in arrival order across subscriptions (the
-sequence a one-message-at-a-time executor gives). Timers, services, QoS events, guard
-conditions, ``wake()``/``shutdown()`` are kept; clients (adding a node with one raises) and
-coroutine callbacks (``TypeError``) are not.
+until rclpy's EventsExecutor measured cheaper (BENCHMARKS.md); ``BEARING_POSE_EXECUTOR=draining``
+selects it. rclpy's ``SingleThreadedExecutor`` rebuilds its wait set in Python on every wake-up and
+runs *one* callback (262-1 644 µs of CPU per message, ``bench/executor_ceiling.py``, against 99-144
+µs here); this loop takes *every* queued message of each ready subscription, in arrival order.
+Clients (adding a node with one raises) and coroutine callbacks (``TypeError``) are not served.
 """
 from __future__ import annotations
 

@@ -1,11 +1,9 @@
 """``monitor``: errors of a distributed run, in the same files as ``bearing-pose simulate``.
 
 Pairs every follower's ``estimate`` and the ``ground_truth`` at identical stamps on a
-``record_every`` grid (both carry the grid instants), measures them as the batch simulator does
-(:func:`metrics.results.pose_errors`; the whole fleet's truth when it moves or its estimates
-need aligning, :func:`watched`) and writes the outputs to ``out_dir`` once ``t = duration`` is
-recorded, or when interrupted. With ``bag`` set (``bearing-pose run --record``) it also records
-the run into that new rosbag2 directory (:mod:`.recorder`).
+``record_every`` grid, measures them as the batch simulator does (:func:`watched`) and writes
+the outputs to ``out_dir`` once ``t = duration`` is recorded, or when interrupted; with ``bag``
+(``bearing-pose run --record``) it also records the run into that new rosbag2 (:mod:`.recorder`).
 """
 from __future__ import annotations
 

@@ -20,8 +20,7 @@ from .. import msg_defs as wire
 
 
 class BagRecorder:
-    """Records ``topics`` (name, message class) on ``node`` into a new bag directory ``path``
-    (which must not exist: a bag is never overwritten)."""
+    """Records ``topics`` (name, message class) on ``node`` into the new bag ``path``."""
 
     def __init__(self, node: Node, path: Path, topics: list[tuple[str, type]]) -> None:
         typestore = get_typestore(Stores.ROS2_JAZZY)

@@ -1,9 +1,8 @@
 """Random valid scenarios of any size, reproducible from a seed.
 
-Agents fill a cube ``MIN_SPACING_M`` apart, the leaders near the centre. Each follower sees 2-3
-of its nearest placed agents (both leaders or a follower: acyclic, reachable from both leaders),
-one pair at least ``MIN_SPREAD_DEG`` from collinear (at 15 deg the smallest non-zero eigenvalue
-of ``M_i`` is 0.03: convergence crawls). An agent with no valid set waits for more agents.
+Agents fill a cube ``MIN_SPACING_M`` apart, the leaders near the centre; each follower sees 2-3
+of its nearest placed agents (acyclic, reachable from both leaders), one pair at least
+``MIN_SPREAD_DEG`` from collinear (at 15 deg the smallest eigenvalue of ``M_i`` is 0.03).
 
 Moving fleets (``speed > 0``, as ``config/paper_8_agents_moving.yaml``): ``v_a(t) = V (cos(w t
 + φ_a), sin(w t + φ_a), 0.3 cos(0.6 w t + 2 φ_a))`` in the world frame, a circle of radius

@@ -50,9 +50,8 @@ class RandomInit:
 
 @dataclass(frozen=True)
 class BearingPerturbation:
-    """Deterministic bearing perturbation (Tran, Anderson & Ahn 2020): every measured bearing
-    is ``rot_X(θ0 sin(2π f t)) b``, the rotation about the body axis ``X`` (the paper: "an
-    arbitrary direction, e.g. the principal axes"; default x)."""
+    """Tran, Anderson & Ahn (2020): every bearing is ``rot_X(θ0 sin(2π f t)) b``, about the body
+    axis ``X`` (the paper: "an arbitrary direction, e.g. the principal axes")."""
 
     amplitude_deg: float   # θ0, in [0, 90]
     frequency_hz: float    # f > 0
@@ -61,11 +60,10 @@ class BearingPerturbation:
 
 @dataclass(frozen=True)
 class Noise:
-    """Measurement noise, all off by default (:mod:`sim.noise`): ``gyro_std`` [rad/s] per
-    axis of each gyro sample; ``gyro_bias`` [rad/s], a constant body-frame bias plus each
-    agent's own, drawn once from ``N(0, gyro_bias_std²)``; ``bearing_std`` [rad] per component
-    of a random rotation perpendicular to each bearing (RMS angle ``√2 · bearing_std``);
-    ``outlier_probability`` that a bearing is a random unit vector; ``seed`` of every draw."""
+    """Measurement noise, all off by default (:mod:`sim.noise`): ``gyro_std`` [rad/s] per gyro
+    sample and axis; ``gyro_bias`` [rad/s] plus each agent's own, ``N(0, gyro_bias_std²)``;
+    ``bearing_std`` [rad] per component of a rotation perpendicular to each bearing (RMS angle
+    ``√2 · bearing_std``); the probability of an outlier; the ``seed`` of every draw."""
 
     gyro_std: float = 0.0
     gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -260,8 +258,7 @@ class Scenario:
         return any(a.yaw is not None for a in self.agents)
 
     def simulates(self, sensor: str) -> bool:
-        """The simulators produce ``sensor`` (a :data:`Sensors.NAMES` entry): listed in
-        ``sensors:``, needed by the method, or odometry of a moving fleet."""
+        """``sensor`` is listed, needed by the method, or odometry of a moving fleet."""
         if sensor == 'bearing_rates' and self.sensors.bearing_rates.from_bearings:
             return False   # estimated by the robots from their bearings: no sensor
         needs = {s.value for s in estimators.get(self.method).sensors}

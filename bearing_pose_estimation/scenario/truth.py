@@ -1,13 +1,12 @@
-"""The truth of a scenario, the one model behind the batch simulator, the simulator node and
-the check of a moving scenario (:func:`.check.sample_truth`), with the sensors' true values.
-
-Rotation and translation are advanced together over steps of ``dt`` (:mod:`core.motion`:
-Magnus, closed-form or Gauss-Legendre); yaw splines (De Carli et al.) give ``R_i = R_z(ψ_i(t))``
-exactly. Their formation controller (:mod:`core.formation`) is evaluated every
-``1/formation_control.rate`` and held in between (a sampled-data plant, the note's §7), in the
-``paper`` mode on the yaws the batch simulator sets in :attr:`Truth.controller_yaws`. Agents
-with an ``anchor_estimate`` velocity (Presenza et al., case 2) hold ``u_i = Q̂_iᵀ v_i(t)`` over
-the step with the estimate :meth:`Truth.command` gets (else the true ``Q_i = R_aᵀ R_i``)."""
+"""The truth of a scenario, the one model behind the batch simulator, the simulator node and the
+check of a moving scenario, with the sensors' true values. Rotation and translation are advanced
+together over steps of ``dt`` (:mod:`core.motion`: Magnus, closed-form or Gauss-Legendre); yaw
+splines (De Carli et al.) give ``R_i = R_z(ψ_i(t))`` exactly. Their formation controller
+(:mod:`core.formation`) is evaluated every ``1/formation_control.rate`` and held in between (a
+sampled-data plant, the note's §7), in the ``paper`` mode on the yaws the batch simulator sets in
+:attr:`Truth.controller_yaws`. Agents with an ``anchor_estimate`` velocity (Presenza et al., case
+2) hold ``u_i = Q̂_iᵀ v_i(t)`` over the step with the estimate :meth:`Truth.command` gets (else the
+true ``Q_i = R_aᵀ R_i``)."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -120,8 +119,7 @@ class Truth:
         return self._next[1]
 
     def displacement(self) -> Array:
-        """``δ_i = R_i(t)ᵀ (p_i(t + dt) - p_i(t))`` ``(N, 3)`` [m]: the translation over the
-        step in the body frame at its start (what odometry integrates)."""
+        """``δ_i = R_i(t)ᵀ (p_i(t + dt) - p_i(t))`` ``(N, 3)`` [m], what odometry integrates."""
         if not self.moves:
             return np.zeros_like(self.p)
         if self._next_delta is None or self._next_delta[0] != self.k:

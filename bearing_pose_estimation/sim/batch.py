@@ -1,11 +1,7 @@
-"""Batch simulator: the whole network in one process, vectorised over agents and edges.
-
-The truth (:class:`scenario.truth.Truth`) is stepped at the estimator step ``h``, and every
-agent's :meth:`estimators.base.Estimator.step` (what a node calls for its one agent) reads what
-the method declares, measured at the step's start with :class:`.noise.NoiseModel`'s noise: its
-own point sensors on the edges that measure them, the other end's measurement by its
-``partner_sensor`` and what every agent sends (round 1, then round 2), the gyro and odometry
-increments over the step. Leaders' estimates are their truth."""
+"""Batch simulator: the whole network in one process, vectorised over agents and edges. The
+truth is stepped at the estimator step ``h``; every agent's :meth:`Estimator.step` (what a node
+calls for its one agent) reads what the method declares, measured at the step's start with
+:class:`.noise.NoiseModel`'s noise. Leaders' estimates are their truth."""
 from __future__ import annotations
 
 import dataclasses

@@ -1,10 +1,9 @@
-"""Measurement noise of the batch simulator (:mod:`.batch`) and the simulator node's world
-(:mod:`.world`), as the scenario's ``noise:`` and ``sensors:`` say (:class:`scenario.Noise`,
-:class:`scenario.Sensors`). Bearings get, in this order, the deterministic ``rot_X(θ0 sin(2π f
-t)) b`` (t the measurement time), a random rotation perpendicular to them and outliers. A batch
-step of ``h`` gets ``h`` times the noise averaged over the samples it spans. Every draw comes
-from generators seeded by ``noise.seed``, one stream each for the bias, the gyro white noise,
-the bearings and each moving-robot sensor: same scenario, seed and calls, same measurements."""
+"""Measurement noise of both simulators (:class:`scenario.Noise`, :class:`scenario.Sensors`).
+Bearings get, in this order, the deterministic ``rot_X(θ0 sin(2π f t)) b`` (t the measurement
+time), a random rotation perpendicular to them and outliers. A batch step of ``h`` gets ``h``
+times the noise averaged over the samples it spans. Every draw comes from generators seeded by
+``noise.seed``, one stream each for the bias, the gyro white noise, the bearings and each
+moving-robot sensor: same scenario, seed and calls, same measurements."""
 from __future__ import annotations
 
 import math

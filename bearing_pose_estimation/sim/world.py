@@ -1,9 +1,7 @@
-"""The simulated world of the simulator node: the truth (:class:`scenario.truth.Truth`) stepped
-every ``simulation.internal_step`` (1 ms by default, far finer than any published rate),
-sampled like sensors with :class:`.noise.NoiseModel`'s noise: the gyro and odometry as interval
-averages over their last period (the constant rate, or SE(3) twist, that produces the true
-increment: :mod:`core.gyro`, :func:`core.odometry.twist_of`), the bearings, relative positions,
-bearing rates and ranges instantaneous, to every agent i senses."""
+"""The simulator node's world: the truth (:class:`scenario.truth.Truth`) stepped every
+``simulation.internal_step`` (1 ms by default), sampled with :class:`.noise.NoiseModel`'s noise:
+the gyro and odometry as interval averages over their last period (the constant rate, or SE(3)
+twist, that gives the true increment), the other sensors instantaneous."""
 from __future__ import annotations
 
 import numpy as np

@@ -73,9 +73,8 @@ def run_montecarlo(scenario_file: str | Path, runs: int, seed: int, duration: fl
 
 
 def statistics(values: list[float | None]) -> dict[str, Any]:
-    """mean, std (population, ddof=0), p5, p50, p95 (numpy's linear interpolation) and max over
-    the runs that have a finite value; ``n`` counts those runs, ``never_converged`` the None
-    ones. Every statistic is None when no run has a value."""
+    """mean, std (ddof=0), p5, p50, p95 and max over the ``n`` runs with a finite value (None
+    without any); ``never_converged`` counts the None ones."""
     finite = np.array([v for v in values if v is not None and math.isfinite(v)], dtype=float)
     out: dict[str, Any] = {'n': int(finite.size)}
     if finite.size:

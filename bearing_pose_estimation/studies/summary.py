@@ -1,12 +1,10 @@
-"""What a run is summed up by, one name per quantity and one steady-state rule, for every
-output (``simulate``, ``run``, ``compare``, ``montecarlo``, ``noise-study``).
-
+"""What a run is summed up by, one name per quantity and one steady-state rule, for every output.
 The quantities of a :class:`metrics.results.Recording` (:data:`QUANTITIES`; "mean" is over the
 estimating agents at one time): ``final_*`` at the last record; ``steady_*_mean_*``, the time
-average of the mean error over the last :data:`STEADY_FRACTION` of the run, ``steady_*_max_*``
-the worst agent at any record of it (the radius of the neighbourhood the estimates stay in);
-``*_below_*_from_s``, :func:`settling_time` of the mean errors to fixed thresholds (None:
-never); ``*_settled_from_s``, to ``max(fixed threshold, SETTLE_FACTOR × steady mean)``.
+average of the mean error over the last :data:`STEADY_FRACTION` of the run, ``steady_*_max_*`` the
+worst agent at any record of it (the radius of the neighbourhood the estimates stay in);
+``*_below_*_from_s``, :func:`settling_time` of the mean errors to fixed thresholds (None: never);
+``*_settled_from_s``, to ``max(fixed threshold, SETTLE_FACTOR × steady mean)``.
 
 Why: with noise the errors settle on a floor (about 3.4e-3 rad and 2.2e-2 m with 1° bearing
 noise on the paper scenario) above the fixed thresholds; a threshold relative to the run's own
