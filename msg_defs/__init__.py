@@ -1,14 +1,9 @@
-"""Wire format: topic names, message types, QoS, frame ids and the codecs. The one place that
-defines it (see msg_defs/README.md for the table).
-
-Only standard common_interfaces messages are used, so any ROS tool (ros2 topic, RViz, evo,
-rosbag) reads them, and a user's own IMU driver or detector can feed an estimator by remapping
-one topic. Topic names are relative: each agent's node runs in the namespace ``/<agent>``.
-
-One codec per message type (:mod:`msg_defs.cdr`: values to serialised bytes and back); the
-estimators' channels travel by their kind (:func:`encode_channels`, :func:`decode_channels`).
-Publishers send the bytes as they are (``Publisher.publish(bytes)``), raw subscriptions
-(``raw=True``) give them; :func:`message` makes a message object of them for code that needs one.
+"""Wire format: topic names, message types, QoS, frame ids and the codecs, defined here only
+(msg_defs/README.md has the table). Standard common_interfaces messages only, so any ROS tool
+reads them and a user's IMU driver or detector can feed an estimator by remapping one topic.
+Topic names are relative to each agent's namespace ``/<agent>``. One codec per message type
+(:mod:`msg_defs.cdr`); the estimators' channels travel by their kind (:func:`encode_channels`).
+Publishers and raw subscriptions handle the bytes; :func:`message` makes an object of them.
 """
 from __future__ import annotations
 
@@ -41,9 +36,8 @@ RANGES = 'ranges'                  # sensor_msgs/PointCloud2, in: ‖p_j - p_i�
 KNOWN_POSE = 'known_pose'          # geometry_msgs/PoseStamped, in: leaders' known pose
 ESTIMATE = 'estimate'              # geometry_msgs/PoseStamped, out: (R̂_i, p̂_i) in world
 # geometry_msgs/PoseWithCovarianceStamped, out: the estimate with its covariance, for fusion
-# (robot_localization) and the neighbours (their p̂_j and P_j, in one message)
+# (robot_localization) and the neighbours; the estimators' channels declare their own topics
 POSE = 'pose'
-# The estimators' own channels declare their topics (estimators.base.Channel.topic).
 DIAGNOSTICS = '/diagnostics'       # diagnostic_msgs/DiagnosticArray, out: each node's health
 GROUND_TRUTH = 'ground_truth'      # geometry_msgs/PoseStamped, simulator: true pose
 CLOCK = '/clock'                   # rosgraph_msgs/Clock, simulator (use_sim_time)
@@ -86,9 +80,8 @@ WORLD_FRAME = 'world'
 
 
 def estimation_frame(fleet: str) -> str:
-    """The common frame of a fleet whose estimates are not world poses (De Carli et al.: one
-    yaw and one translation away from ``world``, neither known by design):
-    ``<fleet>/estimation``."""
+    """``<fleet>/estimation``: the common frame of a fleet whose estimates are not world poses
+    (De Carli et al.: one yaw and one translation away from ``world``, neither known)."""
     return f'{fleet}/estimation'
 
 
@@ -114,15 +107,11 @@ def _qos(depth: int, reliability: ReliabilityPolicy = ReliabilityPolicy.RELIABLE
 SENSOR_QOS = _qos(200, ReliabilityPolicy.BEST_EFFORT)
 # Estimates that other agents depend on: reliable.
 ESTIMATE_QOS = _qos(20)
-# The estimate writer keeps its last 20 samples for readers that match late (transient local):
-# a recorder whose reader the writer discovers after t = 0 still receives the t = 0 estimate.
-# Volatile readers (neighbours, RViz, ESTIMATE_QOS) match it unchanged.
-ESTIMATE_PUB_QOS = _qos(20, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-# The recorder's reader asks for that history.
-ESTIMATE_RECORD_QOS = ESTIMATE_PUB_QOS
-# A recorder's reader of the other topics: reliable matches the simulator's and the
-# estimators' writers, volatile both volatile and transient-local ones; deep enough not to
-# drop a burst.
+# The estimate writer keeps its last 20 samples for readers that match late (transient local,
+# which a recorder's reader asks for too): a recorder discovered after t = 0 still receives the
+# t = 0 estimate. Volatile readers (neighbours, RViz, ESTIMATE_QOS) match it unchanged.
+ESTIMATE_PUB_QOS = ESTIMATE_RECORD_QOS = _qos(20, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# A recorder's other readers: reliable and volatile match every writer; deep for bursts.
 RECORD_QOS = _qos(1000)
 # Simulator outputs (sensors, truth, clock) are published reliably: on loopback nothing is lost
 # to a best-effort subscriber unless its queue overflows.
@@ -182,14 +171,11 @@ def checked_covariance(values: Array) -> Array:
 
 
 # ----------------------------------------------------------------------------- bytes, objects
-# Between serialised bytes (the codecs') and rclpy's message objects, for code that has or
-# needs one (a typed subscription, a test's observer, a test spoiling a message's fields).
 _Msg = TypeVar('_Msg')
 
 
 def raw(msg: Any) -> bytes:
-    """A message's serialised bytes (bytes-like data is returned as bytes): rclpy's
-    ``serialize_message`` of a message object."""
+    """A message's serialised bytes (rclpy's ``serialize_message`` of an object)."""
     if isinstance(msg, (bytes, bytearray, memoryview)):
         return bytes(msg)
     from rclpy.serialization import serialize_message
@@ -198,8 +184,7 @@ def raw(msg: Any) -> bytes:
 
 def message(data: bytes | bytearray | memoryview, msg_type: type[_Msg]) -> _Msg:
     """The ``msg_type`` object of a message's serialised bytes (rclpy's
-    ``deserialize_message``), e.g. ``message(cdr.encode_imu_raw(t, agent, omega), Imu)``.
-    WireError: bytes rclpy cannot read as a ``msg_type``."""
+    ``deserialize_message``); WireError: bytes rclpy cannot read as a ``msg_type``."""
     from rclpy.serialization import deserialize_message
     try:
         return deserialize_message(bytes(data), msg_type)
@@ -208,10 +193,8 @@ def message(data: bytes | bytearray | memoryview, msg_type: type[_Msg]) -> _Msg:
 
 
 # ----------------------------------------------------------------------------- channels
-# How an estimator's channels (``estimators.base.Channel``) travel, by their wire kind, not by
-# their name: a value on the sender's ``pose`` (its position; its covariance), a per-agent
-# vector of its own Vector3Stamped (zero-padded), or one point per listener of a PointCloud2
-# (the channel's fields, FLOAT64, then agent_id UINT32).
+# A channel travels by its wire kind, not by its name (a Vector3Stamped zero-padded; a
+# PointCloud2's points: the channel's fields, FLOAT64, then agent_id UINT32).
 KIND_TYPES: dict[str, type] = {POSE_POSITION: PoseWithCovarianceStamped,
                                POSE_COVARIANCE: PoseWithCovarianceStamped,
                                VECTOR: Vector3Stamped, POINTS: PointCloud2}
@@ -223,14 +206,12 @@ def channel_type(c: Channel) -> type:
 
 
 def channel_frame(c: Channel, sender: str, estimate: str, world: str = WORLD_FRAME) -> str:
-    """The frame id a message of ``sender`` carrying ``c`` must have (``estimate``: the frame
-    of the method's estimates; ``world``: the world frame's id)."""
+    """The frame id a message of ``sender`` carrying ``c`` must have."""
     return {'world': world, 'body': body_frame(sender)}.get(c.frame, estimate)
 
 
 def by_topic(channels: Iterable[Channel]) -> dict[str, list[Channel]]:
-    """The channels that travel on each topic, in their order (``p_hat`` and ``pose_cov``
-    share the ``pose``)."""
+    """The channels that travel on each topic, in their order."""
     out: dict[str, list[Channel]] = {}
     for c in channels:
         out.setdefault(c.topic, []).append(c)
@@ -239,10 +220,9 @@ def by_topic(channels: Iterable[Channel]) -> dict[str, list[Channel]]:
 
 def decode_channels(msg: Any, channels: Sequence[Channel]
                     ) -> tuple[float, dict[str, object], dict[str, str]]:
-    """``(stamp, values, problems)`` of a message carrying ``channels`` (one topic's):
-    per-agent values as arrays, per-edge ones as ``{listener id: value}``; a channel that
-    cannot be decoded is left out, with the reason in ``problems`` (a bad covariance does not
-    cost the position)."""
+    """``(stamp, values, problems)`` of a message carrying one topic's ``channels`` (per-edge
+    ones as ``{listener id: value}``); one that cannot be decoded is left out, its reason in
+    ``problems`` (a bad covariance does not cost the position)."""
     data = raw(msg)
     values: dict[str, object] = {}
     problems: dict[str, str] = {}
@@ -283,10 +263,8 @@ def encode_channels(t: float, frame: str, channels: Sequence[Channel],
 
 def estimate_frame(frame: str, fleet: str, anchor: str | None = None,
                    world: str = WORLD_FRAME) -> str:
-    """The frame id of a method's estimates (``frame``: ``estimators.base.EstimateFrame``
-    value): ``world`` (the scenario's ``world_frame``) for world poses, the ``anchor``'s
-    :func:`body_frame` for anchor-frame estimates (Presenza et al.), else
-    :func:`estimation_frame`."""
+    """The frame id of a method's estimates (``frame``: an ``EstimateFrame`` value): ``world``,
+    the ``anchor``'s :func:`body_frame`, or :func:`estimation_frame`."""
     if frame == 'world':
         return world
     if frame == 'anchor_body':

@@ -1,22 +1,12 @@
 """The codecs of the package's messages: values to a message's serialised bytes and back, with
-numpy on the CDR layout (issue 15: no rclpy message object is built, BENCHMARKS.md "Raw CDR").
-Every decoder also takes an rclpy message object, serialised first (``msg_defs.raw``).
-
-The bytes are ``rclpy.serialization.serialize_message``'s (rmw_fastrtps, Jazzy): plain CDR
-(XCDR1), little endian, after the 4-byte encapsulation header ``00 01 00 00``. Every value is
-aligned to its own size (float64 to 8), counted from the first byte after that header; the
-padding bytes are zero here (rmw_fastrtps leaves them uninitialised: the only difference). A
-string is a uint32 length counting its NUL, its UTF-8 bytes, then the NUL. A
-``std_msgs/Header`` is ``stamp.sec`` int32, ``stamp.nanosec`` uint32, then ``frame_id``. A
-sequence is a uint32 count, then its elements.
-
-Each decoder raises :class:`WireError` (never another error) on values it rejects (non-finite,
-a non-unit quaternion, a covariance that is none, an Odometry twist in another frame) and on
-malformed bytes: another encapsulation, a buffer that ends early or has more than 3 bytes after
-the message, a string past the end or without its NUL, a bool other than 0 or 1, a PointCloud2
-whose fields or data do not fit its points (``test/test_cdr.py`` checks every codec against
-rclpy's own serialisation).
-"""
+numpy on the CDR layout (issue 15: no rclpy message object is built, BENCHMARKS.md "Raw CDR"); a
+decoder also takes an rclpy message object. The bytes are
+``rclpy.serialization.serialize_message``'s (rmw_fastrtps, Jazzy): plain CDR (XCDR1), little
+endian, after the encapsulation header ``00 01 00 00``; every value aligned to its own size from
+the first byte after it, padding zero (rmw_fastrtps leaves it uninitialised: the only difference);
+a string is a uint32 length counting its NUL, its UTF-8 bytes and the NUL. Each decoder raises
+:class:`WireError`, never another error, on values it rejects and on malformed bytes
+(``test/test_cdr.py`` checks every codec against rclpy's own serialisation)."""
 from __future__ import annotations
 
 import math
@@ -150,9 +140,8 @@ def _header(data: bytes, what: str) -> tuple[int, int, str, int]:
 
 
 def read_header(data: Data) -> RawHeader:
-    """The Header of any stamped message's bytes (every type here but Clock): stamp and
-    ``frame_id``, e.g. to check the frame before decoding. WireError: a wrong encapsulation, or
-    a header that does not fit the buffer."""
+    """The Header of any stamped message's bytes (e.g. to check the frame before decoding).
+    WireError: a wrong encapsulation, or a header that does not fit the buffer."""
     sec, nanosec, frame_id, _ = _header(_as_bytes(data), 'message')
     return RawHeader(sec, nanosec, frame_id)
 
@@ -234,8 +223,7 @@ def encode_pose_raw(t: float, frame_id: str, R: Array, p: Array) -> bytes:
 
 
 def decode_pose_raw(data: Data) -> tuple[float, Array, Array]:
-    """``(t, R, p)`` of a PoseStamped; the quaternion is normalised. WireError: malformed
-    bytes, non-finite values or a quaternion far from unit norm."""
+    """``(t, R, p)`` of a PoseStamped. WireError: malformed, non-finite, not a unit quaternion."""
     data, t, pos = _fixed(data, 'PoseStamped', 7)
     return (t, *_pose(data, pos))
 
@@ -243,10 +231,8 @@ def decode_pose_raw(data: Data) -> tuple[float, Array, Array]:
 # ----------------------------------------------------------------------------- covariance
 def encode_pose_covariance_raw(t: float, frame_id: str, R: Array, p: Array,
                                P: Array) -> bytes:
-    """geometry_msgs/PoseWithCovarianceStamped: the pose as :func:`encode_pose_raw` with its
-    6x6 covariance ``P`` (position [m], then rotation about the frame's axes [rad], row-major:
-    ROS's x, y, z, rot x, rot y, rot z); Header, 8-aligned, the Pose (7 float64), then the
-    36 float64."""
+    """geometry_msgs/PoseWithCovarianceStamped: the pose as :func:`encode_pose_raw`, then its
+    6x6 covariance ``P`` (position [m], then rotation about the frame's axes [rad]), 36 float64."""
     values = np.concatenate([_pose_values(R, p), np.asarray(P, dtype=float).reshape(36)])
     return _with_doubles(t, frame_id, values)
 
@@ -256,15 +242,14 @@ def _covariance(data: bytes, pos: int) -> Array:
 
 
 def decode_covariance_raw(data: Data) -> tuple[float, Array]:
-    """``(t, P)`` of a PoseWithCovarianceStamped (the pose is not read). WireError: malformed
-    bytes, or a covariance that is not finite, symmetric and positive semi-definite."""
+    """``(t, P)`` of a PoseWithCovarianceStamped (the pose not read). WireError: malformed
+    bytes, or not a finite, symmetric, positive semi-definite covariance."""
     data, t, pos = _fixed(data, 'PoseWithCovarianceStamped', 43)
     return t, _covariance(data, pos)
 
 
 def decode_pose_covariance_raw(data: Data) -> tuple[float, Array, Array, Array]:
-    """``(t, R, p, P)`` of a PoseWithCovarianceStamped: the pose checked as
-    :func:`decode_pose_raw`, the covariance as :func:`decode_covariance_raw` (WireError: both)."""
+    """``(t, R, p, P)`` of a PoseWithCovarianceStamped, checked as the two decoders above."""
     data, t, pos = _fixed(data, 'PoseWithCovarianceStamped', 43)
     R, p = _pose(data, pos)
     return t, R, p, _covariance(data, pos)
@@ -291,18 +276,16 @@ _IMU[[3, 4, 28]] = 1.0, -1.0, -1.0   # w = 1 (the default); no orientation, no a
 
 
 def encode_imu_raw(t: float, agent: str, omega: Array) -> bytes:
-    """sensor_msgs/Imu gyro sample: ``angular_velocity`` is the body rate averaged over the
-    interval ending at ``t`` (see ``sim.world``), frame ``<agent>/base_link``. No orientation,
-    no acceleration: their covariances' first elements are -1, as sensor_msgs/Imu specifies.
-    Layout: Header, 8-aligned, 37 float64."""
+    """sensor_msgs/Imu gyro sample, frame ``<agent>/base_link``: ``angular_velocity`` the body
+    rate averaged over the interval ending at ``t`` (``sim.world``); no orientation, no
+    acceleration (their covariances' first elements -1, as sensor_msgs/Imu specifies)."""
     values = _IMU.copy()
     values[13:16] = np.asarray(omega, dtype=float).reshape(3)
     return _with_doubles(t, body_frame(agent), values)
 
 
 def decode_imu_raw(data: Data) -> tuple[float, Array]:
-    """``(t, omega)`` of an Imu (its ``angular_velocity``). WireError: malformed bytes or a
-    non-finite angular velocity."""
+    """``(t, omega)`` of an Imu (its ``angular_velocity``). WireError: malformed or non-finite."""
     data, t, pos = _fixed(data, 'Imu', 37)
     return t, _vector3(data, pos + 8 * 13, 'angular velocity')
 
@@ -318,22 +301,10 @@ _ODOMETRY[6] = 1.0   # orientation w
 def encode_odometry_raw(t: float, agent: str, v: Array, omega: Array,
                         R_odom: Array | None = None, p_odom: Array | None = None,
                         v_std: float = 0.0, omega_std: float = 0.0) -> bytes:
-    """nav_msgs/Odometry sample: the body twist in ``child_frame_id`` = ``<agent>/base_link``
-    (REP-105), the dead-reckoned pose in ``header.frame_id`` = ``<agent>/odom``.
-
-    The sample stamped ``t`` = ``t_k`` is an interval average, like the Imu gyro samples (its
-    ``ω_k`` is the gyro sample of the same interval): the constant body twist whose SE(3)
-    exponential is the true pose increment over ``(t_{k-1}, t_k]`` (:mod:`core.odometry`).
-
-    Args:
-        v: body-frame linear velocity [m/s] (``twist.twist.linear``).
-        omega: body rate [rad/s] (``twist.twist.angular``).
-        R_odom, p_odom: the dead-reckoned attitude (body → odom) and position [m] for RViz;
-            identity and zero when not given.
-        v_std, omega_std: standard deviations [m/s], [rad/s]; ``twist.covariance`` (row-major
-            6x6, x y z roll pitch yaw) is diagonal with ``v_std²`` and ``omega_std²``.
-            ``pose.covariance`` stays zero: the estimator does not read the pose.
-    """
+    """nav_msgs/Odometry sample: the body twist ``v`` [m/s], ``omega`` [rad/s] in
+    ``<agent>/base_link`` (REP-105), an interval average like the gyro's (:mod:`core.odometry`),
+    with the diagonal ``twist.covariance`` of ``v_std``, ``omega_std``; the dead-reckoned pose
+    (for RViz; default identity, zero) in ``<agent>/odom``, its covariance zero."""
     values = _ODOMETRY.copy()
     if p_odom is not None:
         values[0:3] = np.asarray(p_odom, dtype=float).reshape(3)
@@ -349,10 +320,8 @@ def encode_odometry_raw(t: float, agent: str, v: Array, omega: Array,
 
 def decode_odometry_raw(data: Data,
                         child_frame: str | None = None) -> tuple[float, Array, Array]:
-    """``(t, v, omega)`` of an Odometry (the pose and the covariances are not read).
-    ``child_frame``: when given, the frame the twist must be expressed in (the agent's
-    ``msg_defs.body_frame``): a twist in another frame would be misread. WireError: malformed
-    bytes, a ``child_frame_id`` other than ``child_frame``, or a non-finite twist."""
+    """``(t, v, omega)`` of an Odometry (the pose not read). WireError: malformed bytes, a
+    non-finite twist, or one in another ``child_frame_id`` than ``child_frame`` (if given)."""
     data = _as_bytes(data)
     sec, nanosec, _, pos = _header(data, 'Odometry')
     child, pos = _string(data, _align(pos, 4), 'Odometry', 'child_frame_id')
@@ -366,14 +335,12 @@ def decode_odometry_raw(data: Data,
 
 # ----------------------------------------------------------------------------- Clock
 def encode_clock_raw(t: float) -> bytes:
-    """rosgraph_msgs/Clock: ``clock.sec`` int32, ``clock.nanosec`` uint32 (12 bytes with the
-    encapsulation); the simulator's ``Clock(clock=to_stamp(t))``."""
+    """rosgraph_msgs/Clock: ``clock.sec`` int32, ``clock.nanosec`` uint32."""
     return _CLOCK.pack(ENCAPSULATION, *_stamp(t))
 
 
 def decode_clock_raw(data: Data) -> float:
-    """The time [s] of a Clock (``msg_defs.from_stamp(msg.clock)``). WireError: malformed
-    bytes."""
+    """The time [s] of a Clock. WireError: malformed bytes."""
     data = _as_bytes(data)
     _check_encapsulation(data, 'Clock')
     _finish(data, _CLOCK.size, 'Clock')
@@ -407,9 +374,8 @@ def _fields_bytes(dtype: np.dtype) -> bytes:
 
 
 def encode_cloud_raw(t: float, frame_id: str, points: np.ndarray) -> bytes:
-    """A little-endian, dense, one-row PointCloud2 of the structured array ``points``: one
-    PointField (count 1) per field of its dtype, in order, at its offset, ``point_step`` its
-    itemsize."""
+    """A little-endian, dense, one-row PointCloud2 of the structured array ``points``, one
+    PointField per field of its dtype."""
     if points.dtype.names is None:
         raise WireError(f'points must be a structured array, not {points.dtype}')
     n, step = len(points), points.dtype.itemsize
@@ -467,9 +433,8 @@ def _point_fields(data: bytes, pos: int) -> tuple[bytes, dict[str, tuple[int, in
 
 def _point_dtype(fields: Mapping[str, tuple[int, int, int]], want: Mapping[str, int],
                  point_step: int) -> np.dtype:
-    """The numpy view of the wanted fields of points of ``point_step`` bytes: each wanted
-    field present, of an accepted datatype, count 1, within the point and overlapping no
-    other wanted field."""
+    """The numpy view of the wanted fields, each present, of an accepted datatype, count 1,
+    within the ``point_step`` bytes and overlapping no other."""
     for name, datatype in want.items():
         accepted = _ACCEPTED.get(datatype, (datatype,))
         if name not in fields or fields[name][1] not in accepted or fields[name][2] != 1:
@@ -493,12 +458,10 @@ def _point_dtype(fields: Mapping[str, tuple[int, int, int]], want: Mapping[str, 
 
 
 def decode_cloud_raw(data: Data, want: Mapping[str, int]) -> tuple[float, np.ndarray]:
-    """The stamp and the points of a PointCloud2 as a structured array (a read-only view of
-    ``data``) of the fields ``want`` (``{name: PointField datatype}``), in any order and with
-    any padding (a user's detector, PCL): a FLOAT64 field may come as FLOAT32; ``row_step``
-    and ``is_dense`` are not read. WireError: malformed bytes, missing or mistyped fields, fields
-    that overlap each other or the end of the point, a data length other than width x height x
-    point_step, or big-endian data."""
+    """The stamp and the points of a PointCloud2, a read-only structured view of the fields
+    ``want`` (``{name: PointField datatype}``) in any order and padding (a detector, PCL;
+    FLOAT64 may come as FLOAT32). WireError: malformed bytes, bad fields, a data length other
+    than width x height x point_step, or big-endian data."""
     what = 'PointCloud2'
     data = _as_bytes(data)
     sec, nanosec, _, pos = _header(data, what)
@@ -536,8 +499,7 @@ def decode_cloud_raw(data: Data, want: Mapping[str, int]) -> tuple[float, np.nda
 def encode_points_raw(t: float, frame_id: str, ids: NDArray[np.integer], values: Array,
                       fields: tuple[str, ...]) -> bytes:
     """One point per agent id: ``values`` ``(n, len(fields))`` as FLOAT64 ``fields``, then
-    agent_id UINT32, packed (a channel's per-listener values, msg_defs.encode_channels);
-    little endian, dense, one row."""
+    agent_id UINT32, packed (a channel's per-listener values, msg_defs.encode_channels)."""
     values = np.asarray(values, dtype=float).reshape(-1, len(fields))
     points = np.empty(len(values), dtype=_tagged_dtype(fields))
     for k, f in enumerate(fields):
@@ -548,11 +510,9 @@ def encode_points_raw(t: float, frame_id: str, ids: NDArray[np.integer], values:
 
 def decode_points_raw(data: Data, fields: tuple[str, ...]
                       ) -> tuple[float, NDArray[np.uint32], Array]:
-    """``(t, ids, values)`` of :func:`encode_points_raw`'s cloud (any field order, padding, or
-    FLOAT32), ``values`` ``(n, len(fields))``. The values are not checked (finite, unit norm):
-    each listener checks its own point and counts a rejection by its cause (``non_finite``,
-    ...), and one listener's bad point costs the others nothing. WireError: as
-    :func:`decode_cloud_raw`."""
+    """``(t, ids, values)`` of :func:`encode_points_raw`'s cloud, ``values`` ``(n, len(fields))``,
+    unchecked: each listener checks its own point (one's bad point costs the others nothing).
+    WireError: as :func:`decode_cloud_raw`."""
     t, points = decode_cloud_raw(data, _tagged(fields))
     values = np.empty((len(points), len(fields)))
     for k, name in enumerate(fields):
@@ -562,15 +522,13 @@ def decode_points_raw(data: Data, fields: tuple[str, ...]
 
 def encode_vectors_raw(t: float, frame_id: str, ids: NDArray[np.integer],
                        vectors: Array) -> bytes:
-    """Vectors tagged with agent ids (one point per observed agent: unit bearings, relative
-    positions [m], bearing rates [1/s]) as a PointCloud2: x, y, z FLOAT64 at 0, 8, 16,
-    agent_id UINT32 at 24, point_step 28."""
+    """Vectors tagged with agent ids (unit bearings, relative positions [m], bearing rates
+    [1/s]) as a PointCloud2: x, y, z FLOAT64, agent_id UINT32, point_step 28."""
     return encode_points_raw(t, frame_id, ids, vectors, _XYZ)
 
 
 def decode_vectors_raw(data: Data) -> tuple[float, NDArray[np.uint32], Array]:
-    """``(t, ids, vectors)`` of a PointCloud2 with x, y, z and agent_id, as
-    :func:`decode_points_raw`."""
+    """``(t, ids, vectors)`` of :func:`encode_vectors_raw`'s cloud."""
     return decode_points_raw(data, _XYZ)
 
 
@@ -583,14 +541,12 @@ def encode_scalars_raw(t: float, frame_id: str, ids: NDArray[np.integer], values
 
 def decode_scalars_raw(data: Data,
                        field: str = 'range') -> tuple[float, NDArray[np.uint32], Array]:
-    """``(t, ids, values)`` of a PointCloud2 with ``field`` and agent_id, as
-    :func:`decode_points_raw`."""
+    """``(t, ids, values)`` of :func:`encode_scalars_raw`'s cloud."""
     t, ids, values = decode_points_raw(data, (field,))
     return t, ids, values[:, 0]
 
 
 def decode_position_raw(data: Data) -> tuple[float, Array]:
-    """The stamp and position of a PoseWithCovarianceStamped (its covariance is read on its
-    own, :func:`decode_covariance_raw`)."""
+    """``(t, p)`` of a PoseWithCovarianceStamped (the covariance not read)."""
     data, t, pos = _fixed(data, 'PoseWithCovarianceStamped', 43)
     return t, _pose(data, pos)[1]

@@ -1,17 +1,9 @@
 """What RViz and TF users see of a fleet: the estimate as a TF transform, and the fleet as one
-``visualization_msgs/MarkerArray`` (RViz cannot draw the FLOAT64 point clouds the sensors
-use; these markers draw what they say).
-
-Markers, by namespace (``ns``), ids stable across messages so each replaces the last:
-
-- ``estimate``: an arrow along each agent's estimated body x axis, blue, in the estimate frame;
-- ``label``: its name above it;
-- ``truth``: the same arrow at the true pose, green and translucent, in the world frame (from
-  the simulator's ``ground_truth``; absent on a real fleet);
-- ``edges``: the sensing graph, one grey line per edge i → j between the estimated positions;
-- ``bearings``: each measured bearing ray, yellow, from p̂_i along R̂_i b_ij, as long as the
-  estimated distance to j (1 m while j has no estimate).
-"""
+MarkerArray (RViz cannot draw the FLOAT64 point clouds the sensors use), by namespace, ids stable
+so each replaces the last: ``estimate`` (a blue arrow along the estimated body x axis), ``label``,
+``truth`` (green, translucent, in the world frame), ``edges`` (the sensing graph between the
+estimated positions) and ``bearings`` (each measured ray from p̂_i along R̂_i b_ij, as long as the
+estimated distance to j, else 1 m)."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -68,9 +60,8 @@ def encode_fleet_markers(t: float, names: Sequence[str], estimate_frame: str, wo
                          truth: Mapping[str, tuple[Array, Array]],
                          edges: Sequence[tuple[str, str]],
                          bearings: Mapping[str, tuple[Sequence[str], Array]]) -> MarkerArray:
-    """The fleet at ``t``: ``estimates`` and ``truth`` map agent -> (R, p); ``edges`` are
-    the sensing edges (i, j); ``bearings`` map agent i -> (the agents j it measured, their
-    body-frame unit bearings as rows). Agents without an estimate are left out."""
+    """The fleet at ``t``: ``estimates``, ``truth``: agent -> (R, p); ``edges``: (i, j);
+    ``bearings``: i -> (the agents j it measured, their body bearings as rows)."""
     out = MarkerArray()
     for k, name in enumerate(names):
         if name in estimates:

@@ -1,8 +1,6 @@
 """Angle rigidity (Presenza et al. 2026, Sec. II; ``presenza-2026.md`` §2, §4.1): the angle
-set of a directed sensing graph, its rigidity matrix, the Hessian of the observer's cost and
-the margins a scenario check prints. No ROS, no estimator state: positions in, numbers out.
-
-Notation: robot i measures the body bearings ``β_ij`` of its out-neighbours ``j ∈ O_i``; the
+set of a directed sensing graph, its rigidity matrix, the cost's Hessian and the margins.
+Robot i measures the body bearings ``β_ij`` of its out-neighbours ``j ∈ O_i``; the
 angles are the cosines ``α_ijk = β_ijᵀ β_ik`` for every pair ``{j, k} ⊆ O_i``, ``j < k``. With
 ``𝔮_ij = q_ij/‖q_ij‖`` and ``χ_ijk = Π(𝔮_ij) 𝔮_ik / ‖q_ij‖``, the row of ``α_ijk`` in the
 rigidity matrix ``A = ∂α/∂q`` has the blocks ``-(χ_ijk + χ_ikj)ᵀ`` at i, ``χ_ijkᵀ`` at j and
@@ -60,9 +58,8 @@ def normalised(q: Array) -> Array:
 
 
 def iar_margin(q: Array, triples: Index) -> float:
-    """``σ_{3N-7}(A)/σ_1(A)`` on the normalised positions: positive and above
-    :data:`IAR_TOLERANCE` iff the framework is infinitesimally angle rigid (Definition 1);
-    0 when there are fewer than ``3N - 7`` angles."""
+    """``σ_{3N-7}(A)/σ_1(A)`` on the normalised positions, above :data:`IAR_TOLERANCE` iff
+    infinitesimally angle rigid (Definition 1); 0 with fewer than ``3N - 7`` angles."""
     n = q.shape[0]
     if len(triples) < 3 * n - 7 or not len(triples):
         return 0.0

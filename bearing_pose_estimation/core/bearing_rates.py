@@ -1,19 +1,15 @@
-"""Bearing rates from consecutive bearings, for robots without a bearing-rate sensor
-(Presenza et al.'s free-robot velocity reconstruction (11) needs them).
-
-The notes (``presenza-2026.md`` §9) difference consecutive bearings after rotating the older
-one into the current body frame with the gyro:
+"""Bearing rates for robots without a bearing-rate sensor (Presenza et al.'s (11) needs them):
+the notes (``presenza-2026.md`` §9) difference consecutive bearings, the older one rotated into
+the current body frame with the gyro:
 
     β̇°_k = Π(β_k) (β_k - ΔRᵀ β_{k-1}) / Δt,      ΔR = R_{k-1}ᵀ R_k (the body's rotation)
 
-``β̇°`` is the *de-rotated* rate (the bearing's change seen from a frame that does not turn
-with the body, expressed in the body frame at t_k): what (11) uses, as ``β̇ + ω × β``. There is
-no rate before the second sample. With bearing noise σ a raw difference has noise about
-``σ √2 / Δt``; a first-order low-pass filter of time constant ``tau`` removes some, at the
-price of a lag of about ``tau``. Measured on the paper's case 1 at 30 Hz (README), the lag
-costs more than the noise: with 1 mrad of bearing noise the free robots' attitude error over
-the last 5 of 20 s is 0.14 rad raw (``tau = 0``), 0.46 rad at ``tau = 0.1`` s, 1.2 rad at
-0.3 s, and at 1 s the positions diverge. Hence ``tau = 0`` by default."""
+``β̇°`` is the *de-rotated* rate (seen from a frame that does not turn with the body, in the
+body frame at t_k): what (11) uses, as ``β̇ + ω × β``. A raw difference has noise about ``σ √2 /
+Δt``; a low-pass filter of time constant ``tau`` removes some, with a lag of about ``tau`` that
+costs more (the paper's case 1 at 30 Hz, 1 mrad of bearing noise: the free robots' attitude
+error over the last 5 of 20 s is 0.14 rad raw, 0.46 rad at ``tau = 0.1`` s, 1.2 rad at 0.3 s,
+and at 1 s the positions diverge). Hence ``tau = 0`` by default."""
 from __future__ import annotations
 
 import numpy as np
@@ -37,9 +33,8 @@ class BearingRateFilter:
 
     def update(self, t: float, b: Array, delta_R: Array,
                rows: NDArray[np.bool_] | None = None) -> tuple[Array, NDArray[np.bool_]]:
-        """The bearings ``b`` ``(n, 3)`` measured at ``t`` (only ``rows`` of them, default all),
-        with each body's rotation ``delta_R`` ``(n, 3, 3)`` since its previous sample: the
-        filtered de-rotated rates ``(n, 3)`` [1/s] and which rows have one (others: zero)."""
+        """Take the bearings ``b`` ``(n, 3)`` at ``t`` (``rows``: default all), ``delta_R`` the
+        rotation since each one's previous sample: the rates [1/s] and which rows have one."""
         rows = np.ones(len(b), dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
         have = rows & ~np.isnan(self.t_prev)
         dt = np.where(have, t - np.nan_to_num(self.t_prev), 1.0)[:, None]

@@ -9,10 +9,7 @@ robot i commands the body-frame velocity
 ``E_ik = +1`` if i is the tail a, -1 if the head b; ``sat_ν(x) = x · min(1, ν/|x|)`` (3-D norm).
 The printed (31) expresses its in-neighbour sum in robot j's frame (the factor ``R̂_iᵀ R̂_j`` is
 missing: with it the formation is never reached) and (30) saturates μ instead of ``k_c μ``.
-
-Modes: ``paper``, the closed loop of Sec. IV, with each robot's *estimated* yaw in ``R̂``;
-``exogenous``, with the true yaws, so the motion is independent of the estimates (the world
-velocity is then ``sat(k_c Σ_k E_ik ((p*_a - p*_b) - (p_a - p_b)))``)."""
+``R̂`` holds the *estimated* yaws (``paper`` mode, Sec. IV) or the true ones (``exogenous``)."""
 from __future__ import annotations
 
 import numpy as np
@@ -24,25 +21,18 @@ Array = NDArray[np.float64]
 Index = NDArray[np.intp]
 
 
-def saturate(x: Array, limit: float) -> Array:
-    """``x · min(1, limit/|x|)`` row by row."""
-    norm = np.linalg.norm(x, axis=-1, keepdims=True)
-    return x * np.minimum(1.0, limit / np.maximum(norm, 1e-300))
-
-
 def body_velocity(p: Array, psi_used: Array, psi_true: Array, p_star: Array, tail: Index,
                   head: Index, k_c: float, nu_max: float, moving: NDArray[np.bool_]) -> Array:
-    """(30)-(31): the body-frame velocity ``(N, 3)`` [m/s] of every robot, from the true positions
-    ``p`` (the measurements ``ᵃp_ab = R_aᵀ (p_b - p_a)`` with the true yaws ``psi_true``) and the
-    yaws the controller uses, ``psi_used`` (the estimates in the paper's mode, the truth in the
-    exogenous one). Robots not ``moving`` (no formation position: they hover) get 0."""
+    """(30)-(31): the body-frame velocity ``(N, 3)`` [m/s] of every robot from the true ``p``
+    (measured ``ᵃp_ab = R_aᵀ (p_b - p_a)`` with ``psi_true``) and the yaws the controller uses,
+    ``psi_used``; 0 for the robots not ``moving`` (no formation position: they hover)."""
     measured = np.einsum('kba,kb->ka', rot_z(psi_true[tail]), p[head] - p[tail])
     r = p_star[tail] - p_star[head] + np.einsum('kab,kb->ka', rot_z(psi_used[tail]), measured)
     total = np.zeros_like(p)
     np.add.at(total, tail, r)
     np.add.at(total, head, -r)
-    mu = np.einsum('nba,nb->na', rot_z(psi_used), total)
-    v = saturate(k_c * mu, nu_max)
+    x = k_c * np.einsum('nba,nb->na', rot_z(psi_used), total)     # k_c μ
+    v = x * np.minimum(1.0, nu_max / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-300))
     v[~moving] = 0.0
     return v
 

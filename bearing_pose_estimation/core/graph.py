@@ -61,21 +61,9 @@ def reachable_from(source: str, names: Sequence[str],
     return seen
 
 
-def collocated_pairs(positions: NDArray[np.float64]) -> list[tuple[int, int]]:
-    """Index pairs ``(i, j)``, ``i < j``, of positions closer than :data:`COLLOCATED_M`."""
-    return sorted(cKDTree(positions).query_pairs(COLLOCATED_M))
-
-
-def widest_angle(b: NDArray[np.float64]) -> float:
-    """The largest angle [rad, in [0, π/2]] between the lines of any two unit vectors ``b``
-    ``(M, 3)``: 0 when they are all collinear."""
-    sines = np.linalg.norm(np.cross(b[:, None, :], b[None, :, :]), axis=-1)
-    return float(np.arcsin(np.clip(sines.max(), 0.0, 1.0)))
-
-
 def widest_angles(b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """:func:`widest_angle` of many sets at once: ``b`` ``(..., M, 3)`` unit vectors, ``M >= 2``;
-    returns ``(...)`` [rad, in [0, π/2]]."""
+    """The largest angle ``(...)`` [rad, in [0, π/2]] between the lines of any two of the unit
+    vectors ``b`` ``(..., M, 3)``, ``M >= 2``: 0 when they are all collinear."""
     first, second = np.triu_indices(b.shape[-2], 1)
     sines = np.linalg.norm(np.cross(b[..., first, :], b[..., second, :]), axis=-1)
     return np.arcsin(np.clip(sines.max(axis=-1), 0.0, 1.0))
@@ -84,12 +72,10 @@ def widest_angles(b: NDArray[np.float64]) -> NDArray[np.float64]:
 def close_approaches(times: NDArray[np.float64], positions: NDArray[np.float64],
                      radius: float) -> tuple[NDArray[np.intp], NDArray[np.intp],
                                              NDArray[np.float64], NDArray[np.float64]]:
-    """Every pair of agents that comes closer than ``radius`` [m]: ``(i, j, distance, time)``
-    of its closest approach (the earliest of equal ones), one entry per pair ``i < j``, sorted.
-    ``positions`` ``(K, N, 3)`` at ``times`` ``(K,)``, each agent moving on straight lines
-    between samples. Per segment, a KD-tree of its first sample finds the pairs within
-    ``radius`` plus twice the farthest any agent moves over it (no pair closer on the segment
-    can be farther at its start); each pair's minimum on the segment is then exact."""
+    """``(i, j, distance, time)`` of the closest approach (the earliest of equal ones) of every
+    pair ``i < j`` closer than ``radius`` [m], sorted; agents move on straight lines between the
+    samples ``positions`` ``(K, N, 3)``. A KD-tree of each segment's start finds the pairs within
+    ``radius`` plus twice the farthest move over it; their minimum on it is then exact."""
     k_samples, n = positions.shape[:2]
     empty_i, empty_f = np.zeros(0, dtype=np.intp), np.zeros(0)
     if n < 2 or k_samples == 0:

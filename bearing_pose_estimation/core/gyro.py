@@ -1,16 +1,11 @@
 """Gyro sample buffer: exact body-frame rotation increments between any two times.
 
-A sample stamped ``t_k`` with rate ``ω_k`` is the *interval average* over ``(t_{k-1}, t_k]``
-(the simulator node's convention, and delta-angle IMUs'): ``R(t_{k-1})ᵀ R(t_k) =
-exp(ω_k (t_k - t_{k-1}))``. ω piecewise constant on those intervals is then exact between
-sample stamps, and between arbitrary times up to the split of one interval. Holding ω over a
-10 ms step instead leaves milliradians of steady-state error with the paper's ``sin 9t`` rates.
-
-Lost samples: a sample more than :data:`GAP_FACTOR` periods after the previous one covers only
-its own period; the missing stretch gets the mean of the rates on either side (the midpoint of
-a linear interpolation: an error of order ``ω̈ Δ³`` per lost sample instead of ``ω̇ Δ²``, 20
-times smaller over 1 s of ``sin 9t`` rates at 200 Hz with every 10th sample lost;
-``test_agent.py``)."""
+A sample ``ω_k`` stamped ``t_k`` is the *interval average* over ``(t_{k-1}, t_k]``,
+``R(t_{k-1})ᵀ R(t_k) = exp(ω_k Δ)`` (as delta-angle IMUs give): exact between stamps, where
+holding ω over a 10 ms step leaves milliradians of error with the paper's ``sin 9t`` rates. A
+stretch of lost samples (a sample more than :data:`GAP_FACTOR` periods after the previous one)
+gets the mean of the rates on either side: an error of order ``ω̈ Δ³`` per lost sample instead
+of ``ω̇ Δ²``."""
 from __future__ import annotations
 
 import bisect
@@ -28,10 +23,9 @@ GAP_FACTOR = 1.5
 
 
 class IntervalBuffer:
-    """Interval-average samples (vectors) of one agent over a sliding time window: sample k
-    holds over ``(t[k], t[k+1]]``, the first from ``start`` (the scenario's t = 0); samples
-    older than ``horizon`` [s] are dropped. :class:`GyroBuffer` integrates rates into
-    rotations, :class:`core.odometry.OdometryBuffer` twists into displacements."""
+    """Interval-average samples (vectors) of one agent over a sliding window: sample k holds
+    over ``(t[k], t[k+1]]``, the first from ``start``; samples older than ``horizon`` [s] are
+    dropped."""
 
     def __init__(self, start: float, horizon: float = 2.0) -> None:
         self.horizon = horizon
@@ -124,8 +118,7 @@ class GyroBuffer(IntervalBuffer):
     """Interval-average gyro samples of one agent: exact rotation increments."""
 
     def increment(self, t0: float, t1: float) -> NDArray[np.float64]:
-        """``R(t0)ᵀ R(t1)``: the body-frame rotation from ``t0`` to ``t1`` (either order);
-        ValueError if the buffer does not cover ``[t0, t1]``."""
+        """``R(t0)ᵀ R(t1)`` (either order); ValueError if not covered."""
         if t1 < t0:
             return self.increment(t1, t0).T
         return self.integrated(t0, t1, _rotation, 'gyro')

@@ -1,16 +1,8 @@
-"""Motion profiles (angular and linear velocities) and their exact-enough integration.
-
-A profile is declarative (no ``eval``): each component is a constant plus a sum of sinusoids
-``amplitude · sin(frequency · t + phase)``; :class:`ProfileSet` evaluates all agents at once.
-
-- Rotation: :func:`magnus_increment` gives the body-frame increment ``ΔR = R(t)ᵀ R(t+h)`` of
-  ``dR/dt = R [ω(t)]x`` with the 4th-order Magnus integrator (two Gauss points); its local
-  error is O(h⁵), far below the observer's first-order error at the same step.
-- Translation ``dp/dt = v_w(t) + R(t) v_b(t)`` (a world-frame and a body-frame velocity; an
-  agent has one or the other): the world part is integrated in closed form
-  (:meth:`ProfileSet.integral`), the body part by 3-point Gauss-Legendre quadrature of
-  ``∫ ΔR(τ) v_b(t + τ) dτ`` with ``ΔR(τ)`` from the Magnus increment to each node
-  (:func:`body_displacement`): O(h⁵) locally, like the rotation."""
+"""Motion profiles and their exact-enough integration. A profile is declarative (no ``eval``):
+each component a constant plus sinusoids ``amplitude · sin(frequency · t + phase)``. Rotations
+are integrated by the 4th-order Magnus expansion, a world-frame velocity in closed form, a
+body-frame one by 3-point Gauss-Legendre quadrature: O(h⁵) locally, far below the observers'
+first-order error at the same step."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -67,19 +59,17 @@ ZERO = VectorProfile()
 
 @dataclass(frozen=True)
 class LinearVelocity:
-    """The translational velocity of one agent [m/s]: ``value`` in the world frame
-    (``dp/dt = v``), in the body frame (``dp/dt = R v``), or ``anchor_estimate``: a velocity
-    wanted in the anchor's body frame that the agent applies through its own attitude estimate,
-    ``u = Q̂ᵀ v`` (Presenza et al., Sec. V, case 2: the truth depends on the estimates)."""
+    """The velocity of one agent [m/s] in the world frame (``dp/dt = v``), the body frame
+    (``dp/dt = R v``), or ``anchor_estimate``: wanted in the anchor's frame, applied through
+    its own attitude estimate, ``u = Q̂ᵀ v`` (Presenza et al., Sec. V, case 2)."""
 
     frame: Literal['world', 'body', 'anchor_estimate'] = 'world'
     value: VectorProfile = ZERO
 
 
 class ProfileSet:
-    """The vector profiles of N agents (e.g. their angular velocities), evaluated in one
-    vectorised call: sinusoids packed into ``(N, 3, T)`` arrays (T = most terms of any
-    component; unused slots have zero amplitude)."""
+    """The vector profiles of N agents, evaluated in one vectorised call: sinusoids packed into
+    ``(N, 3, T)`` arrays (T: most terms of any component; unused slots zero)."""
 
     def __init__(self, profiles: Sequence[VectorProfile]) -> None:
         n = len(profiles)
@@ -109,8 +99,7 @@ class ProfileSet:
         return not self._has_terms
 
     def __call__(self, t: float | NDArray[np.float64]) -> NDArray[np.float64]:
-        """ω of every agent at time ``t``, shape ``(N, 3)``; at times ``t`` ``(K,)``, shape
-        ``(K, N, 3)`` (the same numbers as K calls: one elementwise expression)."""
+        """The profiles at ``t``, ``(N, 3)``; at times ``(K,)``, ``(K, N, 3)`` (as K calls)."""
         if np.ndim(t) == 0:
             out = self.constant.copy()
             tt: float | NDArray[np.float64] = t
@@ -153,10 +142,9 @@ def magnus_increment(omega: ProfileSet, t: float | NDArray[np.float64],
 
 def body_displacement(omega: ProfileSet, v_body: ProfileSet, t: float | NDArray[np.float64],
                       h: float) -> NDArray[np.float64]:
-    """``∫_0^h ΔR(τ) v_b(t + τ) dτ`` for every agent, ``(N, 3)``: the displacement over
-    ``[t, t+h]`` of an agent moving with body-frame velocity ``v_b``, in its body frame at t
-    (``ΔR(τ) = R(t)ᵀ R(t+τ)``). 3-point Gauss-Legendre with the Magnus increment to each
-    node: O(h⁵) locally, the order of the rotation. Times ``t`` ``(K,)``: ``(K, N, 3)``."""
+    """``∫_0^h ΔR(τ) v_b(t + τ) dτ`` ``(N, 3)`` (times ``t`` ``(K,)``: ``(K, N, 3)``): the
+    displacement over ``[t, t+h]`` of agents moving with body-frame velocity ``v_b``, in their
+    body frame at t; 3-point Gauss-Legendre with the Magnus increment to each node."""
     out = np.zeros(np.shape(t) + omega.constant.shape)
     for node, weight in zip(_GL3_NODES, _GL3_WEIGHTS):
         tau = node * h
@@ -167,8 +155,7 @@ def body_displacement(omega: ProfileSet, v_body: ProfileSet, t: float | NDArray[
 
 def held_body_displacement(omega: ProfileSet, t: float, h: float,
                            u: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``∫_0^h ΔR(τ) dτ · u`` ``(N, 3)``: the displacement over ``[t, t+h]``, in the body frame
-    at t, of agents holding the body-frame velocity ``u`` (as :func:`body_displacement`)."""
+    """``∫_0^h ΔR(τ) dτ · u`` ``(N, 3)``: :func:`body_displacement` with a held ``u``."""
     if omega.is_zero:
         return h * u
     out = np.zeros_like(u)
@@ -179,17 +166,16 @@ def held_body_displacement(omega: ProfileSet, t: float, h: float,
 
 @dataclass(frozen=True)
 class YawSpline:
-    """A yaw trajectory ``ψ(t)``: the clamped cubic spline (``ψ̇ = 0`` at the first and last
-    knot) through ``values`` [rad] at ``knots`` [s] (De Carli et al., Sec. IV: "a spline with
-    random coefficients"). Before the first knot and after the last one ψ is held."""
+    """``ψ(t)``: the clamped cubic spline through ``values`` [rad] at ``knots`` [s], held
+    outside them (De Carli et al., Sec. IV: "a spline with random coefficients")."""
 
     knots: tuple[float, ...]
     values: tuple[float, ...]
 
 
 class YawSplines:
-    """The yaw splines of N agents, evaluated in one call (scipy's clamped ``CubicSpline``
-    pieces evaluated directly, vectorised over agents that share their knots)."""
+    """The yaw splines of N agents, evaluated in one call (scipy's ``CubicSpline`` pieces,
+    vectorised over agents that share their knots)."""
 
     def __init__(self, splines: Sequence[YawSpline]) -> None:
         from scipy.interpolate import CubicSpline
@@ -235,9 +221,8 @@ class YawSplines:
 
     def held_displacement(self, t: float, h: float, v_body: NDArray[np.float64]
                           ) -> NDArray[np.float64]:
-        """``∫_0^h R_z(ψ(t+τ) - ψ(t)) dτ · v`` ``(N, 3)``: the displacement over ``[t, t+h]``
-        of agents whose body-frame velocity ``v`` ``(N, 3)`` is held, in their body frame at
-        t; 3-point Gauss-Legendre (exact to rounding at millisecond steps)."""
+        """``∫_0^h R_z(ψ(t+τ) - ψ(t)) dτ · v`` ``(N, 3)``, with a held body-frame ``v``
+        (3-point Gauss-Legendre: exact to rounding at millisecond steps)."""
         psi0 = self(t)
         out = np.zeros_like(v_body)
         for node, weight in zip(_GL3_NODES, _GL3_WEIGHTS):

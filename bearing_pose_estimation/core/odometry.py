@@ -1,12 +1,8 @@
-"""Odometry sample buffer: exact body-frame displacements between any two times.
-
-As for the gyro (:mod:`core.gyro`), a sample stamped ``t_k`` with body twist ``(v_k, ω_k)`` is
-the *interval average* over ``(t_{k-1}, t_k]``, the constant twist whose SE(3) exponential is
-the true pose increment: ``R(t_{k-1})ᵀ R(t_k) = exp(ω_k Δ)`` and
-``R(t_{k-1})ᵀ (p(t_k) - p(t_{k-1})) = J(ω_k Δ) v_k Δ`` (``J`` the left Jacobian of SO(3),
-:func:`so3.jacobian_apply`). Integrated piecewise constant, it is exact between sample stamps
-for any motion; holding a sampled instantaneous velocity over a step leaves an O(h) bias
-(``../shared/estimators/de-carli-2024.md``, section 7)."""
+"""Odometry sample buffer: exact body-frame displacements between any two times. As for the gyro
+(:mod:`core.gyro`), a sample ``(v_k, ω_k)`` stamped ``t_k`` is the *interval average* over
+``(t_{k-1}, t_k]``, the constant twist whose SE(3) exponential is the true pose increment
+(displacement ``J(ω_k Δ) v_k Δ``, :func:`so3.jacobian_apply`): exact between stamps for any
+motion, where a held velocity leaves an O(h) bias (de-carli-2024.md §7)."""
 from __future__ import annotations
 
 import numpy as np
@@ -19,9 +15,8 @@ Array = NDArray[np.float64]
 
 
 def twist_of(delta_R: Array, delta_p: Array, duration: float) -> tuple[Array, Array]:
-    """The interval-average twist ``(v, ω)`` ``(..., 3)`` of a body-frame pose increment
-    (``delta_R`` ``(..., 3, 3)``, ``delta_p`` the displacement in the frame at the start):
-    the SE(3) logarithm divided by ``duration``."""
+    """The interval-average twist ``(v, ω)`` of a body-frame pose increment: the SE(3)
+    logarithm divided by ``duration``."""
     phi = so3.log(delta_R)
     return so3.jacobian_inv_apply(phi, delta_p) / duration, phi / duration
 
@@ -38,8 +33,7 @@ def se3_step(R: Array, p: Array, omega: Array, v: Array,
 
 
 class OdometryBuffer(IntervalBuffer):
-    """Interval-average odometry twists of one agent (each sample ``(ω, v)`` stacked as a
-    6-vector; lost samples are bridged as :class:`core.gyro.IntervalBuffer` does)."""
+    """Interval-average odometry twists of one agent, each sample ``(ω, v)`` a 6-vector."""
 
     def add_twist(self, stamp: float, v: Array, omega: Array) -> bool:
         """Append a sample; False (ignored) unless ``stamp`` is newer than the newest."""
@@ -47,13 +41,11 @@ class OdometryBuffer(IntervalBuffer):
                                                np.asarray(v, dtype=float)]))
 
     def displacement(self, t0: float, t1: float) -> Array:
-        """``R(t0)ᵀ (p(t1) - p(t0))``: the displacement from ``t0`` to ``t1 >= t0`` in the body
-        frame at ``t0`` [m]; ValueError if the buffer does not cover ``[t0, t1]``."""
+        """``R(t0)ᵀ (p(t1) - p(t0))`` [m], ``t0 <= t1``; ValueError if not covered."""
         return self.integrated(t0, t1, _pose, 'odometry')[9:]
 
     def rotation(self, t0: float, t1: float) -> Array:
-        """``R(t0)ᵀ R(t1)`` (``t0 <= t1``) from the samples' rates: the rotation of an agent
-        whose gyro this receiver does not see (a neighbour's odometry); ValueError as above."""
+        """``R(t0)ᵀ R(t1)`` (``t0 <= t1``) of an agent whose gyro this receiver does not see."""
         return self.integrated(t0, t1, _pose, 'odometry')[:9].reshape(3, 3)
 
 

@@ -1,11 +1,5 @@
-"""SO(3) helpers in the notation of Boughellaba & Tayebi (Section II). Every function accepts a
-single vector/matrix or a batch with leading axes (``(..., 3)`` vectors, ``(..., 3, 3)``
-matrices) and works in float64.
-
-- ``hat(x)`` is ``[x]x``, the skew matrix with ``[x]x y = x × y``; ``vex`` is its inverse.
-- ``Pa(A) = (A - Aᵀ)/2`` and ``psi(A) = vex(Pa(A))``.
-- ``projector(x) = P_x = I - x xᵀ/‖x‖²``.
-- ``exp``/``log`` are the exponential and logarithm maps between R³ (rotation vectors) and SO(3)."""
+"""SO(3) helpers in the notation of Boughellaba & Tayebi (Section II), in float64, on one
+vector/matrix or a batch with leading axes (``(..., 3)``, ``(..., 3, 3)``)."""
 from __future__ import annotations
 
 import math
@@ -39,15 +33,10 @@ def vex(S: ArrayLike) -> Array:
     return np.stack([S[..., 2, 1], S[..., 0, 2], S[..., 1, 0]], axis=-1)
 
 
-def Pa(A: ArrayLike) -> Array:
-    """Anti-symmetric projection ``(A - Aᵀ)/2`` onto so(3)."""
-    A = np.asarray(A, dtype=float)
-    return 0.5 * (A - np.swapaxes(A, -1, -2))
-
-
 def psi(A: ArrayLike) -> Array:
-    """``psi(A) = vex(Pa(A))``; note ``x × y = 2 psi(y xᵀ)``."""
-    return vex(Pa(A))
+    """``vex`` of the anti-symmetric part ``(A - Aᵀ)/2``; note ``x × y = 2 psi(y xᵀ)``."""
+    A = np.asarray(A, dtype=float)
+    return vex(0.5 * (A - np.swapaxes(A, -1, -2)))
 
 
 def projector(x: ArrayLike) -> Array:
@@ -58,8 +47,8 @@ def projector(x: ArrayLike) -> Array:
 
 
 def exp(phi: ArrayLike) -> Array:
-    """Exponential map: rotation vector ``phi`` (axis × angle) to a rotation matrix, by
-    Rodrigues' formula in half-angle form (orthonormal to machine precision at any angle)."""
+    """Rotation vector ``phi`` (axis × angle) to a rotation matrix, by Rodrigues' formula in
+    half-angle form (orthonormal to machine precision at any angle)."""
     phi = np.asarray(phi, dtype=float)
     if phi.shape == (3,):
         return _exp_one(phi)
@@ -96,10 +85,8 @@ _SERIES_ANGLE = 1e-2
 
 
 def jacobian_apply(phi: ArrayLike, v: ArrayLike) -> Array:
-    """``J(φ) v`` with ``J`` the left Jacobian of SO(3),
-    ``J = I + (1 - cos θ)/θ² [φ]x + (θ - sin θ)/θ³ [φ]x²``, over the last axis: the
-    translation of the SE(3) exponential of the twist ``(v, φ)``, i.e. the displacement of a
-    body moving with constant body velocity ``v/s`` and rate ``φ/s`` for ``s`` seconds."""
+    """``J(φ) v``, ``J = I + (1 - cos θ)/θ² [φ]x + (θ - sin θ)/θ³ [φ]x²`` the left Jacobian of
+    SO(3): the translation of the SE(3) exponential of the twist ``(v, φ)``."""
     phi, v = np.asarray(phi, dtype=float), np.asarray(v, dtype=float)
     if phi.shape == (3,) and v.shape == (3,):
         return _jacobian_apply_one(phi, v)
@@ -183,8 +170,8 @@ def dot(a: Array, b: Array) -> Array:
 
 
 def log(R: ArrayLike) -> Array:
-    """Logarithm map: rotation matrix to rotation vector with angle in ``[0, π]``, by scipy's
-    quaternion route (well conditioned near 0 and π)."""
+    """Rotation matrix to rotation vector, angle in ``[0, π]`` (scipy's quaternion route: well
+    conditioned near 0 and π)."""
     from scipy.spatial.transform import Rotation
 
     R = np.asarray(R, dtype=float)
@@ -271,9 +258,8 @@ _COMPONENTS_LAST_FROM = 64
 
 
 def matmul(*mats: Array) -> Array:
-    """``mats[0] @ mats[1] @ ...`` for stacks ``(N, 3, 3)`` (same N; a single ``(3, 3)`` is
-    broadcast in the small path only). Large stacks are multiplied as nine length-N vectors per
-    matrix, which numpy vectorises far better than N separate 3x3 products."""
+    """``mats[0] @ mats[1] @ ...`` for stacks ``(N, 3, 3)`` (a single ``(3, 3)`` is broadcast
+    in the small path only); large stacks as nine length-N vectors per matrix."""
     if len(mats) == 1:
         return mats[0]
     first = mats[0]

@@ -1,11 +1,8 @@
 """The estimators and their registry, keyed by the scenario's ``method:``.
 
-Adding a method is adding one module here, a subclass of :class:`base.Estimator`, and one line
-in :data:`_BUILT_IN`; nothing outside this folder names a method. A method outside the package
-needs no line anywhere: a scenario names it by its import path, ``method: my_module:MyMethod``
-(the module on the Python path of every process that runs it), and :func:`get` imports and
-registers it. Tests register their own with :func:`register` (and remove them with
-:func:`unregister`).
+Adding a method is one module here and one line in :data:`_BUILT_IN`; nothing outside this
+folder names a method. One outside the package is named by its import path, ``method:
+my_module:MyMethod`` (on every process's Python path), and :func:`get` imports it.
 """
 from __future__ import annotations
 
@@ -47,30 +44,25 @@ def methods() -> tuple[str, ...]:
 
 
 def get(method: str) -> type[Estimator]:
-    """The class registered as ``method``; ScenarioError naming the known ones if unknown."""
-    if method not in _REGISTRY and ':' in method:
-        return _imported(method)
-    try:
+    """The class registered as ``method``, or imported and registered from its ``module:Class``
+    path; ScenarioError naming the known ones if unknown."""
+    if method in _REGISTRY:
         return _REGISTRY[method]
-    except KeyError:
+    if ':' not in method:
         raise ScenarioError(f'unknown method {method!r}. Fix: use one of: '
                             f'{", ".join(_REGISTRY)}, or a method\'s import path '
-                            '(module:Class)') from None
-
-
-def _imported(path: str) -> type[Estimator]:
-    """The method class at ``module:Class``, imported and registered under ``path``."""
-    module, _, name = path.partition(':')
+                            '(module:Class)')
+    module, _, name = method.partition(':')
     try:
         cls = getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError) as exc:
-        raise ScenarioError(f'method {path!r}: cannot import it ({exc}). Fix: put {module} on '
+        raise ScenarioError(f'method {method!r}: cannot import it ({exc}). Fix: put {module} on '
                             'the Python path (PYTHONPATH) of every process, or use one of: '
                             f'{", ".join(_REGISTRY)}') from None
     if not (isinstance(cls, type) and issubclass(cls, Estimator)):
-        raise ScenarioError(f'method {path!r}: {name} is not an Estimator subclass. Fix: name '
-                            'the class of the method')
-    _REGISTRY[path] = cls
+        raise ScenarioError(f'method {method!r}: {name} is not an Estimator subclass. Fix: '
+                            'name the class of the method')
+    _REGISTRY[method] = cls
     return cls
 
 

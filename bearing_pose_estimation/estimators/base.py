@@ -1,18 +1,9 @@
-"""The estimator interface: what every method declares, and its one vectorised step.
-
-A method is a subclass of :class:`Estimator`, registered under the scenario's ``method:`` key
-(:mod:`bearing_pose_estimation.estimators`). It declares, as class attributes (documented on
-:class:`Estimator`), its gains, roles, sensors, edges (:func:`edge_table`), what it sends
-(:class:`Channel`) and its estimate frame; and implements its per-agent :class:`State`, its
-graph-assumption :meth:`Estimator.check` and one vectorised :meth:`Estimator.step`. The batch
-simulator calls that step for the whole fleet, the agent runtime
-(:mod:`bearing_pose_estimation.runtime`) for one agent or the agents of one process together:
-each method's math exists once.
-
-A step's inputs (:class:`StepInputs`) are a generic mapping, per agent, per edge and per edge a
-mask of what is here, keyed by sensor and channel names: the runtime fills it from the
-declarations without knowing any method's quantity.
-"""
+"""The estimator interface: what a method declares (:class:`Estimator`'s class attributes,
+:class:`Channel`, :func:`edge_table`) and its one vectorised :meth:`Estimator.step`, which the
+batch simulator calls for the whole fleet and the runtime (:mod:`bearing_pose_estimation.runtime`)
+for one agent or several: each method's math exists once. A step's inputs (:class:`StepInputs`)
+are keyed by sensor and channel names, so the runtime fills them from the declarations without
+knowing any method's quantity."""
 from __future__ import annotations
 
 import dataclasses
@@ -40,8 +31,7 @@ Mask = NDArray[np.bool_]
 
 # ----------------------------------------------------------------------------- declarations
 class Sensor(Enum):
-    """What an agent measures about itself and the agents it sees. The value is the key of
-    its per-edge measurements in :class:`StepInputs` and its topic's name."""
+    """What an agent measures; the value keys its measurements and names its topic."""
 
     GYRO = 'gyro'                              # body angular rate (interval averages)
     BEARINGS = 'bearings'                      # unit bearings to the agents it sees (body)
@@ -66,8 +56,7 @@ class EstimateFrame(Enum):
 
 @dataclass(frozen=True)
 class Roles:
-    """The special agents a method needs: ``leaders`` agents that know their pose (the
-    scenario's ``leaders:``; Boughellaba & Tayebi and Tran et al.: 2), or one ``anchor``."""
+    """The special agents a method needs: ``leaders`` that know their pose, or an ``anchor``."""
 
     leaders: int = 0
     anchor: bool = False
@@ -85,32 +74,26 @@ POINTS = 'points'
 class Channel:
     """One quantity that agent j sends the agents that listen to it.
 
-    - ``per='agent'``: one value for all of them (e.g. ``p̂_j``); ``per='edge'``: one value per
+    - ``per='agent'``: one value for all of them (e.g. ``p̂_j``); ``per='edge'``: one per
       listener i (e.g. ``R̂_j b^j_ji``), formed by :meth:`Estimator.outbox` (round 1) or
-      :meth:`Estimator.reply` (round 2).
-    - ``on``: the receiver's edge flag (:func:`edge_table`) on which it travels: ``'senses'``
-      from the agents it senses, ``'sensed_by'`` from those that sense it; None: every edge.
-      ``owner_only``: a per-edge value only the owner of the pair's shared state sends (a
-      receiver that owns the pair expects none).
-    - ``sensor``: the value is j's own measurement of i by that sensor; it travels on j's
-      sensor topic and is paired like a measurement (interpolated at the step's instant).
-    - ``pairing``: how a receiver pairs it with its step at t. ``'instant'``: the sender's
-      newest instant at or before t at which it sent every required channel (its publish
-      grid; a simulation waits for it, a robot takes what is here). ``'exact'``: the value of
-      t itself; once the sender has sent a later one it is lost, and the sender's newest
-      earlier one is carried to t (:meth:`Estimator.carry`) or the edge goes without it.
-    - ``optional``: a value the step can do without (a covariance): never waited for; the
-      value of the step's instant if here, else the newest carried or as it is, else
-      :meth:`Estimator.missing`.
-    - ``round`` 2: formed from what the sender received in round 1 of the same step.
-    - ``frame``: the frame it is expressed in (``'world'``, ``'body'`` of the sender, or the
-      method's estimate frame ``'estimate'``); ``unit`` values are unit vectors (checked on
-      reception); ``bound``: the largest magnitude of a component a receiver accepts;
-      ``psd_blocks``: the value begins with this many packed symmetric 3x3 blocks (xx, yy,
-      zz, xy, xz, yz) that must be positive semi-definite (covariances).
-    - ``topic``, ``kind``, ``fields``: how it travels (``msg_defs``): the topic in the
-      sender's namespace, the wire kind (:data:`POSE_POSITION`, :data:`POSE_COVARIANCE`,
-      :data:`VECTOR`, :data:`POINTS`) and a point's fields.
+      :meth:`Estimator.reply` (``round`` 2: from what the sender received in round 1).
+    - ``on``: the receiver's edge flag (:func:`edge_table`) it travels on (``'senses'``: from
+      the agents it senses, ``'sensed_by'``: from those that sense it; None: every edge);
+      ``owner_only``: only the owner of the pair's shared state sends it.
+    - ``sensor``: j's own measurement of i, on j's sensor topic, paired like a measurement.
+    - ``pairing`` with the step at t: ``'instant'``, the sender's newest instant at or before t
+      at which it sent every required channel (a simulation waits for it, a robot takes what
+      is here); ``'exact'``, the value of t itself: once a later one came it is lost, and the
+      sender's newest earlier one is carried to t (:meth:`Estimator.carry`) or the edge goes
+      without it.
+    - ``optional`` (a covariance): never waited for; the step's instant's, else the newest,
+      else :meth:`Estimator.missing`.
+    - ``frame``: ``'world'``, ``'body'`` (the sender's) or ``'estimate'``; ``unit``: unit
+      vectors (checked on reception); ``bound``: the largest component a receiver accepts;
+      ``psd_blocks``: leading packed symmetric 3x3 blocks (xx, yy, zz, xy, xz, yz) that must
+      be positive semi-definite.
+    - ``topic`` (in the sender's namespace), wire ``kind`` (:data:`POINTS`, :data:`VECTOR`,
+      ...) and a point's ``fields``: how it travels (``msg_defs``).
     """
 
     name: str
@@ -140,10 +123,9 @@ class Channel:
 # ----------------------------------------------------------------------------- gains
 def gain(default: float, help: str, minimum: float = 0.0, zero_allowed: bool = False,
          model: bool = False) -> Any:
-    """A field of a method's gains dataclass: ``default``, a one-line ``help`` (shown by the
-    node's parameter descriptions) and the exclusive lower bound ``minimum`` (gains are > 0;
-    ``zero_allowed``: >= 0, for a term that 0 switches off). ``model``: a parameter of the
-    covariance's model (noise, prior), not of the estimate: tables of gains leave it out."""
+    """A field of a method's gains dataclass: ``default``, a one-line ``help`` (the node's
+    parameter description), the exclusive lower bound ``minimum`` (``zero_allowed``: >= 0, for
+    a term that 0 switches off); ``model``: of the covariance's model, left out of tables."""
     return field(default=default, metadata={'help': help, 'minimum': minimum,
                                             'zero_allowed': zero_allowed, 'model': model})
 
@@ -154,9 +136,8 @@ def gain_fields(gains_cls: type) -> tuple[dataclasses.Field, ...]:
 
 
 def parse_gains(gains_cls: type, values: Mapping[str, Any], where: str = 'gains') -> Any:
-    """``gains_cls`` from ``values`` (missing keys take their defaults). Raises ScenarioError
-    for an unknown key or a value that is not a finite number above the gain's minimum, naming
-    ``<where>.<gain>`` and the fix."""
+    """``gains_cls`` from ``values`` (missing keys: defaults); ScenarioError naming
+    ``<where>.<gain>`` and the fix for an unknown key or a value below the gain's minimum."""
     known = [f.name for f in gain_fields(gains_cls)]
     for key in values:
         if key not in known:
@@ -172,11 +153,10 @@ def parse_gains(gains_cls: type, values: Mapping[str, Any], where: str = 'gains'
         x = float(value)
         if not math.isfinite(x):
             raise ScenarioError(f'{here}: {value!r} is not finite. Fix: use a finite number')
-        low = f.metadata['minimum']
-        if x < low or (x == low and not f.metadata.get('zero_allowed', False)):
-            relation = '>=' if f.metadata.get('zero_allowed', False) else '>'
-            raise ScenarioError(f'{here}: must be {relation} {low:g}, got {x:g}. Fix: '
-                                f'use a {"non-negative" if relation == ">=" else "positive"} '
+        low, zero_ok = f.metadata['minimum'], f.metadata.get('zero_allowed', False)
+        if x < low or (x == low and not zero_ok):
+            raise ScenarioError(f'{here}: must be {">=" if zero_ok else ">"} {low:g}, got '
+                                f'{x:g}. Fix: use a {"non-negative" if zero_ok else "positive"} '
                                 'value')
         out[f.name] = x
     return gains_cls(**out)
@@ -189,21 +169,17 @@ def format_gains(gains: Any) -> str:
 
 
 # ----------------------------------------------------------------------------- edges, state
-# Above this many edges, sums over each agent's edges use a sparse incidence matrix: once
-# built (~100 µs), its product beats np.add.at from about 64 edges on (5 against 5 µs at 64,
-# 6 against 30 µs at 512), what the batch simulator's fleets need (Edges.sum_by_agent).
+# Above this many edges, sums over each agent's edges use a sparse incidence matrix: built once
+# (~100 µs), its product beats np.add.at from about 64 edges on (6 against 30 µs at 512).
 SPARSE_SUM_EDGES = 64
 
 
 @dataclass(frozen=True, eq=False)
 class Edges:
-    """Directed sensing edges ``i → j`` (agent i measures j), fixed for a step.
-
-    ``agent[e]`` indexes the state row of the agent that owns edge ``e`` (always 0 in a node);
-    ``k[e]`` is ``k_ij``; ``flags`` say what each edge is (:func:`edge_table`: ``senses``,
-    ``sensed_by``, ``owns``, ...). Compared by identity, so a method may cache what it derives
-    from a fleet's edges (as :meth:`sum_by_agent` caches its incidence matrix).
-    """
+    """Directed sensing edges ``i → j`` (agent i measures j), fixed for a step: ``agent[e]`` the
+    state row of the agent that owns edge ``e`` (0 in a node), ``k[e]`` ``k_ij``, ``flags``
+    (:func:`edge_table`). Compared by identity, so a method may cache what it derives from a
+    fleet's edges (as :meth:`sum_by_agent` its incidence matrix)."""
 
     agent: Index
     k: Array
@@ -265,8 +241,7 @@ class Edges:
 
     @staticmethod
     def stack(parts: Sequence[Edges]) -> Edges:
-        """Several agents' edges as one, agents and edges in that order; every part has the
-        same flags."""
+        """Several agents' edges (with the same flags) as one, in that order."""
         offsets = np.cumsum([0] + [p.n_agents for p in parts[:-1]])
         slots = [p.slot for p in parts]
         assert all(slot is not None for slot in slots)
@@ -287,9 +262,8 @@ S = TypeVar('S', bound='State')
 
 @dataclass
 class State:
-    """A method's per-agent state: every field an ``(N, ...)`` array, row i for agent i.
-    Every method estimates a pose: ``R_hat`` (body → the method's frame) and ``p_hat`` [m];
-    subclasses add their own fields."""
+    """A method's per-agent state: every field an ``(N, ...)`` array, row i for agent i; the
+    pose ``R_hat`` (body → the method's frame), ``p_hat`` [m], and the method's own fields."""
 
     R_hat: Array   # (N, 3, 3)
     p_hat: Array   # (N, 3) [m]
@@ -313,10 +287,9 @@ class State:
 
 @dataclass(frozen=True)
 class Motion:
-    """How things moved over ``[t_s, t]``, for carrying a value formed at ``t_s`` to t
-    (:meth:`Estimator.carry`): the receiver's gyro increment ``R(t_s)ᵀ R(t)``, the sender's
-    odometry (rotation, and displacement in its body frame at ``t_s``) and the anchor's (the
-    same); None where the receiver does not know it."""
+    """How the receiver, the sender and the anchor moved over ``[t_s, t]`` (gyro increments
+    ``R(t_s)ᵀ R(t)``, displacements in the body frame at ``t_s``), for :meth:`Estimator.carry`;
+    None where the receiver does not know it."""
 
     own_delta_R: Array | None = None
     peer_delta_R: Array | None = None
@@ -343,22 +316,16 @@ HELD = 'held'                        # (E, 2) steps the own sample and the value
 class StepInputs:
     """What one step consumes for N agents and their E edges, all at the step's start time t.
 
-    - ``agent[key]`` ``(N, ...)``: :data:`DELTA_R` always; :data:`DISPLACEMENT` for agents
-      whose odometry runs; a method with an anchor gets :data:`ANCHOR_DELTA_R`,
-      :data:`ANCHOR_DISPLACEMENT`, :data:`IS_ANCHOR` and :data:`PINNED`.
-    - ``edge[key]`` ``(E, ...)``: each own point sensor's measurement of the edge's other end
-      j, by its name (``'bearings'``: ``b^i_ij``, rotated to the body frame at t); each
-      channel j sent, by its name (per-agent channels repeated on every edge from j); with
-      ``peer_odometry``, j's motion over the step (:data:`PEER_DELTA_R`,
-      :data:`PEER_DISPLACEMENT`); and what the runtime pairs them with (:data:`P_OWN`: in a
-      moving fleet, ``p̂_i`` moved back to the stamp of j's values by the own odometry, so that
-      the pairing is exact at the true poses while the corrections are not delayed;
-      :data:`HELD`: a node holds samples slower than its steps, and their noise with them).
-    - ``mask[key]`` ``(E,)``: which edges have ``edge[key]`` (a key without a mask: all);
-      where a mask is off the value is zeros (or the method's stand-in).
-
-    The batch simulator builds them for the whole fleet, a node for its one agent
-    (:meth:`agent` cuts one out, :meth:`stack` puts several together)."""
+    - ``agent[key]`` ``(N, ...)``: the agent keys above (:data:`DISPLACEMENT` where odometry
+      runs, the anchor's for methods with one).
+    - ``edge[key]`` ``(E, ...)``: each own point sensor's measurement of the other end j, by
+      its name (``'bearings'``: ``b^i_ij``, in the body frame at t); each channel j sent, by its
+      name (per-agent ones repeated on every edge from j); j's motion with ``peer_odometry``;
+      :data:`P_OWN` (a moving fleet: ``p̂_i`` moved back to the stamp of j's values by the own
+      odometry, so the pairing is exact at the true poses while the corrections are not
+      delayed) and :data:`HELD` (a node holds samples slower than its steps, and their noise).
+    - ``mask[key]`` ``(E,)``: which edges have ``edge[key]`` (no mask: all; off: zeros or the
+      method's stand-in)."""
 
     edges: Edges
     agent: Mapping[str, Array]
@@ -382,8 +349,8 @@ class StepInputs:
 
     @staticmethod
     def stack(parts: Sequence[StepInputs], same_t: bool = True) -> StepInputs:
-        """The inputs of several agents' steps as one fleet step, agents and edges in that
-        order: :meth:`agent` undone. Every part has the same keys (and t, with ``same_t``)."""
+        """Several agents' inputs (with the same keys, and t with ``same_t``) as one fleet
+        step, in that order."""
         first = parts[0]
         if not all(first.stacks_with(p, same_t) for p in parts[1:]):
             raise ValueError('StepInputs.stack: the parts have different keys or times')
@@ -417,8 +384,7 @@ class StepInputs:
                           mask={k: v[sel] for k, v in self.mask.items()})
 
     def complete(self, keys: Sequence[str]) -> StepInputs:
-        """Only the edges that have every one of ``keys`` (a method without
-        ``partial_edges``: an edge with an input missing sits the step out)."""
+        """Only the edges that have every one of ``keys`` (without ``partial_edges``)."""
         if not self.mask:
             return self
         keep = np.ones(len(self.edges), dtype=bool)
@@ -435,8 +401,7 @@ class StepInputs:
 
 @dataclass(frozen=True)
 class WarmStart:
-    """What :meth:`Estimator.warm_start` made of one agent's inputs: a state (None: refused)
-    and, for /diagnostics, why."""
+    """:meth:`Estimator.warm_start`'s state (None: refused) and, for /diagnostics, why."""
 
     x: State | None
     note: str
@@ -513,33 +478,27 @@ class Estimator(ABC, Generic[G, S]):
     # 'sensing': one edge per neighbour i → j, j's channels flow to i; 'communication': one
     # per communication neighbour, both ways (edge_table).
     links: ClassVar[Literal['sensing', 'communication']] = 'sensing'
-    # Sensing is directed: a robot measures its `neighbours` only (Presenza et al.'s
-    # out-neighbours), not its listeners too.
+    # A robot measures its `neighbours` only, not its listeners too (Presenza et al.).
     directed_sensing: ClassVar[bool] = False
-    # Per own point sensor the step reads: the edge flag of the edges it measures (None:
-    # every edge; with 'sensing' links also the listeners, whom the per-edge channels formed
-    # from that measurement go to).
+    # Per own point sensor the step reads: the edge flag of the edges it measures (None: every
+    # edge, with 'sensing' links the listeners too: the per-edge channels are formed from it).
     measures: ClassVar[Mapping[Sensor, str | None]] = {}
-    # How an own point sensor's samples pair with the step at t: 'newest', the newest sample
-    # the gyro bridges to t (a moving fleet: the one at the stamp of the neighbour's values it
-    # pairs with); 'interpolated', between the samples around t (waited for).
+    # An own point sensor's sample for the step at t: 'newest', bridged to t by the gyro (a
+    # moving fleet: the one at the stamp of the neighbour's values); 'interpolated' (waited for).
     own_pairing: ClassVar[Literal['newest', 'interpolated']] = 'newest'
     # Whose odometry the step reads besides the own: 'links', every edge's other end (its
     # motion over the step, PEER_*); 'anchor', the anchor's (ANCHOR_*); 'none'.
     peer_odometry: ClassVar[Literal['none', 'links', 'anchor']] = 'none'
     # The step takes edges with inputs missing (masks); False: only the complete ones.
     partial_edges: ClassVar[bool] = False
-    # The step reads its start time (``inputs.t``: multirate stages): only steps of one instant
-    # share a call (otherwise agents a step apart do, as an ``estimators`` process flushes them).
+    # The step reads ``inputs.t`` (multirate stages): only steps of one instant share a call.
     timed_step: ClassVar[bool] = False
-    # The sensor whose measurement of the listener the per-edge channels are formed from
-    # (outbox's ``bearings``): what each agent sends, and what travels on its sensor topic.
+    # The sensor whose measurement of the listener outbox's per-edge channels are formed from.
     partner_sensor: ClassVar[Sensor | None] = None
     reference_scenario: ClassVar[str]      # the file in config/ with the paper's simulation
-    # How far the truth drifts from a fixed point of the step when the fleet moves, over 300
-    # steps of the reference scenario [m, rad]: 0 up to rounding for methods that dead-reckon
-    # with the exact odometry increments; first-order methods (Presenza et al.'s free robots
-    # move with the velocity reconstructed at the step's start) set their own.
+    # How far the truth drifts from a fixed point of the step in a moving fleet, over 300
+    # steps of the reference scenario [m, rad]: rounding for methods that dead-reckon with the
+    # exact odometry increments; first-order methods (Presenza et al.) set their own.
     moving_fixed_point_atol: ClassVar[float] = 1e-12
 
     def __init__(self, gains: G) -> None:
@@ -558,12 +517,10 @@ class Estimator(ABC, Generic[G, S]):
     # --- state
     @abstractmethod
     def initial_state(self, R_hat: Array, p_hat: Array) -> S:
-        """The state of N agents whose initial pose estimates are ``R_hat`` ``(N, 3, 3)`` and
-        ``p_hat`` ``(N, 3)``."""
+        """The state of N agents from their initial ``R_hat`` ``(N, 3, 3)``, ``p_hat``."""
 
     def with_known_pose(self, x: S, rows: Index, R: Array, p: Array) -> S:
-        """``x`` with the agents ``rows`` at their known pose ``R``, ``p`` (leaders) and every
-        other state of theirs at its initial value."""
+        """``x`` with the agents ``rows`` (leaders) at their known pose, the rest initial."""
         pinned = self.initial_state(R, p)
         for f in dataclasses.fields(x):
             getattr(x, f.name)[rows] = getattr(pinned, f.name)
@@ -582,31 +539,26 @@ class Estimator(ABC, Generic[G, S]):
     @abstractmethod
     def outbox(self, x: S, sender: Index, bearings: Array,
                slot: Index | None = None) -> dict[str, Array]:
-        """What agents send their listeners in round 1, formed from their state and own
-        measurements at one instant: per-edge channels ``(M, ...)`` for sender rows ``sender``
-        ``(M,)`` whose own measurements of the listener (by ``partner_sensor``; zeros where
-        they have none) are ``bearings`` ``(M, 3)`` and whose edge to the listener has the
-        place ``slot`` ``(M,)`` in their own list (:attr:`Edges.slot`); per-agent channels
-        ``(N, ...)``, one row per agent of ``x``."""
+        """Round 1, from the senders' state and own measurements at one instant: per-edge
+        channels ``(M, ...)`` of the sender rows ``sender`` ``(M,)``, whose ``partner_sensor``
+        measurements of the listener are ``bearings`` ``(M, 3)`` (zeros: none) and whose edge
+        to it has the place ``slot`` ``(M,)`` (:attr:`Edges.slot`); per-agent ones ``(N, ...)``."""
 
     @abstractmethod
     def step(self, x: S, h: float, inputs: StepInputs,
              reorthonormalize: bool = True) -> tuple[S, dict[str, Array]]:
-        """Advance every agent of ``x`` by ``h``; return the new state and per-agent
-        diagnostics (``'innovation'``: what drove the correction, ``(N, 3)``).
-        ``reorthonormalize``: pull rotations back onto SO(3) (the batch simulator does it every
-        few steps only)."""
+        """Advance every agent of ``x`` by ``h``: the new state and per-agent diagnostics
+        (``'innovation'`` ``(N, 3)``: what drove the correction). ``reorthonormalize``: pull
+        rotations back onto SO(3) (the batch simulator: every few steps only)."""
 
     def reply(self, x: S, h: float, inputs: StepInputs) -> dict[str, Array]:
-        """Two-round methods: the round-2 channels, per edge ``(E, ...)``, that each edge's
-        agent sends the edge's other end, formed from its state, its own measurements and the
-        round-1 values it received (``inputs`` as :meth:`step` gets them, without round 2)."""
+        """Two-round methods: the round-2 channels ``(E, ...)`` each edge's agent sends its other
+        end, from its state and the round-1 ``inputs`` (as :meth:`step` gets them)."""
         raise NotImplementedError(f'{self.method} exchanges one round of messages')
 
     def warm_start(self, x: S, inputs: StepInputs) -> WarmStart | None:
-        """A state built from what one agent with no trustworthy estimate (started late,
-        restarted, after a gyro gap or a clock jump) measures and hears at its step's start
-        (``inputs``, complete edges), or why not; None: the method has no warm start."""
+        """A state for one agent with no trustworthy estimate (started late, after a gyro gap
+        or a clock jump) from its step's complete ``inputs``, or why not; None: no warm start."""
         return None
 
     def missing(self, channel: str) -> Array:
@@ -614,29 +566,25 @@ class Estimator(ABC, Generic[G, S]):
         raise NotImplementedError(f'{self.method} has no optional channel {channel!r}')
 
     def due(self, channel: str, t: float, h: float) -> bool:
-        """The step at ``t`` reads ``channel`` (multirate methods read some only at their
-        stage's ticks: a node waits for those alone, and sends them then). Default: every
-        step."""
+        """The step at ``t`` reads ``channel`` (multirate methods: only at their stage's ticks,
+        when a node waits for and sends it)."""
         return True
 
     def carry(self, values: Mapping[str, Array], motion: Motion) -> dict[str, Array] | None:
-        """A sender's channel ``values`` formed at ``t_s`` carried to ``t > t_s`` by the
-        motion over ``[t_s, t]`` alone (:class:`Motion`): what they would be at t if no
-        correction had happened meanwhile. None: the method cannot (with what ``motion``
-        knows); a late value is then used as it is (``'instant'`` pairing) or left out."""
+        """A sender's channel ``values`` formed at ``t_s`` carried to ``t > t_s`` by the motion
+        alone (what they would be at t with no correction meanwhile); None: the method cannot,
+        and a late value is used as it is (``'instant'`` pairing) or left out."""
         return None
 
     # --- assumptions
     @abstractmethod
     def check(self, fleet: Fleet) -> CheckReport:
-        """The method's graph assumptions on ``fleet`` (``Scenario.fleet()``): errors for what
-        breaks convergence, warnings for what weakens it, each naming the agent, the field and
-        the fix."""
+        """The method's graph assumptions on ``fleet``: errors for what breaks convergence,
+        warnings for what weakens it, each naming the agent, the field and the fix."""
 
     def conditioning(self, bearings: Array, k: Array) -> Array | None:
-        """The local matrix whose spectrum the method's convergence proof needs, from one
-        agent's bearings to its neighbours ``(M, 3)`` and their gains ``(M,)`` (any frame: the
-        spectrum is rotation invariant); None when the method has none."""
+        """The local matrix whose spectrum the convergence proof needs, from one agent's
+        bearings ``(M, 3)`` (any frame) and gains ``(M,)``; None when the method has none."""
         return None
 
     def conditioning_problem(self, eig: Array) -> str | None:
@@ -644,14 +592,12 @@ class Estimator(ABC, Generic[G, S]):
         return None
 
     def agent_groups(self, fleet: Fleet) -> dict[str, list[str]]:
-        """The method's roles among the estimating robots, ``{role: names}``, for outputs
-        that show them apart (Presenza et al.: sensing and free robots). Empty: none."""
+        """``{role: names}`` of the estimating robots, for outputs that show them apart."""
         return {}
 
     def fleet_margins(self, fleet: Fleet, R_hat: Array, p_hat: Array) -> dict[str, float]:
-        """Margins of the method's assumptions evaluated on the whole fleet's estimates
-        ``(N, 3, 3)``, ``(N, 3)`` (what the monitor, which sees every estimate, reports;
-        Presenza et al.: angle rigidity). Empty: none."""
+        """Margins of the method's assumptions on the whole fleet's estimates ``(N, 3, 3)``,
+        ``(N, 3)``, which the monitor reports (Presenza et al.: angle rigidity)."""
         return {}
 
     # The names of the per-agent diagnostic 'stage' (an index), for methods that report one.
@@ -661,30 +607,25 @@ class Estimator(ABC, Generic[G, S]):
     edge_error_label: ClassVar[str] = ''   # e.g. 'rel_yaw_err': the column prefix per pair
 
     def edge_errors(self, x: S, R: Array, edges: Edges, other: Index) -> Array | None:
-        """Per edge ``(E,)``, the error of a per-pair state the method keeps, against the true
-        attitudes ``R`` (NaN where the edge's agent keeps none; ``other``: each edge's other
-        end); None when the method has no such state."""
+        """Per edge ``(E,)``, the error of a per-pair state against the true attitudes ``R``
+        (NaN where the edge's agent keeps none); None when the method keeps none."""
         return None
 
     def neighbour_report(self, x: S, slots: int) -> dict[str, list[str]]:
-        """What an agent's health report shows for each of its ``slots`` edges from the state
-        of one agent ``x``: ``{label: [text per edge slot]}`` (De Carli et al.: each pair's
-        excitation). Empty: nothing."""
+        """``{label: [text per edge slot]}`` for one agent's health report (De Carli et al.:
+        each pair's excitation)."""
         return {}
 
     def covariance(self, x: S) -> Array | None:
-        """``(N, 6, 6)`` the covariance of each agent's pose (position, then rotation) as
-        the estimate's message carries it; None: the method keeps none."""
+        """``(N, 6, 6)``: each pose's covariance as the estimate's message carries it, or None."""
         P = getattr(x, 'P', None)
         return None if P is None else P[:, :6, :6]
 
     def check_motion(self, fleet: Fleet, times: Array,
                      positions: Array) -> list[Finding]:
-        """The method's assumptions that the motion of a moving ``fleet`` breaks, from its
-        sampled truth: ``times`` ``(K,)`` [s] from 0 to its duration and ``positions``
-        ``(K, N, 3)`` [m] (agents in scenario order; ``positions[0]`` is where :meth:`check`
-        looked). Each finding names the time; what :meth:`check` already reports at t = 0 is
-        not repeated. Default: none (nothing of the method depends on the geometry)."""
+        """The method's assumptions that a moving ``fleet`` breaks along its sampled truth,
+        ``times`` ``(K,)`` [s] and ``positions`` ``(K, N, 3)`` [m] (``positions[0]``: what
+        :meth:`check` saw, whose findings are not repeated); each finding names the time."""
         return []
 
 
@@ -692,12 +633,11 @@ class Estimator(ABC, Generic[G, S]):
 @dataclass(frozen=True)
 class EdgeTable:
     """A fleet's edges for one method (:func:`edge_table`), grouped by agent: edge ``e`` joins
-    ``agent[e]`` to ``other[e]`` with gain ``k[e]``; ``flags`` (each ``(E,)``) say what it is:
-    ``senses`` (the agent measures the other), ``sensed_by`` (the other measures it), and for
-    communication links ``owns`` (the agent keeps the pair's shared state, §8 of the De Carli
-    notes: the sensing agent of a one-way pair, the lower index of a two-way one), ``ranges``
-    and ``ranged_by`` (the anchor measures the other's relative position, or the other's of
-    this one); ``reverse``: the index of the edge ``other → agent`` (-1: none)."""
+    ``agent[e]`` to ``other[e]`` with gain ``k[e]``; ``flags`` ``(E,)``: ``senses`` (the agent
+    measures the other), ``sensed_by``, and for communication links ``owns`` (the agent keeps
+    the pair's shared state, §8 of the De Carli notes: the sensing agent of a one-way pair, the
+    lower index of a two-way one), ``ranges``, ``ranged_by`` (the anchor's relative positions);
+    ``reverse``: the index of the edge ``other → agent`` (-1: none)."""
 
     agent: Index
     other: Index

@@ -1,16 +1,13 @@
-"""The setting Boughellaba & Tayebi and Tran, Anderson & Ahn share: gyros and bearings, two
-leaders that know their pose, followers that each see at least two earlier agents.
-
-Sensing is two-way on every edge: follower i measures ``b^i_ij`` and its neighbour j measures
-``b^j_ji``; j sends i the world-frame product ``R̂_j b^j_ji`` (formed by j at one instant, so
-that attitude and bearing pair in time) and its position estimate ``p̂_j``. Agent i then uses
-``d_ij = R̂_j b^j_ij = -R̂_j b^j_ji`` (note the sign).
+"""The setting Boughellaba & Tayebi and Tran, Anderson & Ahn share: gyros and bearings, two leaders
+that know their pose, followers that each see at least two earlier agents. Sensing is two-way on
+every edge: j sends i ``R̂_j b^j_ji`` (formed at one instant, so that attitude and bearing pair in
+time) and ``p̂_j``; i uses ``d_ij = R̂_j b^j_ij = -R̂_j b^j_ji``.
 
 Assumption 2 of Boughellaba & Tayebi (Tran et al. assume the same graph class): (a) the sensing
-graph is acyclic and every follower is reachable from both leaders; (b) leaders have no
-neighbours (enforced when parsing); (d) no two agents are collocated, every follower has
-``|N_i| >= 2`` neighbours, all earlier in the agent order, with at least two non-collinear
-bearings. Each method adds the spectrum condition of its own lemma (:meth:`Estimator.conditioning`).
+graph is acyclic and every follower is reachable from both leaders; (b) leaders have no neighbours
+(enforced when parsing); (d) no two agents are collocated, every follower has ``|N_i| >= 2``
+neighbours, all earlier in the agent order, with at least two non-collinear bearings. Each method
+adds the spectrum condition of its own lemma (:meth:`Estimator.conditioning`).
 """
 from __future__ import annotations
 
@@ -47,17 +44,14 @@ WARM_SIGMAS = 4.0
 WARM_FLOOR_RAD = 1e-3
 # check_motion works on (samples × followers) blocks of about this many bearing sets.
 MOTION_BLOCK = 200_000
-# The local matrix depends on the bearings only: along the motion its spectrum is evaluated at
-# the samples where one of the follower's bearings has turned by this much [deg] since the
-# last evaluation (at most every sample; a formation that keeps its shape costs nothing).
+# Along the motion, the local matrix's spectrum is evaluated where one of the follower's
+# bearings has turned by this much [deg] since (a formation that keeps its shape costs nothing).
 SPECTRUM_STEP_DEG = 0.5
 
 
 @dataclass
 class CovState(State):
-    """Adds the covariance ``P`` ``(N, d, d)`` of each agent's error, position [m] then
-    rotation about the world axes [rad] first (:mod:`.covariance`), then the method's own
-    states."""
+    """Adds the covariance ``P`` ``(N, d, d)`` of each agent's error (:mod:`.covariance`)."""
 
     P: Array
 
@@ -67,8 +61,7 @@ GL = TypeVar('GL', bound=CovarianceModel)
 
 
 def fed_forward(R_hat: Array, displacement: Array | None, k_v: float) -> Array | None:
-    """``k_v R̂_i δ_i`` ``(N, 3)``, the odometry displacement the step feeds forward (None:
-    none)."""
+    """``k_v R̂_i δ_i`` ``(N, 3)``, the odometry displacement the step feeds forward, or None."""
     if displacement is None or k_v == 0.0:
         return None
     return k_v * np.einsum('nab,nb->na', R_hat, displacement)
@@ -76,11 +69,8 @@ def fed_forward(R_hat: Array, displacement: Array | None, k_v: float) -> Array |
 
 def position_step(p_hat: Array, edges: Edges, y: Array, p_hat_nbr: Array, h_k_p: float,
                   bias_std: float, moved: Array | None, p_own: Array | None) -> Array:
-    """``p̂_i + k_v R̂_i δ_i - h k_p Σ_j P_{y_ij} (p̂_i - p̂_j)`` ``(N, 3)``, with ``P_y e = e -
-    y (y·e)/‖y‖²``: the position step of both observers (``y_ij = R̂_i b^i_ij`` ``(E, 3)``;
-    ``moved``: :func:`fed_forward`; ``p_own`` ``(E, 3)``: the owner's ``p̂_i`` paired with
-    ``p̂_j``, :data:`base.P_OWN`, None: ``p_hat``).
-
+    """``p̂_i + k_v R̂_i δ_i - h k_p Σ_j P_{y_ij} (p̂_i - p̂_j)`` ``(N, 3)``, ``P_y e = e - y
+    (y·e)/‖y‖²``: the position step of both observers (``moved``: :func:`fed_forward`).
     ``bias_std`` (σ_b > 0) removes the bias of a noisy bearing's projector: with each of the
     two components of the bearing noise of std σ_b, ``E[P_ỹ] y = 2σ_b² y`` to second order,
     so ``P_ỹ − 2σ_b² ỹỹᵀ`` is unbiased there, and the fixed point with it (bench/noise_bias.py:
@@ -107,8 +97,8 @@ def repeated(eig: Array) -> bool:
 
 
 class BearingLeaderEstimator(Estimator[GL, S]):
-    """Common part of the two leader-follower bearing methods: roles, sensors, messages, the
-    covariance, the graph check. Subclasses give the step and the spectrum their lemma needs."""
+    """What the two leader-follower methods share; subclasses give the step and the spectrum
+    their lemma needs."""
 
     roles: ClassVar[Roles] = Roles(leaders=2)
     sensors: ClassVar[frozenset[Sensor]] = frozenset({Sensor.GYRO, Sensor.BEARINGS,
@@ -132,11 +122,10 @@ class BearingLeaderEstimator(Estimator[GL, S]):
         return x
 
     def warm_start(self, x: S, inputs: StepInputs) -> WarmStart:
-        """The attitude from Wahba's problem between the own bearings ``b^i_ij`` and the
-        neighbours' ``d_ij = -R̂_j b^j_ji``, the position triangulated from their ``p̂_j``
-        along ``d_ij`` (:mod:`core.warm_start`), with the covariance of that fit; refused when a
-        residual exceeds :data:`WARM_SIGMAS` of its noise (an outlier, a neighbour's bad
-        estimate) or the bearings are (nearly) collinear."""
+        """The attitude from Wahba's problem between ``b^i_ij`` and ``d_ij``, the position
+        triangulated from the ``p̂_j`` along ``d_ij`` (:mod:`core.warm_start`), with the fit's
+        covariance; refused when a residual exceeds :data:`WARM_SIGMAS` of its noise (an
+        outlier, a neighbour's bad estimate) or the bearings are (nearly) collinear."""
         b = inputs.edge[Sensor.BEARINGS.value]
         d, p_j = self.neighbour_terms(inputs)
         attitude, position = (warm_start.wahba(b, d, inputs.edges.k),
@@ -168,8 +157,7 @@ class BearingLeaderEstimator(Estimator[GL, S]):
 
     def outbox(self, x: S, sender: Index, bearings: Array,
                slot: Index | None = None) -> dict[str, Array]:
-        """``R̂_j b^j_jl`` for each sender row j and its own bearing to listener l, ``p̂_j``
-        and the covariance of its pose."""
+        """``R̂_j b^j_jl`` per sender row j and listener l, ``p̂_j`` and its covariance."""
         R = np.take(x.R_hat, sender, axis=0)
         return {WORLD_BEARING.name: np.einsum('eab,eb->ea', R, bearings),
                 P_HAT.name: x.p_hat, POSE_COV.name: x.P[:, :DOF, :DOF]}
@@ -233,7 +221,7 @@ class BearingLeaderEstimator(Estimator[GL, S]):
                 continue  # already reported
             b = d / dist[:, None]
             if len(idx) >= 2:
-                widest = graph.widest_angle(b)
+                widest = float(graph.widest_angles(b))
                 if widest < COLLINEAR_ERROR_RAD:
                     add(Finding('error', name, 'neighbours', 'all bearings to its neighbours '
                                 'are collinear, so its position is unobservable '
@@ -255,15 +243,11 @@ class BearingLeaderEstimator(Estimator[GL, S]):
 
     # ------------------------------------------------------------------ along the motion
     def check_motion(self, fleet: Fleet, times: Array, positions: Array) -> list[Finding]:
-        """Assumption 2d's geometry at every sample of a moving fleet, and the lemma's
-        spectrum. Per follower, at most one finding for its bearings becoming collinear (error)
-        or nearly collinear (warning; the thresholds of :meth:`check`), with the first time
-        and the narrowest widest angle, and one for its local matrix's spectrum
-        (:meth:`conditioning_problem`, evaluated every :data:`SPECTRUM_STEP_DEG` of bearing
-        turn), with the first time and the worst sample (:meth:`conditioning_margin`). A
-        condition that holds at t = 0 is :meth:`check`'s until it first clears; only a later
-        onset is reported. Samples where a neighbour is collocated (a collision, reported by
-        ``check_scenario``) are skipped."""
+        """Assumption 2d's geometry and the lemma's spectrum at every sample of a moving fleet:
+        per follower at most one finding for its bearings becoming (nearly) collinear, with the
+        first time and the narrowest angle, and one for its spectrum (evaluated every
+        :data:`SPECTRUM_STEP_DEG` of bearing turn), with the first time and the worst sample.
+        Only an onset after t = 0 (else :meth:`check`'s); collocated samples are skipped."""
         by_size: dict[int, list[int]] = {}
         for i in fleet.followers:
             if len(fleet.neighbours[i]) >= 2:
@@ -328,8 +312,7 @@ class BearingLeaderEstimator(Estimator[GL, S]):
 
     def _conditioning_along(self, fleet: Fleet, i: int, times: Array, b: Array,
                             at: NDArray[np.bool_]) -> Finding | None:
-        """The spectrum finding of follower ``i`` from its bearings ``(K, M, 3)`` at the
-        samples ``at`` ``(K,)``."""
+        """The spectrum finding of follower ``i`` from its bearings ``(K, M, 3)`` at ``at``."""
         name, neighbours = fleet.names[i], fleet.neighbours[i]
         k_ij = np.array([k for _, k in neighbours])
         samples = np.flatnonzero(at)
@@ -356,10 +339,8 @@ class BearingLeaderEstimator(Estimator[GL, S]):
         return np.einsum('e,ea,eb->ab', k, bearings, bearings)
 
     def conditioning_margin(self, eig: Array) -> float:
-        """How far the spectrum ``eig`` (ascending) is from what :meth:`conditioning_problem`
-        objects to, relative to the largest eigenvalue (smaller: worse); ranks the samples of
-        a moving fleet. Here the smallest gap between eigenvalues: both lemmas need distinct
-        ones."""
+        """The smallest gap of the spectrum ``eig`` (ascending) relative to its largest (both
+        lemmas need distinct eigenvalues): ranks the samples of a moving fleet."""
         return float(np.min(np.diff(eig)) / max(eig[-1], 1e-300))
 
     def conditioning_fix(self, eig: Array, first_neighbour: str, n_neighbours: int) -> str:

@@ -1,9 +1,7 @@
 """Boughellaba & Tayebi: cascaded attitude/position observer from gyros and bearings.
 
-``method: boughellaba_tayebi`` (the default). Leaders 1, 2 know their pose; every follower
-estimates ``(R̂_i, p̂_i)`` from its gyro, its bearings ``b^i_ij`` to its neighbours and what
-they send (:mod:`.bearing_leaders`). Notation: ``[x]x`` is the skew matrix of ``x``;
-``P_x = I - x xᵀ/‖x‖²``; ``R̃_i = R_i R̂_iᵀ``.
+``method: boughellaba_tayebi`` (the default), in the setting of :mod:`.bearing_leaders`.
+Notation: ``[x]x`` is the skew matrix of ``x``; ``P_x = I - x xᵀ/‖x‖²``; ``R̃_i = R_i R̂_iᵀ``.
 
 Continuous time, equations of the paper (the position observer in its v2 form: the projector
 uses the estimated world bearing ``R̂_i b^i_ij``, since ``R̂_i P_{b^i_ij} R̂_iᵀ = P_{R̂_i b^i_ij}``;
@@ -28,34 +26,21 @@ Discretisation over a step ``h`` (``ΔR`` the gyro increment ``R(t)ᵀ R(t+h)``)
     R̂_i ← Q R̂_i ΔR_i
     p̂_i ← Q (p̂_i - h k_p Σ_j P_{R̂_i b^i_ij} (p̂_i - p̂_j))
 
-The correction terms of (3) and (23) are the same left rotation, so one ``Q`` on both keeps R̂
-on SO(3) to machine precision and cancels the attitude correction in ``R̃_i p̂_i`` exactly, as
-in the paper's analysis. With the truth propagated by the same ``ΔR`` the discrete errors obey
-exactly ``R̃⁺ = R̃ exp(h k_R [σ]x)`` (Lie-Euler of the error dynamics) and forward Euler of
-(24): the gyro cancels out of the error dynamics and the true pose is an exact fixed point.
-The scheme is first order in ``h`` for the transient (``test_boughellaba_tayebi.py`` checks it
-against a tight-tolerance solution of (3) and (23)).
+One ``Q`` for both corrections (the same left rotation) keeps R̂ on SO(3), and the errors obey
+``R̃⁺ = R̃ exp(h k_R [σ]x)`` and forward Euler of (24): the true pose is an exact fixed point
+(README, "The estimator, and how it is discretised").
 
-Moving agents (an extension: the paper's positions are static). Agent i's odometry gives its
-body velocity ``v_i`` (``dp_i/dt = R_i v_i``), fed forward with the gain ``k_v`` (1: on, the
-default; 0: off, the paper's observer)::
-
-    dp̂_i/dt = k_v R̂_i v_i - k_R [σ_i]x p̂_i - k_p Σ_j P_{R̂_i b^i_ij} (p̂_i - p̂_j)      (23')
-
-With ``k_v = 1`` the velocity cancels out of the error: ``d(R̃_i p̂_i)/dt = R̃_i R̂_i v_i +
-(the paper's terms) = R_i v_i + ...``, so ``p̃_i = p_i - R̃_i p̂_i`` obeys the paper's (24)
-exactly and the true trajectory stays an exact solution. Without it, ``ṗ_i = R_i v_i`` drives
-``p̃_i`` and the position estimate lags (a floor of order ``|v| / k_p``). The bearings now
-change with time; the analysis needs them to stay non-collinear along the motion
-(``bearing-pose check`` samples the trajectory).
-
-Discretised with the odometry displacement over the step, ``δ_i = R_i(t)ᵀ (p_i(t+h) -
-p_i(t))`` (integrated from the odometry samples, not ``v_i h``)::
+Moving agents (an extension: the paper's positions are static): the odometry's body velocity
+``v_i`` is fed forward with ``k_v`` (1, the default; 0: the paper's observer), ``+ k_v R̂_i v_i``
+in (23'), discretised with the displacement ``δ_i = R_i(t)ᵀ (p_i(t+h) - p_i(t))`` integrated
+from the odometry samples::
 
     p̂_i ← Q (p̂_i + k_v R̂_i δ_i - h k_p Σ_j P_{R̂_i b^i_ij} (p̂_i - p̂_j))
 
-With ``p⁺ = p + R δ`` and ``R̃⁺ = R̃ Qᵀ``: ``p̃⁺ = p + R δ - R̃ (p̂ + R̂ δ - h k_p Σ) =
-p̃ + h k_p R̃ Σ``, the static recursion exactly, whatever the motion over the step.
+With ``k_v = 1``, ``p⁺ = p + R δ`` and ``R̃⁺ = R̃ Qᵀ``: ``p̃⁺ = p + R δ - R̃ (p̂ + R̂ δ - h k_p
+Σ) = p̃ + h k_p R̃ Σ``, the static recursion exactly, whatever the motion; without it the
+estimate lags (a floor of order ``|v| / k_p``). The bearings must stay non-collinear along the
+motion (``bearing-pose check`` samples it).
 """
 from __future__ import annotations
 
@@ -85,8 +70,7 @@ class CascadeGains(CovarianceModel):
 
 def innovation(R_hat: Array, edges: Edges, b_body: Array, d_world: Array) -> tuple[Array, Array]:
     """Innovation ``σ_i`` ``(N, 3)`` and the estimated world bearings ``y_ij = R̂_i b^i_ij``
-    ``(E, 3)``; the arguments as in :func:`cascade_step` (``R_hat`` paired in time with
-    ``b_body``)."""
+    ``(E, 3)``; the arguments as in :func:`cascade_step`."""
     # np.take: ~3x faster than fancy indexing for these row gathers.
     y = np.einsum('eab,eb->ea', np.take(R_hat, edges.agent, axis=0), b_body)
     sigma = edges.sum_by_agent(edges.weighted(so3.cross(d_world, y)))
@@ -97,26 +81,12 @@ def cascade_step(R_hat: Array, p_hat: Array, delta_R: Array, h: float, edges: Ed
                  b_body: Array, d_world: Array, p_hat_nbr: Array, gains: CascadeGains,
                  reorthonormalize: bool = True, displacement: Array | None = None,
                  p_own: Array | None = None) -> tuple[Array, Array, Array]:
-    """Advance the observers of all agents by one step ``h`` (see the module docstring):
-    ``(R̂, p̂)`` at ``t + h`` and the innovation ``σ`` used (world frame).
-
-    Args:
-        R_hat: ``(N, 3, 3)`` attitude estimates at time t.
-        p_hat: ``(N, 3)`` position estimates at time t [m].
-        delta_R: ``(N, 3, 3)`` gyro increments ``R(t)ᵀ R(t+h)`` (body frame).
-        h: step [s].
-        edges: sensing edges (``edges.n_agents == N``).
-        b_body: ``(E, 3)`` own bearings ``b^i_ij`` at time t (body frame, unit).
-        d_world: ``(E, 3)`` neighbours' world bearings ``R̂_j b^j_ij = -R̂_j b^j_ji`` at t.
-        p_hat_nbr: ``(E, 3)`` neighbours' position estimates ``p̂_j`` [m].
-        reorthonormalize: pull R̂ back onto SO(3) after the step. ``Q`` and ``ΔR`` are
-            rotations to rounding error, so a caller stepping many agents may do it every few
-            steps only.
-        displacement: ``(N, 3)`` odometry displacements ``δ_i`` over the step (body frame
-            at t) [m], fed forward with ``k_v``; None: none (static agents).
-        p_own: ``(E, 3)`` the owner's ``p̂_i`` to pair with ``p̂_j`` (late messages,
-            :data:`base.P_OWN`); None: ``p_hat``.
-    """
+    """One step ``h`` [s] of every agent (module docstring): ``(R̂, p̂)`` at ``t + h`` and the
+    innovation ``σ`` (world frame), from the state and ``delta_R`` ``R(t)ᵀ R(t+h)`` at t and, per
+    edge ``(E, 3)``, the own unit ``b^i_ij``, the neighbours' ``R̂_j b^j_ij = -R̂_j b^j_ji``, their
+    ``p̂_j`` [m] and the owner's ``p̂_i`` to pair with them (:data:`base.P_OWN`; None: ``p_hat``);
+    ``displacement``: the odometry ``δ_i`` [m] (None: static). ``reorthonormalize``: ``Q`` and
+    ``ΔR`` are rotations to rounding, so a caller may pull R̂ back every few steps only."""
     sigma, y = innovation(R_hat, edges, b_body, d_world)
     Q = so3.exp(-h * gains.k_R * sigma)
     p_pred = position_step(p_hat, edges, y, p_hat_nbr, h * gains.k_p, gains.bias_std,

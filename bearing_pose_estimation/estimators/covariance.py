@@ -1,11 +1,7 @@
-"""Covariance of the leader-follower estimates: their linearised error dynamics, one step.
-
-Written out for Boughellaba & Tayebi below; Tran et al. (:func:`tran_jacobians`) add the
-gyro correction ``Ω̃_i`` to the error state and have no lever arm.
-
-Error of agent i, in the order of ``geometry_msgs/PoseWithCovariance`` (position, then
-rotation): ``x_i = (e_i, φ_i)`` with ``e_i = p̂_i − p_i`` [m] (world) and ``R̂_i = exp([φ_i]x)
-R_i`` (a rotation error about the world axes [rad]).
+"""Covariance of the leader-follower estimates: their linearised error dynamics, one step,
+written out for Boughellaba & Tayebi (Tran et al.: :func:`tran_jacobians`). Error of agent i,
+in the order of ``geometry_msgs/PoseWithCovariance``: ``x_i = (e_i, φ_i)``, ``e_i = p̂_i − p_i``
+[m] (world) and ``R̂_i = exp([φ_i]x) R_i`` (about the world axes [rad]).
 
 Linearising :func:`.boughellaba_tayebi.cascade_step` about the truth (``y_ij = R̂_i b^i_ij ≈
 b_ij + φ_i × b_ij + ν_ij``, the neighbour's ``R̂_j b^j_ij ≈ b_ij + φ_j × b_ij + ν'_ij``, each
@@ -22,20 +18,17 @@ So ``x_i⁺ = F_i x_i + Σ_j G_ij x_j + noise``, and each agent propagates
 
     P_i⁺ = F_i P_i F_iᵀ + W_i + c_i Σ_j G_ij P_j G_ijᵀ
 
-from its own geometry and noise model (``W_i``: the bearing and gyro noise, ``N_g`` the gyro's
-angle random walk [rad/√s]) and the covariances ``P_j`` its neighbours send. Solved over the
-whole fleet at once, the recursion without ``c_i`` but with the cross-covariances ``E[x_i x_jᵀ]``
-is exact to first order (on paper_noisy its NEES is 2.8-3.6 for 3 dof on 4 runs, BENCHMARKS.md,
-"The covariance"). An agent has neither those cross-covariances nor the neighbours' dynamics,
-so ``c_i`` stands for them:
+from its own geometry and noise model (``W_i``; ``N_g`` the gyro's angle random walk
+[rad/√s]) and the ``P_j`` its neighbours send. Over the whole fleet with the cross-covariances
+``E[x_i x_jᵀ]`` and without ``c_i`` the recursion is exact to first order; an agent has neither
+those nor its neighbours' dynamics, so ``c_i`` stands for them:
 
-- a neighbour's error is slow (correlated over ~1/a), not white: over its own window agent i
-  sees it as white noise of density ``2 P_j / (a_i + a_j)``; with ``a_j`` unknown, ``a_j`` is
-  taken as agent i's slowest rate and ``a_i`` as its median rate (the eigenvalues of ``k_p M_i``
-  and ``k_R Q_i``), so ``2 / (h (a_slow + a_median))``;
-- the neighbours' errors are correlated with each other (shared ancestors) in an unknown way:
-  covariance intersection with equal weights multiplies by the number of neighbours whose
-  covariance is not zero (leaders send zeros), which bounds any correlation.
+- a neighbour's error is slow (correlated over ~1/a): over agent i's window, white noise of
+  density ``2 P_j / (a_i + a_j)``, with ``a_j`` taken as i's slowest rate and ``a_i`` as its
+  median (of ``k_p M_i``'s and ``k_R Q_i``'s eigenvalues): ``2 / (h (a_slow + a_median))``;
+- the neighbours' errors are correlated with each other (shared ancestors): covariance
+  intersection with equal weights multiplies by the number of neighbours whose covariance is not
+  zero (leaders send zeros), which bounds any correlation.
 """
 from __future__ import annotations
 
@@ -61,12 +54,10 @@ Jacobians = tuple[Array, Array, Array, Array, Array]
 
 @dataclass(frozen=True, kw_only=True)
 class PoseCovarianceModel:
-    """The gains every method's covariance reads: the motion sensors' noise and the prior (a
-    base of the methods' gains dataclasses; keyword-only, so that the methods' own gains stay
-    first in their constructors; ``model=True``: tables of gains leave them out). The noise
-    densities default to a simulation's ``noise:`` and ``sensors:`` (scenario.parse), 0
-    otherwise. One estimate reads them too: De Carli et al.'s excitation monitor, the
-    odometry's (what its noise alone looks like, de_carli.py)."""
+    """The gains every method's covariance reads (a keyword-only base of the methods' gains,
+    whose own stay first): the motion sensors' noise, by default a simulation's ``noise:`` and
+    ``sensors:`` (else 0), and the prior. De Carli et al.'s excitation monitor reads the
+    odometry's too (what its noise alone looks like)."""
 
     gyro_noise_density: float = gain(0.0, 'gyro angle random walk [rad/sqrt(s)] (gyro std / '
                                      'sqrt(IMU rate)), for the covariance', zero_allowed=True,
@@ -89,8 +80,7 @@ class CovarianceModel(PoseCovarianceModel):
 
 
 def initial_covariance(n: int, position_std: float, attitude_std: float, dof: int = DOF) -> Array:
-    """``(n, dof, dof)`` diagonal prior: ``position_std`` [m] and ``attitude_std`` [rad] per
-    axis, 0 for the states beyond the pose (they start at their true value, e.g. ``Ω̃ = 0``)."""
+    """``(n, dof, dof)`` diagonal prior; 0 beyond the pose (true at the start, e.g. ``Ω̃ = 0``)."""
     diag = np.zeros(dof)
     diag[:3], diag[3:6] = position_std ** 2, attitude_std ** 2
     return np.tile(np.diag(diag), (n, 1, 1))
@@ -112,14 +102,12 @@ def _edge_terms(edges: Edges, y: Array,
 
 def cascade_jacobians(h: float, edges: Edges, y: Array, dist: Array, p_hat: Array,
                       k_R: float, k_p: float) -> Jacobians:
-    """The linearised step of the module docstring at the current estimate: ``y`` ``(E, 3)`` the
-    estimated world bearings ``R̂_i b^i_ij`` (unit), ``dist`` ``(E,)`` the estimated distances
-    ``‖p̂_i − p̂_j‖`` [m], ``p_hat`` ``(N, 3)`` what the attitude correction turns about the
-    origin (the lever arm: the positions, moved by the odometry fed forward for moving agents).
-    Returns ``F`` ``(N, 6, 6)``, ``G`` ``(E, 6, 6)`` (neighbour j's error into the edge's
-    agent), the maps of the two bearing noises of each edge ``(E, 6, 3)``, own then the
-    neighbour's, and the decay rates ``(N, 6)``: the eigenvalues of ``k_p M_i`` and ``k_R Q_i``
-    (``F`` is block triangular)."""
+    """The linearised step of the module docstring at the current estimate: ``y`` ``(E, 3)``
+    the unit ``R̂_i b^i_ij``, ``dist`` ``(E,)`` ``‖p̂_i − p̂_j‖`` [m], ``p_hat`` ``(N, 3)`` the
+    lever arm the attitude correction turns about the origin (moved by the odometry fed
+    forward). Returns ``F`` ``(N, 6, 6)``, ``G`` ``(E, 6, 6)`` (neighbour j's error into the
+    edge's agent), the maps ``(E, 6, 3)`` of the edge's own and the neighbour's bearing noise,
+    and the decay rates ``(N, 6)``, the eigenvalues of ``k_p M_i`` and ``k_R Q_i``."""
     k, P_b, B, M, Q, A = _edge_terms(edges, y, dist)
     Hp = so3.hat(p_hat)                                      # [p_i]x, (N, 3, 3)
     Hp_e = np.take(Hp, edges.agent, axis=0)
@@ -146,16 +134,13 @@ def propagate(P: Array, h: float, edges: Edges, y: Array, P_nbr: Array, bearing_
               gyro_noise_density: float, jacobians: Jacobians,
               moved: Array | None = None, odometry_noise_density: float = 0.0,
               held: Array | None = None) -> Array:
-    """``P_i⁺ = F P Fᵀ + W + c_i Σ_j G P_j Gᵀ`` of every agent (module docstring) from its ``P``
-    ``(N, d, d)``, the covariances its neighbours sent ``P_nbr`` ``(E, 6, 6)`` and the method's
-    ``jacobians`` ``(F (N, d, d), G (E, d, 6), own (E, d, 3), theirs (E, d, 3), rates (N, r))``,
-    ``rates`` the decay rates of the agent's own error dynamics [1/s]; the gyro noise drives
-    the rotation error (rows 3-5). Moving agents: ``moved`` ``(N, 3)``, the odometry
-    displacement fed forward, ``k_v R̂_i δ_i`` [m] (world): its error ``φ_i × R_i δ_i`` adds
-    ``−[R̂ δ]x`` to ``∂e⁺/∂φ``, and the odometry noise ``h N_v² I`` to the position. ``held``
-    ``(E, 2)``: the steps each own bearing and each neighbour's bearing serve
-    (:data:`base.HELD`): a noise held over m steps of a slower loop counts m times
-    (its m equal draws add up, m² σ², where m fresh ones give m σ²)."""
+    """``P_i⁺ = F P Fᵀ + W + c_i Σ_j G P_j Gᵀ`` of every agent (module docstring) from ``P``
+    ``(N, d, d)``, the neighbours' ``P_nbr`` ``(E, 6, 6)`` and the method's ``jacobians``
+    (``rates``: its own error's decay rates [1/s]). Moving agents: ``moved`` ``(N, 3)``, the
+    fed-forward ``k_v R̂_i δ_i`` [m], whose error ``φ_i × R_i δ_i`` adds ``−[R̂ δ]x`` to
+    ``∂e⁺/∂φ``, and the odometry noise ``h N_v² I``. ``held`` ``(E, 2)``: the steps each own and
+    neighbour's bearing serve (:data:`base.HELD`): a noise held over m steps counts m times (m
+    equal draws add up to m² σ², m fresh ones to m σ²)."""
     F, G, own, theirs, rates = jacobians
     if moved is not None:
         F = F.copy()
@@ -192,14 +177,12 @@ def tran_jacobians(h: float, edges: Edges, y: Array, dist: Array, R_hat: Array,
         Ω̃_i⁺ = (1 − h k_ω) Ω̃_i + h R̂_iᵀ (σ_i + σ_c,i)
         e_i⁺ = e_i − h k_p Σ_j (P_b (e_i − e_j) + d_ij (ν_ij − [b]x φ_i))
 
-    with ``σ_i`` of the module docstring (the torque is ``R̂_iᵀ Σ_j k_ij d_ij × y_ij``) and, for
-    two-neighbour followers, the third direction ``c = unit(b_1 × b_2)``: with ``s = ‖b_1 ×
-    b_2‖``, ``L_1 = −[b_2]x / s``, ``L_2 = [b_1]x / s`` and ``δ_k = −[b_k]x (φ_i − φ_jk) + ν_k −
-    ν'_k``, ``σ_c = k_c [c]x (L_1 δ_1 + L_2 δ_2)`` (its ``φ_i`` part is ``k_c P_c φ_i``).
-    ``pairs``: :class:`.tran_anderson_ahn.TwoNeighbourPairs`. Returns as
-    :func:`cascade_jacobians`, with 9 rows; the rates are those of ``k_p M_i`` and the real
-    parts of the roots of ``s² + k_ω s + λ = 0`` for each eigenvalue λ of ``Q_i`` (+ ``k_c
-    P_c``): the attitude loop is ``φ̈ + k_ω φ̇ + Q φ = 0`` (with ``R̂`` frozen over the decay)."""
+    with ``σ_i`` of the module docstring and, for two-neighbour followers, ``c = unit(b_1 ×
+    b_2)``: with ``s = ‖b_1 × b_2‖``, ``L_1 = −[b_2]x / s``, ``L_2 = [b_1]x / s`` and ``δ_k =
+    −[b_k]x (φ_i − φ_jk) + ν_k − ν'_k``, ``σ_c = k_c [c]x (L_1 δ_1 + L_2 δ_2)``. Returns as
+    :func:`cascade_jacobians`, 9 rows; the rates: ``k_p M_i``'s and the real parts of the roots
+    of ``s² + k_ω s + λ = 0`` for each eigenvalue λ of ``Q_i`` (+ ``k_c P_c``), the attitude
+    loop being ``φ̈ + k_ω φ̇ + Q φ = 0`` (with ``R̂`` frozen over the decay)."""
     k, P_b, B, M, Q, A = _edge_terms(edges, y, dist)
     # σ's maps per edge: of φ_i (Q), of φ_j (Gφ), of ν (S) and ν' (−S); the pairs add σ_c.
     Gphi = -k * P_b

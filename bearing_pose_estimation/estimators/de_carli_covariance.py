@@ -1,11 +1,9 @@
 """Covariance of De Carli et al.'s estimates: the step of :mod:`.de_carli` linearised.
 
-Robot i's pose error, in the estimation frame: ``e_i = p̂_i − p_i`` [m] and the yaw error
-``θ_i = ψ̂_i − ψ_i`` [rad] (roll and pitch are known: their variance is 0), stored as the
-``geometry_msgs/PoseWithCovariance`` 6x6 (rows x, y, z, roll, pitch, yaw; :data:`POSE`). The
-estimation frame is defined up to a common yaw and translation that nothing observes: the
-covariance describes the errors after the exact alignment (de-carli-2024.md §6), the common
-mode removed.
+Robot i's pose error in the estimation frame, ``e_i = p̂_i − p_i`` [m] and ``θ_i = ψ̂_i − ψ_i``
+[rad] (roll and pitch are known: 0), stored as the ``geometry_msgs/PoseWithCovariance`` 6x6
+(:data:`POSE`), after the exact alignment (de-carli-2024.md §6): the common yaw and translation
+that nothing observes removed.
 
 **Each pair** ``{o, x}`` (owner o, the other robot x; de_carli.py's stage 1) has its own error
 ``s = (E_out, ζ, E_in)``, complex numbers as real pairs: ``E_out = ᵒP̂_ox − ᵒP_ox`` (the owner's
@@ -19,10 +17,10 @@ noise ``ν, ν'`` (std ``relative_position_std`` per component), the odometry di
     ζ⁺     = r_x conj(r_o) ζ' + ι (γ_x − γ_o) ẑ⁺
     E_in⁺  = r_x ((1 − h k_pe) E_in + h k_pe ν' + δ_o conj(ζ') − η_x + conj(z) η_o) − ι γ_x P̂_in⁺
 
-(``r = e^{−ιΔψ}``; a missing measurement drops its terms). The covariance of ``s`` depends on the
-odometry and the gains only, not on the estimates' values: both robots of a pair propagate the
-same one (no message needed), and it grows while the pair is not excited (Theorem 1). The
-relative yaw's angle error is ``ε_ox = Im(ζ conj(ẑ))/|ẑ|²``.
+(``r = e^{−ιΔψ}``; a missing measurement drops its terms). It depends on the odometry and the
+gains only: both robots of a pair propagate the same covariance (no message), which grows while
+the pair is not excited (Theorem 1). The relative yaw's angle error is ``ε_ox = Im(ζ
+conj(ẑ))/|ẑ|²``.
 
 **The robot**, per step (stage 3 at its ticks, stage 2 at its ticks, then dead reckoning), with
 ``v_ij = e_3 × (p̂_j − p̂_i)`` and the fresh measured terms ``c_ij = [i senses j] + [j senses i]``::
@@ -32,19 +30,14 @@ relative yaw's angle error is ``ε_ox = Im(ζ conj(ẑ))/|ẑ|²``.
     θ'  = (|ẑ_i| θ_i + c Σ_j |ẑ_j| (θ_j − ε_ij)) / (|ẑ_i| + c Σ_j |ẑ_j|)             (13)
     e⁺  = e' + θ' e_3 × R̂_i δ_i + R̂_i η_i,     θ⁺ = θ' + γ_i
 
-over the excited pairs of stage 2. As for the leader-follower methods (covariance.py), robot i
-has neither its neighbours' dynamics nor the cross-covariances, so its neighbours' errors
-``(e_j, θ_j)`` and the pairs' ``ε_ij`` enter as slow inputs: over a tick of the stage they enter
-they count as white noise of ``1/ρ`` times their covariance, ``ρ`` that stage's own decay per
-tick (``h₃ k_p Σ c_ij`` for the position, ``c Σ |ẑ_j| / (|ẑ_i| + c Σ |ẑ_j|)`` for the yaw: a
-neighbour as fast as the robot, ``2/(ρ_i + ρ_j)`` with ``ρ_j = ρ_i``). The robot's own yaw in
-its position is one of them: the yaw follows the pairs' slow relative yaws, not the fast
-consensus the linearisation describes, so the position takes ``1/ρ`` times its variance
-instead of the correlation. No covariance intersection: in a consensus the neighbours do not
-share the ancestors of a cascade. On config/de_carli_noisy.yaml (20 runs, after 10 s) this
-gives NEES 2.77 (position, 3 dof) and 1.03 (yaw, 1 dof), every robot within [2.3, 3.2] and
-[0.6, 1.4]; the same with the neighbours' yaws as very slow inputs (``2/ρ``) and the own yaw
-through the correlation gave 3.83 and 1.9-7.7 per robot (BENCHMARKS.md, "The covariance").
+over the excited pairs of stage 2. As in covariance.py, the neighbours' errors ``(e_j, θ_j)``
+and the pairs' ``ε_ij`` enter as slow inputs: white noise of ``1/ρ`` times their covariance per
+tick of their stage, ``ρ`` its own decay per tick (``h₃ k_p Σ c_ij`` for the position, ``c Σ
+|ẑ_j| / (|ẑ_i| + c Σ |ẑ_j|)`` for the yaw: ``2/(ρ_i + ρ_j)`` with ``ρ_j = ρ_i``). So does the
+robot's own yaw in its position (it follows the pairs' slow relative yaws, not the fast
+consensus linearised here). No covariance intersection: a consensus's neighbours share no
+ancestors. NEES on config/de_carli_noisy.yaml: README, "The covariance" (the neighbours' yaws as
+very slow inputs and the own yaw through the correlation gave 3.83 and 1.9-7.7 per robot).
 """
 from __future__ import annotations
 
@@ -84,8 +77,7 @@ def times_i(a: Num) -> Array:
 
 
 def pair_prior(k: int, relative_std: float, yaw_std: float) -> Array:
-    """``(k, 6, 6)``: a new pair's covariance, its relative positions from one measurement and
-    its relative yaw from two initial yaws (each of std ``yaw_std``)."""
+    """``(k, 6, 6)``: a new pair's covariance, from one measurement and two initial yaws."""
     P = np.zeros((k, PAIR, PAIR))
     P[:, [0, 1, 4, 5], [0, 1, 4, 5]] = relative_std ** 2
     P[:, [2, 3], [2, 3]] = min(2.0 * yaw_std ** 2, ZETA_PRIOR_MAX)
@@ -97,13 +89,10 @@ def pair_maps(h: float, k_pe: float, k_psi: float, z: Num, z_next: Num,
               dpsi_x: Num, P_out: Num, P_in: Num, out_ok: Num, in_ok: Num,
               two_way: Num) -> tuple[Array, Array]:
     """The pairs' linearised step (module docstring), ``s⁺ = M s + N w`` with ``M`` ``(K, 6, 6)``
-    and ``N`` ``(K, 6, 10)`` the map of the noise ``w = (ν, ν', η_o, η_x, γ_o, γ_x)``; everything
-    in the owner's orientation, per pair: ``z``, ``z_next`` the relative yaw estimate before and
-    after the step; ``d_reg_x``, ``d_reg_o`` the regressors ``δ'`` (previous step), ``delta_o``,
-    ``delta_x`` this step's horizontal displacements, ``dpsi_*`` the yaw increments (complex
-    or real arrays ``(K,)``); ``P_out``, ``P_in`` the relative positions the gyro noise
-    turns (the measurements: their change over a step is of second order); the flags
-    ``(K,)``: measurement of each edge present, pair two-way."""
+    and ``N`` ``(K, 6, 10)`` the map of ``w = (ν, ν', η_o, η_x, γ_o, γ_x)``; per pair ``(K,)``, in
+    the owner's orientation: the relative yaw before and after, the regressors ``δ'`` (previous
+    step), this step's horizontal displacements and yaw increments, the relative positions the
+    gyro noise turns (the measurements: their change is of second order) and the flags."""
     K = len(z)
     f_out, f_in = out_ok.astype(float), (in_ok & two_way).astype(float)
     # The correction of ζ (8), a map of s and of the noise w = (ν, ν', η_o, η_x, γ_o, γ_x).
@@ -139,9 +128,8 @@ def pair_maps(h: float, k_pe: float, k_psi: float, z: Num, z_next: Num,
 
 def pair_step(P: Array, maps: tuple[Array, Array], two_way: Num, relative_var: float,
               odometry_var: float, gyro_var: float) -> Array:
-    """One step of the pairs' covariances ``P`` ``(K, 6, 6)`` with their :func:`pair_maps`;
-    ``*_var``: per component and step, of a measurement, an odometry displacement, a gyro yaw
-    increment."""
+    """One step of the pairs' covariances ``P`` ``(K, 6, 6)`` with their :func:`pair_maps`
+    (``*_var``: per component and step)."""
     M, N = maps
     var = np.array([relative_var] * 4 + [odometry_var] * 4 + [gyro_var] * 2)
     out = M @ P @ M.transpose(0, 2, 1) + (N * var) @ N.transpose(0, 2, 1)
@@ -172,12 +160,10 @@ class RobotMaps(NamedTuple):
 def robot_maps(edges: Edges, h3: float, k_p: float, position: bool, c_yaw: float | None,
                d_nbr: Array, y_term: Array, m_term: Array, z_own: Num, z_nbr: Num,
                active: Array, moved: Array | None, relative_var: float) -> RobotMaps:
-    """:class:`RobotMaps` of a step. ``position``: a stage-3 tick (``h3``, ``k_p``);
-    ``c_yaw``: stage 2's ``c = h₂ k_z`` at its ticks, else None. Per edge: ``d_nbr`` ``p̂_j −
-    p̂_i``, the fresh measured terms ``y_term`` (i senses j) and ``m_term`` (j senses i) as
-    floats, ``z_nbr`` ``ẑ_j``, ``active`` the excited pairs of stage 2 (floats); per robot
-    ``z_own`` ``ẑ_i``; ``moved`` ``R̂_i δ_i`` with the new yaw (None: no odometry). The
-    measurement noise is isotropic: its rotations by ``R̂`` drop out."""
+    """:class:`RobotMaps` of a step: ``position`` at a stage-3 tick, ``c_yaw`` stage 2's ``c =
+    h₂ k_z`` at its ticks (else None); per edge ``d_nbr`` ``p̂_j − p̂_i``, the fresh terms
+    ``y_term`` (i senses j), ``m_term`` (j senses i), ``active`` (excited); ``moved`` ``R̂_i δ_i``
+    (None: no odometry). The measurement noise is isotropic: ``R̂`` drops out."""
     n, E = len(z_own), len(edges.agent)
     ag = edges.agent
     eye = np.eye(3)
@@ -215,9 +201,8 @@ def robot_maps(edges: Edges, h3: float, k_p: float, position: bool, c_yaw: float
 def robot_step(P: Array, P_nbr: Array, edges: Edges, maps: RobotMaps, eps_var: Array,
                odometry: bool, odometry_var: float, gyro_var: float) -> Array:
     """One step of the robots' pose covariances ``P`` ``(N, 6, 6)`` from the neighbours'
-    ``P_nbr`` ``(E, 6, 6)``, the step's :func:`robot_maps` and the pairs' relative-yaw
-    variances ``eps_var`` ``(E,)``; ``odometry``: the robot dead-reckoned (``*_var``: per
-    component and step)."""
+    ``P_nbr`` ``(E, 6, 6)``, the step's maps and the pairs' relative-yaw variances ``eps_var``
+    ``(E,)`` (``*_var``: per component and step)."""
     F, G, eps, C, own_noise, rho = maps
     n, E = P.shape[0], len(edges.agent)
     ag = edges.agent

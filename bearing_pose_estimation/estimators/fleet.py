@@ -1,10 +1,5 @@
-"""What a method knows of a fleet: :class:`Fleet`, the estimators' view of a scenario.
-
-The estimator interface (:meth:`base.Estimator.check`, :meth:`~base.Estimator.check_motion`,
-:meth:`~base.Estimator.agent_groups`, :meth:`~base.Estimator.fleet_margins`) takes this small
-frozen value instead of the whole scenario, so the methods sit below the scenario layer:
-``Scenario.fleet()`` builds it (once per scenario).
-"""
+"""What a method knows of a fleet: the small frozen value the estimator interface takes instead
+of the whole scenario (``Scenario.fleet()`` builds it), so the methods sit below that layer."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -72,8 +67,7 @@ class Fleet:
         return [j for j, nbrs in enumerate(self.neighbours) if any(k == i for k, _ in nbrs)]
 
     def sensing_edges(self) -> tuple[Index, Index]:
-        """``(tail, head)`` agent indices of every sensing edge (agent i measures its
-        neighbour j), agents in order, each one's neighbours in order."""
+        """``(tail, head)`` of every sensing edge (i measures its neighbour j), in order."""
         edges = np.array([(i, j) for i, nbrs in enumerate(self.neighbours) for j, _ in nbrs],
                          dtype=np.intp).reshape(-1, 2)
         return edges[:, 0].copy(), edges[:, 1].copy()

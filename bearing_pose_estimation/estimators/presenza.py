@@ -2,31 +2,17 @@
 angle rigidity, in the anchor's moving body frame (``method: presenza``).
 
 Equations, corrections, gains and discretisation: ``../shared/estimators/presenza-2026.md``
-(§n), the paper's numbers in parentheses. Every robot i keeps ``q̂_i`` (position in the anchor
-frame, ``p_hat``) and ``Q̂_i`` (body → anchor frame, ``R_hat``). Robot i measures the body
-bearings ``β_ij`` of its out-neighbours ``j ∈ O_i`` (the scenario's ``neighbours``: sensing is
-directed here) and the bearing rates ``β̇_ij``; the anchor ``a`` also measures the relative
-positions ``q_b, q_c`` of its two ranged robots. **Sensing robots** have two or more
-out-neighbours; the others are **free robots**: their positions come from the angles the
-sensing robots measure of them, their attitudes from the velocity the sensing robots
-reconstruct from bearing rates (11).
+(§n), the paper's numbers in parentheses. Robot i keeps ``q̂_i`` (``p_hat``) and ``Q̂_i`` (body →
+anchor frame, ``R_hat``) and measures the body bearings ``β_ij`` of its out-neighbours ``j ∈
+O_i`` (directed) and their rates ``β̇_ij``; the anchor ``a`` also measures the relative positions
+``q_b, q_c`` of its two ranged robots. **Sensing robots** have two or more out-neighbours; the
+**free robots'** positions come from the angles the sensing robots measure of them, their
+attitudes from the velocity the sensing robots reconstruct from bearing rates (11).
 
-Links (``links = 'communication'``): one per communication neighbour (i senses j, j senses i,
-or the anchor ranges the other). Two rounds of messages per step (``rounds = 2``, §10):
-
-1. ``q_hat`` (per robot): ``q̂_j``; ``q_ranged`` (per link, on the anchor's
-   ``relative_positions`` topic): ``q_i`` measured by the anchor of its ranged robot i;
-2. from each sensing robot j to each ``i ∈ O_j``, formed from round 1 (:meth:`Presenza.reply`):
-   ``angle_gradient`` ``g_{j→i} = Σ_{k∈O_j\\{i}} α̃_jik χ̂_jik`` (6), ``angle_hessian`` its
-   Gauss-Newton block ``Σ_k χ̂_jik χ̂_jikᵀ`` (§9), ``anchor_bearing`` ``𝔟̂_ji = Q̂_j β_ji`` and
-   ``velocity_term`` ``n_ji = Π(𝔟̂_ji) υ̂_j + ‖q̂_i - q̂_j‖ (Q̂_j (β̇_ji + ω_j × β_ji) - ω_a ×
-   𝔟̂_ji)`` (11, with the estimated distance, §4.2).
-
-Every robot also receives the anchor's gyro increment and odometry over the step
-(:data:`base.ANCHOR_DELTA_R`, :data:`base.ANCHOR_DISPLACEMENT`). For the covariance
-(:mod:`.presenza_covariance`), optional and never waited for: ``pose_cov`` (round 1, per
-robot, on its ``pose``) and ``term_cov`` (round 2, per link: what only the sensing robot knows
-of the listener's covariance).
+One link per communication neighbour; two rounds of messages per step (§10, the channels
+below): ``q̂_j`` and the anchor's ranged ``q_i``, then what each sensing robot j forms for each
+``i ∈ O_j`` (:meth:`Presenza.reply`), e.g. ``n_ji = Π(𝔟̂_ji) υ̂_j + ‖q̂_i - q̂_j‖ (Q̂_j (β̇_ji +
+ω_j × β_ji) - ω_a × 𝔟̂_ji)`` (11, with the estimated distance, §4.2); and the anchor's odometry.
 
 One step ``h``, everything on the right at the step's start:
 
@@ -53,11 +39,9 @@ One step ``h``, everything on the right at the step's start:
   As ``h → 0`` this is (16)-(19). Velocities inside the terms (``u_i``, ``ω_i``, ``u_a``,
   ``ω_a``) are the step averages ``δ/h``, ``log(ΔR)/h``.
 
-The covariance ``P`` of ``(q̃_i, φ_i)`` is propagated with the step, linearised at the
-estimate before it (:mod:`.presenza_covariance`). The anchor runs as a sensing robot (its
-estimate leaves ``(I, 0)`` and returns, as in the paper) or, pinned, holds ``(I, 0)``
-(and a zero covariance). Estimates are in the anchor's body frame
-(``EstimateFrame.ANCHOR_BODY``): no alignment when measuring errors (§11).
+The covariance of ``(q̃_i, φ_i)`` is propagated with the step (:mod:`.presenza_covariance`).
+The anchor runs as a sensing robot (its estimate leaves ``(I, 0)`` and returns, as in the paper)
+or, pinned, holds ``(I, 0)`` with a zero covariance.
 """
 from __future__ import annotations
 
@@ -116,8 +100,7 @@ EULER_LIMIT = 2.0
 
 @dataclass(frozen=True)
 class PresenzaGains(cov.PresenzaCovarianceModel):
-    """Gains of (16)-(19) (§7: κ_Q has different units in the two attitude loops); the
-    covariance's model (:mod:`.presenza_covariance`)."""
+    """Gains of (16)-(19) (§7: κ_Q has different units in the two attitude loops)."""
 
     kappa_q: float = gain(500.0, 'position gain kappa_q of (16), (18) on the angle part of the '
                                  'gradient [m^2/s]')
@@ -196,13 +179,11 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                              gamma_hat=np.zeros((len(p_hat), 3)), P=self.prior(len(p_hat)))
 
     def prior(self, n: int) -> Array:
-        """The covariance of ``n`` initial estimates (the gains' ``initial_*_std``)."""
         return initial_covariance(n, self.gains.initial_position_std,
                                   self.gains.initial_attitude_std)
 
     def missing(self, channel: str) -> Array:
-        """A sensed robot's covariance not received (yet): the prior; a sensing robot's
-        terms of it: none (zeros)."""
+        """A sensed robot's covariance not received: the prior; a sensing robot's terms: 0."""
         if channel == POSE_COV.name:
             return self.prior(1)[0]
         if channel == cov.TERM_COV.name:
@@ -217,10 +198,9 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                 'pose_cov': x.P.copy()}
 
     def carry(self, values: Mapping[str, Array], motion: Motion) -> dict[str, Array] | None:
-        """Values formed at ``t_s`` seen in the anchor frame at t, by the anchor's motion
-        ``ΔR_a``, ``δ_a``: a position ``ΔR_aᵀ (q - δ_a)`` (as if the sender had not moved
-        meanwhile), a vector ``ΔR_aᵀ v``, the Gauss-Newton block ``ΔR_aᵀ D ΔR_a``. What a node
-        uses for a late value (the sender's newest), instead of one of another frame."""
+        """Values formed at ``t_s`` seen in the anchor frame at t, moved by ``ΔR_a``, ``δ_a``: a
+        position ``ΔR_aᵀ (q - δ_a)`` (the sender still), a vector ``ΔR_aᵀ v``, a block ``ΔR_aᵀ D
+        ΔR_a``: a late value in the right frame."""
         delta_R_a, delta_a = motion.anchor_delta_R, motion.anchor_displacement
         if delta_R_a is None or delta_a is None:
             return None
@@ -242,23 +222,20 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         return out
 
     def agent_groups(self, fleet: Fleet) -> dict[str, list[str]]:
-        """Sensing robots (two or more out-neighbours) and free robots, as the paper's
-        figures show them apart."""
+        """Sensing robots (two or more out-neighbours) and free robots."""
         sensing = [name for name, nbrs in zip(fleet.names, fleet.neighbours) if len(nbrs) >= 2]
         return {'sensing': sensing, 'free': [name for name in fleet.names if name not in sensing]}
 
     def fleet_margins(self, fleet: Fleet, R_hat: Array, p_hat: Array) -> dict[str, float]:
-        """Infinitesimal angle rigidity of the estimated positions: ``σ_{3N-7}/σ_1`` of the
-        angle rigidity matrix on the normalised estimates (the check's margin, §2, on ``q̂``
-        instead of the truth): the gradient flow (16) needs it away from 0."""
+        """The check's angle rigidity margin (§2) on the estimates ``q̂``: the gradient flow
+        (16) needs it away from 0."""
         out = tuple(tuple(j for j, _ in nbrs) for nbrs in fleet.neighbours)
         return {'angle_rigidity_margin': angles.iar_margin(p_hat, _triples(out))}
 
     @staticmethod
     def _structure(x: PresenzaState, inputs: StepInputs) -> tuple[Mask, Mask, Mask]:
-        """Per link whether its sensing terms are used this step (i senses j, and has its
-        bearing, bearing rate and ``q̂_j``) and ``sensed_by``; per robot ``sensing`` (two or
-        more out-neighbours: a role, whatever this step lacks)."""
+        """Per link whether its sensing terms are used this step (i senses j and has all it
+        needs) and ``sensed_by``; per robot ``sensing`` (a role, whatever this step lacks)."""
         edges = inputs.edges
         senses = edges.flag('senses')
         count = np.bincount(edges.agent[senses], minlength=x.p_hat.shape[0])
@@ -268,8 +245,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
 
     @staticmethod
     def _motion(h: float, inputs: StepInputs) -> tuple[Array, Array, Array, Array, Array, Array]:
-        """Own ``ω_i``, ``u_i``, the anchor's ``ω_a``, ``u_a`` (step averages, ``(N, 3)``) and
-        the anchor's increments ``ΔR_a``, ``δ_a``."""
+        """Step averages ``ω_i``, ``u_i``, ``ω_a``, ``u_a`` ``(N, 3)`` and ``ΔR_a``, ``δ_a``."""
         a_R, a_d = inputs.agent[ANCHOR_DELTA_R], inputs.agent[ANCHOR_DISPLACEMENT]
         delta = inputs.displacement if inputs.displacement is not None else np.zeros_like(a_d)
         return (so3.log_small(inputs.delta_R) / h, delta / h, so3.log_small(a_R) / h,
@@ -277,9 +253,8 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
 
     def _angle_terms(self, x: PresenzaState, inputs: StepInputs, senses: NDArray[np.bool_]
                      ) -> tuple[Array, Array, Array, Array, cov.AngleTerms]:
-        """Each robot's own angle terms of ``ζ_i`` and ``D̂_i`` ``(N, 3)``, ``(N, 3, 3)``, per
-        link what it sends the other end (``g``, its Gauss-Newton block), and the angles'
-        Jacobian blocks (for the covariance)."""
+        """Each robot's own terms of ``ζ_i``, ``D̂_i``, per link what it sends the other end
+        (``g``, its Gauss-Newton block), and the angles' Jacobian blocks (the covariance's)."""
         n, n_edges = x.p_hat.shape[0], len(inputs.edges)
         agent = inputs.edges.agent
         e1, e2 = _pairs(agent.tobytes(), np.ascontiguousarray(senses).tobytes())
@@ -432,11 +407,8 @@ def _eig(bearings: Array) -> Array:
 
 
 def check_angle_graph(gains: PresenzaGains, fleet: Fleet) -> CheckReport:
-    """The method's assumptions at t = 0 (§2, §3): the anchor senses, its ranged robots are not
-    aligned from it (A3), enough angles and infinitesimal angle rigidity on normalised
-    positions (Definition 1), every sensing robot's bearings span (A5), every free robot seen
-    by two sensing robots along non-collinear bearings (L2), and the explicit update's step
-    limit (§9). The spectra are A5's and L2's matrices; the margins those of §2-§3."""
+    """The assumptions at t = 0 (§2, §3): the anchor senses, A3, angle rigidity (Definition
+    1), A5, L2, and the explicit update's step limit (§9)."""
     report = CheckReport(spectra_of='Σ_j Π(β_ij) (sensing robots, A5) and P_i = Σ_j Π(𝔮_ji) '
                                     '(free robots, L2)')
     names = list(fleet.names)

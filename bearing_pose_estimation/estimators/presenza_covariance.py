@@ -21,17 +21,13 @@ velocity term's distance factor ``‖q̂_i − q̂_j‖`` moves with ``q̂_i``),
 the error of the reconstructed velocity (11) from what the sensing robots j know.
 
 **What comes from elsewhere**, as for the other methods (covariance.py, de_carli_covariance.py):
-white noise per step (bearings, bearing rates, the anchor's relative positions, odometry,
-gyros) and slow inputs, the neighbours' errors, which enter over a window of the robot's own
-loop as white noise of ``c / ρ`` times their covariance, ``ρ`` the loop's decay per step
-(matrix-valued here: ``A_q = G_q D̂`` for the position, ``A_Q = G_Q K`` for the attitude, the
-inputs scaled by ``A^{-1/2}``); ``c_Q = 2`` for the attitude (a fast loop under slow position
-errors: their steady state, exactly), ``c_q = 1.3`` for the position, whose inputs decay with
-it (De Carli et al.'s rule is 1: on config/presenza_noisy.yaml, 10 runs, the position NEES
-was 4.06 with it, 3.01 with 1.3; at 2 the robots' covariances feed each other without bound;
-BENCHMARKS.md).
-The robots that see i send it, with their second round, what only they know
-(:data:`TERM_COV`, per listener):
+white noise per step and slow inputs, the neighbours' errors, which enter as white noise of
+``c / ρ`` times their covariance, ``ρ`` the loop's decay per step (here matrix-valued, ``A_q =
+G_q D̂`` and ``A_Q = G_Q K``, the inputs scaled by ``A^{-1/2}``): ``c_Q = 2`` (a fast loop under
+slow position errors: their steady state, exactly), ``c_q = 1.3`` for the position, whose
+inputs decay with it (on config/presenza_noisy.yaml, 10 runs, the position NEES was 4.06 with
+De Carli et al.'s 1, 3.01 with 1.3; at 2 the covariances feed each other without bound). The
+robots that see i send it, in their second round, what only they know (:data:`TERM_COV`):
 
 - the covariance of their angle terms of ``ζ_i`` (6): white from their bearings' noise
   (``dα_jik = β_kᵀ ν_i + β_iᵀ ν_k``), slow from their own and the other robot's position
@@ -41,12 +37,10 @@ The robots that see i send it, with their second round, what only they know
   bearing rate ``ṙ_ji``. The range rate's part ``δ𝔟 ḋ`` is left out (the sensing robot does
   not know ``ḋ``; with the paper's motions it is about a tenth of the attitude's part).
 
-A variance past :data:`MAX_POSITION_STD` or :data:`MAX_ATTITUDE_STD` (the robot is lost) is
-capped there. Not modelled: held samples (the node's bearings are at the step rate in every
-scenario here), a free robot holding ``γ̂`` while ``λ_min(P̂_i)`` is small, and bearing rates
-differenced from noisy bearings, which are correlated in time (``bearing_rate_std`` then
-defaults to their per-sample std ``σ √2 f``).
-"""
+Variances are capped (:data:`MAX_POSITION_STD`: the robot is lost). Not modelled: held samples
+(the node's bearings are at the step rate in every scenario here), a free robot holding ``γ̂``
+while ``λ_min(P̂_i)`` is small, and bearing rates differenced from noisy bearings, which are
+correlated in time (``bearing_rate_std`` then defaults to their per-sample std ``σ √2 f``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -89,8 +83,7 @@ TERM_COV = Channel('term_cov', per='edge', frame='estimate', round=2, shape=(TER
 
 @dataclass(frozen=True, kw_only=True)
 class PresenzaCovarianceModel(CovarianceModel):
-    """The leader-follower model (bearings, gyro, odometry, prior) and what Presenza et al.
-    measure besides: the anchor's relative positions and the bearing rates."""
+    """The leader-follower model and the anchor's relative positions and the bearing rates."""
 
     relative_position_std: float = gain(0.0, "relative position noise std [m] per component "
                                         "(the anchor's ranged robots), for the covariance",
@@ -113,9 +106,8 @@ def projector(b: Array) -> Array:
 
 
 class AngleTerms(NamedTuple):
-    """A robot's own angles (pairs of its sensing links ``e1 < e2``), as the step forms them:
-    the Jacobian blocks ``χ_jk``, ``χ_kj`` (``g`` of j, of k), ``g_own = −(χ_jk + χ_kj)`` and
-    the estimated cosine ``𝔮̂_ijᵀ 𝔮̂_ik`` ``(A, 1)``."""
+    """A robot's own angles (pairs of its sensing links ``e1 < e2``): the Jacobian blocks
+    ``χ_jk``, ``χ_kj``, ``g_own = −(χ_jk + χ_kj)`` and the estimated cosine ``(A, 1)``."""
 
     e1: Index
     e2: Index
@@ -127,8 +119,7 @@ class AngleTerms(NamedTuple):
 
 def angle_terms(x_p: Array, q_other: Array, agent: Index, e1: Index, e2: Index,
                 min_distance: float) -> AngleTerms:
-    """:class:`AngleTerms` of the angles ``(e1, e2)`` from the estimates (the step's own
-    formulas, (3) and (6))."""
+    """:class:`AngleTerms` of the angles ``(e1, e2)`` from the estimates ((3), (6))."""
     i = agent[e1]
     d1, d2 = q_other[e1] - x_p[i], q_other[e2] - x_p[i]
     r1 = np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), min_distance)
@@ -140,9 +131,9 @@ def angle_terms(x_p: Array, q_other: Array, agent: Index, e1: Index, e2: Index,
 
 
 class VelocityTerms(NamedTuple):
-    """What a sensing robot j's velocity term ``n_ji`` of (11) is made of, per link:
-    ``𝔟̂_ji = Q̂_j β_ji``, ``d = ‖q̂_i − q̂_j‖``, the bearing's rate ``ṙ_ji = s − ω_a × 𝔟̂_ji``,
-    ``s = Q̂_j (β̇_ji + ω_j × β_ji)``, ``Q̂_j``, ``Q̂_j u_j``, ``ω_j`` (body) and ``ω_a``."""
+    """A sensing robot j's velocity term ``n_ji`` of (11), per link: ``𝔟̂_ji``, ``d``,
+    ``ṙ_ji = s − ω_a × 𝔟̂_ji``, ``s = Q̂_j (β̇_ji + ω_j × β_ji)``, ``Q̂_j``, ``Q̂_j u_j``,
+    ``ω_j``, ``ω_a``."""
 
     b_hat: Array
     d: Array
@@ -178,13 +169,11 @@ def sender_terms(n_edges: int, angles: AngleTerms, bearings: Array, P_own: Array
                  P_other: Array, agent: Index, velocity: VelocityTerms | None,
                  bearing_var: float, rate_var: float, odometry_density2: float,
                  gyro_density2: float, h: float) -> Array:
-    """:data:`TERM_COV` per link ``(E, 27)`` of a sensing robot j to each robot i it sees, from
-    j's own ``angles`` (:func:`angle_terms`), its body bearings ``β_ji`` ``(E, 3)``, the senders'
-    own covariance ``P_own`` ``(N, 6, 6)``, the covariance each listener sent ``P_other``
-    ``(E, 6, 6)`` (round 1, ``pose_cov``), the free listeners' ``velocity`` terms per link
-    (None: no bearing rates, no velocity terms), ``bearing_var``, ``rate_var`` per component
-    [rad²], [1/s²] and the squared noise densities ``*_density2`` of odometry [m²/s] and gyro
-    [rad²/s]."""
+    """:data:`TERM_COV` ``(E, 27)`` of a sensing robot j to each robot i it sees, from j's
+    ``angles``, body bearings ``β_ji`` ``(E, 3)`` and ``P_own`` ``(N, 6, 6)``, each listener's
+    ``pose_cov`` ``P_other`` ``(E, 6, 6)``, the free listeners' ``velocity`` terms (None: no
+    bearing rates), the variances per component [rad²], [1/s²] and the squared noise densities
+    of odometry [m²/s] and gyro [rad²/s]."""
     out = np.zeros((n_edges, TERM_SIZE))
     e1, e2, chi_jk, chi_kj, g_own, _ = angles
     if len(e1):
@@ -224,11 +213,9 @@ def sender_terms(n_edges: int, angles: AngleTerms, bearings: Array, P_own: Array
 
 
 class OwnLinearisation(NamedTuple):
-    """A robot's linearised step (module docstring) before ``ΔR_aᵀ``: ``F`` ``(N, 6, 6)`` of its
-    own error, the position and attitude gains ``G_q``, ``G_Q`` ``(N, 3, 3)`` (from ζ and from
-    the anchor-frame ``Q̂ Ω``), the slow inputs' scaling ``T`` ``(N, 6, 6)`` (``√c A^{-1/2}`` of
-    the loops' decays ``A_q = G_q D̂``, ``A_Q = G_Q K``) and, for free robots, the map of
-    ``Σ_j dn'_ji`` ``(N, 6, 3)`` (zeros for sensing robots)."""
+    """A robot's linearised step (module docstring) before ``ΔR_aᵀ``: ``F`` ``(N, 6, 6)``, the
+    gains ``G_q``, ``G_Q`` ``(N, 3, 3)``, the slow inputs' scaling ``T = √c A^{-1/2}`` ``(N, 6,
+    6)`` and, for free robots, the map of ``Σ_j dn'_ji`` ``(N, 6, 3)``."""
 
     F: Array
     G_q: Array
@@ -242,15 +229,12 @@ def own_linearisation(h: float, kappa_q: float, kappa_Q: Array, w: float, D: Arr
                       moved: Array, gamma: Array, omega_a: Array, P_inv: Array,
                       reconstructed: Mask, b_in: Array, r_in: Array, valid: Mask
                       ) -> OwnLinearisation:
-    """:class:`OwnLinearisation` of every robot from ``kappa_Q`` ``(N,)``, each robot's attitude
-    gain; ``D`` ``(N, 3, 3)``, ``D̂_i``; ``K_a`` ``(N, 3, 3)``, ``K_i`` in the anchor frame;
-    ``b_own`` ``(E, 3)``, the sensing links' ``Q̂_i β_ij`` (``used``); ``moved`` ``(N, 3)``,
-    ``Q̂_i δ_i``; ``gamma`` ``(N, 3)``, ``γ̂_i`` (a free robot's ``Q̂_i Ω_i = Q̂_i u_i × γ̂_i``:
-    its map of ``φ`` is taken as ``−K``, symmetric, which it is at the truth where ``Q̂ u = γ̂``;
-    the exact ``[γ̂]x [Q̂ u]x`` at the estimate gave robot_3 of presenza_noisy an attitude NEES
-    of 150, its poor velocity reconstruction turning the loop); ``P_inv`` ``(N, 3, 3)``,
-    ``P̂_i⁻¹`` where ``reconstructed``; ``b_in``, ``r_in`` ``(E, 3)``, the received ``𝔟̂_ji``
-    and ``ṙ_ji`` (``valid``)."""
+    """:class:`OwnLinearisation` of every robot from its attitude gain ``kappa_Q``, ``D̂_i``
+    ``D``, ``K_i`` in the anchor frame ``K_a``, the sensing links' ``Q̂_i β_ij`` ``b_own``,
+    ``Q̂_i δ_i`` ``moved``, ``γ̂_i`` ``gamma`` (a free robot's map of ``φ`` through ``Q̂_i Ω_i =
+    Q̂_i u_i × γ̂_i`` is taken as ``−K``, symmetric, as at the truth where ``Q̂ u = γ̂``: the exact
+    ``[γ̂]x [Q̂ u]x`` gave robot_3 of presenza_noisy an attitude NEES of 150), ``P̂_i⁻¹``
+    ``P_inv`` where ``reconstructed``, and the received ``𝔟̂_ji``, ``ṙ_ji``."""
     n = D.shape[0]
     # D̂ and K commute with their gains: one eigendecomposition gives G, A and A^{-1/2}.
     lam, V = np.linalg.eigh(np.concatenate([D, K_a]))
@@ -287,11 +271,9 @@ def own_linearisation(h: float, kappa_q: float, kappa_Q: Array, w: float, D: Arr
 
 
 def binned(index: Index, n: int, *rows: Array) -> list[Array]:
-    """``out[k] = Σ_{m: index[m] = k} rows[m]`` of each ``(M, ...)`` array, ``(n, ...)`` each
-    (e.g. over each robot's links), each robot's rows summed in their order by one
-    ``np.add.reduceat``: its sums do not depend on the other robots' (a dense product's BLAS
-    blocking does, and robots stepped together must get what they get alone), at a fraction of
-    ``np.add.at``'s cost."""
+    """``out[k] = Σ_{m: index[m] = k} rows[m]`` ``(n, ...)`` of each ``(M, ...)`` array, by one
+    ``np.add.reduceat`` in row order: a robot's sums do not depend on the others' (a dense
+    product's BLAS blocking does, and robots stepped together must get what they get alone)."""
     M = len(index)
     sizes = [int(np.prod(x.shape[1:], dtype=int)) for x in rows]   # (M = 0: no -1 reshape)
     flat = np.zeros((n, sum(sizes)))
@@ -308,10 +290,9 @@ def binned(index: Index, n: int, *rows: Array) -> list[Array]:
 def own_input_maps(lin: OwnLinearisation, agent: Index, used: Mask, b_own: Array,
                    own_bearings: Array, angles: AngleTerms, d_own: Array, R_hat: Array
                    ) -> tuple[Array, Array]:
-    """``(E, 6, 3)`` maps into a sensing robot's ``(q̃, φ)⁺`` (before ``ΔR_aᵀ``) of the noise
-    ``ν_ij`` of each own bearing (body) and of each sensed robot's position error ``q̃_j``:
-    through the robot's angles (``dα_ijk = β_kᵀ ν_j + β_jᵀ ν_k``, ``dζ_i = g_own (g_jᵀ q̃_j +
-    g_kᵀ q̃_k − dα)``) and its innovation (``Q̂_i Ω_i ∋ [𝔟_ij]x q̃_j − d_ij [𝔟_ij]x Q̂_i ν``)."""
+    """``(E, 6, 3)`` maps into a sensing robot's ``(q̃, φ)⁺`` of each own bearing's noise ``ν_ij``
+    and each sensed robot's ``q̃_j``, through its angles (``dζ_i = g_own (g_jᵀ q̃_j + g_kᵀ q̃_k −
+    dα)``) and its innovation (``Q̂_i Ω_i ∋ [𝔟_ij]x q̃_j − d_ij [𝔟_ij]x Q̂_i ν``)."""
     G_q, G_Q = lin.G_q, lin.G_Q
     E = len(agent)
     V, Gn = np.zeros((E, DOF, 3)), np.zeros((E, DOF, 3))
@@ -338,14 +319,11 @@ def propagate(P: Array, lin: OwnLinearisation, dR_a: Array, agent: Index, *, use
               R_hat: Array, q_next: Array, model: PresenzaCovarianceModel, kappa_s: float,
               h: float, pinned: Mask) -> Array:
     """``P⁺`` ``(N, 6, 6)`` of every robot (module docstring) from its ``P``, its linearised
-    step ``lin``, the anchor's rotation ``ΔR_a`` ``(N, 3, 3)`` and what it has of the others.
-
-    Per link ``(E, ...)``: ``used`` its own sensing links, ``b_own`` ``Q̂_i β_ij``,
-    ``own_bearings`` ``β_ij`` (body), ``d_own`` ``‖q̂_j − q̂_i‖``, ``P_nbr`` the covariance the
-    other robot sent (``pose_cov``), ``terms`` what it sent of :data:`TERM_COV`, ``sensed_by``
-    (its angle terms), ``valid`` (its velocity terms), ``ranged_by`` (the anchor's relative
-    position). ``gamma``, ``R_hat``: ``γ̂_i``, ``Q̂_i``; ``q_next``: ``q̂_i⁺`` (the anchor's
-    gyro noise turns it)."""
+    step ``lin``, the anchor's rotation ``ΔR_a`` ``(N, 3, 3)`` and per link ``(E, ...)``:
+    ``used`` (own sensing), ``b_own`` ``Q̂_i β_ij``, ``own_bearings`` ``β_ij``, ``d_own``
+    ``‖q̂_j − q̂_i‖``, what the other robot sent, ``P_nbr`` (``pose_cov``) and ``terms``
+    (:data:`TERM_COV`, its angle terms where ``sensed_by``, its velocity terms where ``valid``),
+    and ``ranged_by``; ``q_next``: ``q̂_i⁺``, which the anchor's gyro noise turns."""
     n = P.shape[0]
     F, G_q, G_Q, T, B_v = lin
     V, Gn = own_input_maps(lin, agent, used, b_own, own_bearings, angles, d_own, R_hat)
@@ -388,9 +366,8 @@ def propagate(P: Array, lin: OwnLinearisation, dR_a: Array, agent: Index, *, use
 
 
 def capped(P: Array) -> Array:
-    """``P`` with each variance at most its cap (:data:`MAX_POSITION_STD`,
-    :data:`MAX_ATTITUDE_STD`), its rows and columns scaled with it (``S P S``, still positive
-    semi-definite)."""
+    """``P`` with each variance at most its cap, its rows and columns scaled with it (``S P S``,
+    still positive semi-definite)."""
     cap = np.array([MAX_POSITION_STD ** 2] * 3 + [MAX_ATTITUDE_STD ** 2] * 3)
     var = np.einsum('nii->ni', P)
     if np.all(var <= cap):

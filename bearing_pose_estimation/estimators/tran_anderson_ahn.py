@@ -1,20 +1,16 @@
 """Tran, Anderson & Ahn (2020): second-order attitude observer with a bearing-only position
 observer, in the setting of Boughellaba & Tayebi (:mod:`.bearing_leaders`).
 
-``method: tran_anderson_ahn``. State ``(R̂_i, Ω̃_i, p̂_i)`` with ``Ω̃_i(0) = 0``; notation as in
-:mod:`.boughellaba_tayebi`. Continuous time (the paper's attitude observer and its position
-observer, with ``d_ij = R̂_j b^j_ij``, what j sends with the sign flipped, and
-``y_ij = R̂_i b^i_ij``, since ``R P_b Rᵀ = P_{R b}``)::
+``method: tran_anderson_ahn``. State ``(R̂_i, Ω̃_i, p̂_i)``, ``Ω̃_i(0) = 0``; notation as in
+:mod:`.boughellaba_tayebi`, ``d_ij = R̂_j b^j_ij`` and ``y_ij = R̂_i b^i_ij``::
 
     dR̂_i/dt = R̂_i [ω_i - Ω̃_i]x
     dΩ̃_i/dt = -k_ω Ω̃_i + Σ_j k_ij (R̂_iᵀ d_ij) × b^i_ij  (+ k_c (R̂_iᵀ c) × c^i, two neighbours)
     dp̂_i/dt = -k_p R̂_i Σ_j P_{b^i_ij} R̂_iᵀ (p̂_i - p̂_j) = -k_p Σ_j P_{y_ij} (p̂_i - p̂_j)
 
-For a follower with exactly two neighbours j, k the paper adds the direction along the cross
-product: body ``c^i = (b^i_ij × b^i_ik)/‖·‖``, world ``c = (d_ij × d_ik)/‖·‖``. Its (9)
-needs ``K_i = Σ_j k_ij b_ij b_ijᵀ`` (+ ``k_c c cᵀ`` with two neighbours) positive definite,
-and its Lemma 2 distinct eigenvalues. The position equilibrium satisfies
-``p_i = (Σ_j P_{b_ij})⁻¹ Σ_j P_{b_ij} p̂_j``. The paper gives no gains; ``k_ω ∈ [1, 3]``,
+A follower with exactly two neighbours j, k adds the direction ``c^i = (b^i_ij × b^i_ik)/‖·‖``
+(world ``c = (d_ij × d_ik)/‖·‖``). (9) needs ``K_i = Σ_j k_ij b_ij b_ijᵀ`` (+ ``k_c c cᵀ``)
+positive definite, Lemma 2 distinct eigenvalues. The paper gives no gains; ``k_ω ∈ [1, 3]``,
 ``k_ij ≈ 1-2``, ``k_p = 1`` converge on its cube scenario.
 
 Discretisation over a step ``h`` (``ΔR`` the gyro increment)::
@@ -23,24 +19,19 @@ Discretisation over a step ``h`` (``ΔR`` the gyro increment)::
     Ω̃_i ← Ω̃_i + h (-k_ω Ω̃_i + torque_i)
     p̂_i ← p̂_i - h k_p Σ_j P_{y_ij} (p̂_i - p̂_j)
 
-Why ``exp(-h Ω̃) ΔR`` in that order: with the truth propagated by the same ``ΔR``, the error
-``R̃ = R R̂ᵀ`` then obeys exactly ``R̃⁺ = R̃ exp(h [R̂ Ω̃]x)``, the Lie-Euler step of
-``dR̃/dt = R̃ [R̂ Ω̃]x``: the gyro cancels out of the error dynamics and the truth (with
-``Ω̃ = 0``) is an exact fixed point.
+Why ``exp(-h Ω̃) ΔR`` in that order: with the truth propagated by the same ``ΔR``, ``R̃ = R R̂ᵀ``
+obeys exactly ``R̃⁺ = R̃ exp(h [R̂ Ω̃]x)`` (Lie-Euler): the gyro cancels out of the error
+dynamics and the truth (with ``Ω̃ = 0``) is an exact fixed point.
 
-Moving agents (an extension, as in :mod:`.boughellaba_tayebi`: the body velocity ``v_i`` fed
-forward with ``k_v``, discretised with the odometry displacement ``δ_i`` over the step)::
+Moving agents (an extension, as in :mod:`.boughellaba_tayebi`: ``v_i`` fed forward with
+``k_v``, discretised with the odometry displacement ``δ_i``)::
 
-    dp̂_i/dt = k_v R̂_i v_i - k_p Σ_j P_{y_ij} (p̂_i - p̂_j)
     p̂_i ← p̂_i + k_v R̂_i δ_i - h k_p Σ_j P_{y_ij} (p̂_i - p̂_j)
 
-Here the error is ``p̃_i = p_i - p̂_i`` (no ``R̃`` in it), so with ``k_v = 1``
-``dp̃_i/dt = (R_i - R̂_i) v_i + k_p Σ_j P_{y_ij} (p̂_i - p̂_j)``: the velocity does not cancel
-exactly, but its term ``(I - R̂_i R_iᵀ) ṗ_i = (I - R̃_iᵀ) ṗ_i`` vanishes as fast as the
-attitude error, which converges on its own (the attitude observer does not depend on
-positions): the cascade keeps the paper's position dynamics in the limit, and the true
-trajectory (``R̂ = R``, ``p̂ = p``) is an exact solution: at ``R̂ = R`` the prediction moves
-``p̂`` exactly as ``p`` moves, ``p⁺ = p + R δ``.
+The error ``p̃_i = p_i - p̂_i`` has no ``R̃``, so with ``k_v = 1`` the velocity leaves the term
+``(I - R̃_iᵀ) ṗ_i``, which vanishes with the attitude error (whose observer ignores positions):
+the paper's position dynamics in the limit, and the truth an exact solution (at ``R̂ = R`` the
+prediction moves ``p̂`` as ``p⁺ = p + R δ``).
 """
 from __future__ import annotations
 
@@ -81,9 +72,8 @@ class TranState(CovState):
 
 @dataclass(frozen=True)
 class TwoNeighbourPairs:
-    """The followers with exactly two neighbours, as edge index pairs ``(first[m], second[m])``
-    owned by agent ``agent[m]`` (edge order fixes the sign of ``c``; both ``c^i`` and ``c`` use
-    the same order, so the term does not depend on it)."""
+    """The followers with exactly two neighbours: edge pairs ``(first[m], second[m])`` of agent
+    ``agent[m]`` (in edge order, for both ``c^i`` and ``c``: the term does not depend on it)."""
 
     agent: NDArray[np.intp]
     first: NDArray[np.intp]
@@ -109,12 +99,9 @@ def tran_step(R_hat: Array, Omega_tilde: Array, p_hat: Array, delta_R: Array, h:
               p_hat_nbr: Array, gains: TranGains, reorthonormalize: bool = True,
               displacement: Array | None = None, p_own: Array | None = None
               ) -> tuple[Array, Array, Array, Array]:
-    """Advance the Tran-Anderson-Ahn observers of all agents by one step ``h``: ``(R̂, Ω̃, p̂)``
-    at ``t + h`` and the torque driving Ω̃ at t (body frame).
-
-    Arguments as in :func:`.boughellaba_tayebi.cascade_step` (``displacement`` and ``p_own``
-    too), plus ``Omega_tilde`` ``(N, 3)`` and the two-neighbour ``pairs``
-    (:meth:`TwoNeighbourPairs.of`)."""
+    """One step ``h`` of every agent: ``(R̂, Ω̃, p̂)`` at ``t + h`` and the torque driving Ω̃ at
+    t (body frame); arguments as in :func:`.boughellaba_tayebi.cascade_step`, with
+    ``Omega_tilde`` ``(N, 3)`` and the two-neighbour ``pairs``."""
     R_i = np.take(R_hat, edges.agent, axis=0)
     # (R̂_iᵀ d_ij) × b^i_ij, summed with k_ij.
     d_body = np.einsum('eba,eb->ea', R_i, d_world)
@@ -168,8 +155,7 @@ class TranAndersonAhn(BearingLeaderEstimator[TranGains, TranState]):
         return TranState(R_hat=R_hat, p_hat=p_hat, P=P, Omega_tilde=Omega), {'innovation': torque}
 
     def conditioning(self, bearings: Array, k: Array) -> Array:
-        """``K_i = Σ_j k_ij b_ij b_ijᵀ``, plus ``k_c c cᵀ`` along ``c = b_ij × b_ik`` for
-        exactly two neighbours ((9) and Lemma 2)."""
+        """``K_i = Σ_j k_ij b_ij b_ijᵀ`` (+ ``k_c c cᵀ``, ``c = b_ij × b_ik``, two neighbours)."""
         K = super().conditioning(bearings, k)
         if len(bearings) == 2:
             c = np.cross(bearings[0], bearings[1])

@@ -1,21 +1,14 @@
-"""Pose errors, measured as each method's estimate frame requires, and the recording of a run.
+"""Pose errors, measured as each method's estimate frame requires, and the recording of a run:
+the one place (batch simulator, netsim, DDS monitor) that turns estimates into errors.
 
-The one place (batch simulator, netsim, DDS monitor) that turns true poses and estimates into
-errors. Estimates are first mapped to the world frame (:func:`to_world`):
+Estimates are first mapped to the world frame (:func:`to_world`). ``COMMON_YAW_TRANSLATION``
+(``p̂_i ≈ R_z(a) p_i + t``) is aligned exactly in closed form: ``a*``, the circular mean of the
+yaw offsets ``ψ̂_i - ψ_i``, minimises ``Σ_i |e^{ιψ̂_i} - e^{ι(ψ_i + a)}|²``, and ``t* = mean_i
+(p̂_i - R_z(a*) p_i)``; one ``a*`` for attitudes and positions, so a yaw/position inconsistency
+is not hidden. ``ANCHOR_BODY`` estimates take the anchor's true pose (it fixes the gauge).
 
-- ``EstimateFrame.WORLD``: they are world poses already;
-- ``EstimateFrame.COMMON_YAW_TRANSLATION`` (no anchor): in a frame related to the world by one
-  unknown yaw ``a`` and translation ``t``, ``p̂_i ≈ R_z(a) p_i + t``. Aligned exactly in closed
-  form: ``a*`` is the circular mean of the yaw offsets ``ψ̂_i - ψ_i`` (it minimises
-  ``Σ_i |e^{ιψ̂_i} - e^{ι(ψ_i + a)}|²``), ``t* = mean_i (p̂_i - R_z(a*) p_i)``; one ``a*`` for
-  attitudes and positions, so a yaw/position inconsistency is not hidden;
-- ``EstimateFrame.ANCHOR_BODY``: in the anchor's body frame, ``q̂_i ≈ R_aᵀ (p_i - p_a)``,
-  ``Q̂_i ≈ R_aᵀ R_i``; in the world ``p_a + R_a q̂_i``, ``R_a Q̂_i`` with the anchor's true pose
-  (no fitting: the anchor fixes the gauge).
-
-Then, per agent: ``att_err`` is the geodesic angle of ``R_i R̂_iᵀ`` [rad]; ``pos_err`` is
-``‖p_i − p̂_i‖`` [m]; ``att_dist_I`` is Boughellaba & Tayebi's ``|R̃_i|_I`` (their Fig. 2) and
-``pos_err_paper`` their ``‖p̃_i‖ = ‖p_i − R̃_i p̂_i‖`` (Fig. 3)."""
+Per agent: the angle of ``R_i R̂_iᵀ`` [rad], ``‖p_i − p̂_i‖`` [m], and Boughellaba & Tayebi's
+``|R̃_i|_I`` (Fig. 2) and ``‖p_i − R̃_i p̂_i‖`` (Fig. 3)."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -62,8 +55,7 @@ def to_world(frame: EstimateFrame, R: Array, p: Array, R_hat: Array, p_hat: Arra
 def pose_errors(frame: EstimateFrame, R: Array, p: Array, R_hat: Array, p_hat: Array,
                 rows: Sequence[int] | NDArray[np.intp] | None = None,
                 anchor: int | None = None) -> PoseErrors:
-    """Errors of the agents ``rows`` (default: all) of a fleet's true poses ``R``, ``p`` and
-    estimates ``R_hat``, ``p_hat``, after the alignment of ``frame`` (over the whole fleet)."""
+    """Errors of the agents ``rows`` (default: all), after the whole fleet's alignment."""
     R_hat, p_hat = to_world(frame, R, p, R_hat, p_hat, anchor)
     if rows is not None:
         R, p, R_hat, p_hat = R[rows], p[rows], R_hat[rows], p_hat[rows]
@@ -76,8 +68,7 @@ def pose_errors(frame: EstimateFrame, R: Array, p: Array, R_hat: Array, p_hat: A
 @dataclass
 class Trajectories:
     """Positions of the whole fleet at a recording's times, ``(K, N, 3)`` [m], rows in the order
-    of ``agents``: the truth ``p`` and the estimates ``p_hat`` (world frame, :func:`to_world`);
-    ``leaders``: the agents that know their pose."""
+    of ``agents``: the truth ``p`` and the estimates ``p_hat`` (world frame, :func:`to_world`)."""
 
     agents: list[str]
     leaders: list[str]
@@ -93,9 +84,8 @@ class Trajectories:
 @dataclass
 class Recording:
     """Errors of every estimating agent (``followers``) at the recorded times, ``(K, F)`` as in
-    :class:`PoseErrors`; moving fleets' :class:`Trajectories` (else None); ``extra``: method- or
-    motion-specific columns ``(K,)`` by name (De Carli et al.: each pair's relative-yaw error
-    ``rel_yaw_err_<a>_<b>``, each robot's ``formation_err_<agent>_m``)."""
+    :class:`PoseErrors`; moving fleets' :class:`Trajectories`; ``extra`` columns ``(K,)`` by name
+    (De Carli et al.: ``rel_yaw_err_<a>_<b>``, ``formation_err_<agent>_m``)."""
 
     t: Array
     followers: list[str]

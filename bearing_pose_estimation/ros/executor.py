@@ -1,19 +1,9 @@
 """A lean single-threaded executor: one wait, then every ready queue drained. The nodes ran it
-until rclpy's EventsExecutor measured cheaper (``node_main.EXECUTORS``, BENCHMARKS.md); it stays
-as ``BEARING_POSE_EXECUTOR=draining``.
-
-rclpy's ``SingleThreadedExecutor`` rebuilds its wait set in Python on every wake-up and then
-runs *one* callback, wrapped in a Task; its cost per message grows with the entities in the
-process (``bench/executor_ceiling.py``, receiver CPU per message, all threads): 262 µs with one
-subscription, 436-553 µs with 8 (one agent), 1 644 µs with 40 (five agents), against 99-144 µs
-for this loop, which waits once and then takes *every* queued message of each ready
-subscription, handed to their callbacks in arrival order across subscriptions (DDS reception
-stamps): a node sees the same sequence as with a one-message-at-a-time executor.
-
-Kept from rclpy: timers (``call_timer`` then the callback), services (the parameter services),
-QoS event handlers (waitables), guard-condition callbacks, ``wake()``/``shutdown()``. Not
-supported: clients (adding a node with one raises) and callback groups' mutual exclusion
-(irrelevant on one thread). A coroutine callback raises ``TypeError``.
+until rclpy's EventsExecutor measured cheaper (BENCHMARKS.md); ``BEARING_POSE_EXECUTOR=draining``
+selects it. rclpy's ``SingleThreadedExecutor`` rebuilds its wait set in Python on every wake-up and
+runs *one* callback (262-1 644 µs of CPU per message, ``bench/executor_ceiling.py``, against 99-144
+µs here); this loop takes *every* queued message of each ready subscription, in arrival order.
+Clients (adding a node with one raises) and coroutine callbacks (``TypeError``) are not served.
 """
 from __future__ import annotations
 

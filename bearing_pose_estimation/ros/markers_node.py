@@ -1,11 +1,8 @@
 """``fleet_markers``: the fleet in RViz without configuration (``bearing-pose run --rviz``, or
-``ros2 run bearing_pose_estimation fleet_markers --ros-args -p scenario_file:=...``).
-
-Reads every agent's ``estimate``, ``ground_truth`` (when a simulator publishes it) and
-``bearings``, and publishes ``/visualization_marker_array`` (:mod:`msg_defs.rviz`: estimated and
-true poses, the sensing graph's edges, the measured bearing rays) at ``rate`` [Hz] of its
-clock. In RViz: Fixed Frame = the scenario's ``world_frame``, add a MarkerArray display on that
-topic.
+``ros2 run bearing_pose_estimation fleet_markers --ros-args -p scenario_file:=...``): draws every
+agent's ``estimate``, ``ground_truth`` and ``bearings`` on ``/visualization_marker_array``
+(:mod:`msg_defs.rviz`) at ``rate`` [Hz] of its clock. In RViz: Fixed Frame = the scenario's
+``world_frame``, and a MarkerArray display on that topic.
 """
 from __future__ import annotations
 

@@ -1,19 +1,12 @@
 """``monitor``: errors of a distributed run, in the same files as ``bearing-pose simulate``.
 
-Subscribes to every follower's ``/<agent>/estimate`` and ``/<agent>/ground_truth``, pairs them
-at identical stamps on a ``record_every`` grid (estimates come every estimator step, truth every
-ground-truth period, so the grid instants carry both), and writes ``metrics.csv``,
-``summary.json`` and the plots to ``out_dir`` once ``t = duration`` is recorded, then exits.
-Interrupted, it writes what it has; so it does once the truth of ``t = duration`` has waited
-:data:`END_PATIENCE_S` of wall time for an estimate that does not come (a robot whose process
-died and was not started again), naming whose. Progress goes to stdout. Errors come from
-:func:`metrics.results.pose_errors`, as in the batch simulator. A moving fleet, or a method whose
-estimates are not world poses, needs the whole fleet's truth (:func:`watched`): the trajectories
-then go to ``trajectories.png``, and the alignment covers every agent, as in the batch
-simulator.
-
-With ``bag`` set (``bearing-pose run --record``), it also records every estimate, truth,
-measurement and channel topic of the run into that new rosbag2 directory (:mod:`.recorder`).
+Pairs every follower's ``estimate`` and the ``ground_truth`` at identical stamps on a
+``record_every`` grid, measures them as the batch simulator does (:func:`watched`) and writes
+the outputs to ``out_dir`` once ``t = duration`` is recorded, or when interrupted, or once the
+truth of ``t = duration`` has waited :data:`END_PATIENCE_S` of wall time for an estimate that
+does not come (a robot whose process died and was not started again), naming whose; with
+``bag`` (``bearing-pose run --record``) it also records the run into that new rosbag2
+(:mod:`.recorder`).
 """
 from __future__ import annotations
 
@@ -76,13 +69,11 @@ class MonitorNode(Node):
                       'empty: no bag')
         warn_unknown_parameters(self)
 
-        self.followers = [a.name for a in s.followers]
-        # Errors as the method's estimates require (the followers are every agent that
-        # estimates; for methods without leaders, the whole fleet).
+        self.followers = [a.name for a in s.followers]   # every agent that estimates
         self.method = s.estimator()
         self.frame = self.method.frame
-        # The method's margins on the whole fleet's estimates (Presenza et al.: angle
-        # rigidity), on /diagnostics once per second of simulated time; min and last logged.
+        # The method's fleet margins, on /diagnostics once per simulated second; min and last
+        # logged.
         self.pub_diag = self.create_publisher(wire.DiagnosticArray, wire.DIAGNOSTICS, 10)
         self.margins: dict[str, list[tuple[float, float]]] = {}
         self.watched = watched(s)
@@ -90,10 +81,9 @@ class MonitorNode(Node):
         self._truth: dict[int, dict[int, tuple]] = {}   # ns -> watched index -> (R, p)
         self._est: dict[int, dict[int, tuple]] = {}     # ns -> follower index -> (R̂, p̂)
         self.tracks: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t, p, p̂ in world)
-        # The instants recorded lately (older ones are below their minimum): bounded.
-        self._recorded: deque[int] = deque(maxlen=_RECENT)
-        # t and the errors' four columns per record, as flat doubles: a long run's recording
-        # costs 8 bytes a value, not a Python object per row (issue 15's soak).
+        self._recorded: deque[int] = deque(maxlen=_RECENT)   # older: below their minimum
+        # t and the errors' columns per record, as flat doubles: 8 bytes a value, not a Python
+        # object per row (issue 15's soak).
         self.rows = array('d')
         self.width = 1 + len(PoseErrors._fields) * len(self.followers)
         self._last_progress = -np.inf

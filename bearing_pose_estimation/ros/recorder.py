@@ -1,11 +1,7 @@
 """A rosbag2 of a run (``bearing-pose run --record``), written with `rosbags` (pure Python: the
-PyPI ROS wheels have no ``ros2 bag``).
-
-The subscriptions are raw: each message's CDR bytes go into the bag as they came, never
-deserialised, so recording costs one callback and one write per message. Storage is MCAP,
-what ``ros2 bag`` writes by default since Iron; ``ros2 bag info`` / ``play`` read it on a full
-install, and :mod:`studies.tum` reads it here. Messages are stamped with the node's clock
-(simulated time in a run), as ``ros2 bag record --use-sim-time`` does.
+PyPI ROS wheels have no ``ros2 bag``): each message's CDR bytes as they came (raw
+subscriptions), stamped with the node's clock (as ``ros2 bag record --use-sim-time``), in MCAP,
+``ros2 bag``'s default since Iron (:mod:`studies.tum` reads it).
 """
 from __future__ import annotations
 
@@ -24,8 +20,7 @@ from .. import msg_defs as wire
 
 
 class BagRecorder:
-    """Records ``topics`` (name, message class) on ``node`` into a new bag directory ``path``
-    (which must not exist: a bag is never overwritten)."""
+    """Records ``topics`` (name, message class) on ``node`` into the new bag ``path``."""
 
     def __init__(self, node: Node, path: Path, topics: list[tuple[str, type]]) -> None:
         typestore = get_typestore(Stores.ROS2_JAZZY)

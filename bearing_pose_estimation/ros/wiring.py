@@ -17,10 +17,8 @@ def listener_counts(scenario: Scenario) -> Counter[tuple[str, str]]:
 
 
 def recorded_topics(scenario: Scenario, fleet: str = '') -> list[tuple[str, type]]:
-    """Every topic of a run worth a bag (``run --record``), with its type: per agent its
-    estimate, ground truth, gyro, bearings, the sensors the scenario simulates and the
-    channels its method sends on topics of their own (its ``pose`` with the covariance); and
-    /diagnostics. Each has a publisher in every run, so a recorder can wait for them."""
+    """Every topic of a run worth a bag (``run --record``), with its type: per agent its pose
+    topics, sensors and channels, and /diagnostics; each has a publisher in every run."""
     method = scenario.estimator()
     channels = {topic: wire.channel_type(chans[0]) for topic, chans in
                 wire.by_topic([c for c in method.sends if c.sensor is None]).items()}

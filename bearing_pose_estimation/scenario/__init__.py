@@ -1,7 +1,5 @@
-"""Scenarios: the typed model (:mod:`.model`), YAML parsing with errors that name the field and
-the fix (:mod:`.parse`), the checks of each method's assumptions (:mod:`.check`), random
-valid fleets (:mod:`.generate`), the truth model every simulator runs (:mod:`.truth`) and each
-agent's logic as the scenario defines it (:mod:`.agents`). No rclpy."""
+"""Scenarios: the typed model, YAML parsing, the methods' checks, random valid fleets, the truth
+every simulator runs and each agent's runtime as the scenario defines it. No rclpy."""
 from ..core.errors import ScenarioError
 from .check import check_scenario
 from .model import (Agent, BearingPerturbation, Neighbour, Noise, RandomInit, Scenario,

@@ -1,14 +1,12 @@
-"""``check_scenario``: no two agents collocated (bearings between them are undefined), then the
-method's own assumptions (:meth:`Estimator.check`: Assumption 2 and M_i for Boughellaba &
-Tayebi, K_i for Tran et al., ...). A moving scenario is also checked along its sampled motion:
-close approaches, and what the motion breaks (:meth:`Estimator.check_motion`).
-"""
+"""``check_scenario``: no two agents collocated, then the method's own assumptions; a moving
+scenario also along its sampled motion (close approaches, :meth:`Estimator.check_motion`)."""
 from __future__ import annotations
 
 import math
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from ..core import graph
 from ..estimators.base import CheckReport, Finding, Sensor
@@ -27,7 +25,7 @@ def check_scenario(scenario: Scenario) -> CheckReport:
     """Every finding on ``scenario`` for its method, collocated agents first."""
     pos = np.stack([a.position for a in scenario.agents])
     collocated = []
-    for i, j in graph.collocated_pairs(pos):
+    for i, j in sorted(cKDTree(pos).query_pairs(graph.COLLOCATED_M)):
         a, b = scenario.agents[i].name, scenario.agents[j].name
         collocated.append(Finding('error', b, 'position', f'collocated with {a}',
                                   f'move {b} or {a}: bearings between them are undefined'))
@@ -42,10 +40,9 @@ def check_scenario(scenario: Scenario) -> CheckReport:
 
 
 def sample_truth(scenario: Scenario, step: float = SAMPLE_STEP_S) -> tuple[Array, Array]:
-    """``(times (K,), positions (K, N, 3))`` [s], [m]: the truth from 0 to the duration, about
-    ``step`` apart (coarser for huge fleets). Integrated by :class:`.truth.Truth`, attitudes
-    included (at 0.05 s the paper's 9 rad/s move a body-frame agent 2e-5 m off in 60 s); with a
-    body-frame velocity the integration step stays at most ``step``."""
+    """``(times (K,), positions (K, N, 3))`` [s], [m]: the truth about ``step`` apart (coarser
+    for huge fleets), integrated at most ``step`` apart with a body-frame velocity (at 0.05 s
+    the paper's 9 rad/s move an agent 2e-5 m off in 60 s)."""
     n = len(scenario.agents)
     coarse = max(step, scenario.duration * n / MAX_AGENT_SAMPLES)
     n_samples = max(1, math.ceil(scenario.duration / coarse - 1e-9))

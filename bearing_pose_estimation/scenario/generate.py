@@ -1,9 +1,8 @@
 """Random valid scenarios of any size, reproducible from a seed.
 
-Agents fill a cube ``MIN_SPACING_M`` apart, the leaders near the centre. Each follower sees 2-3
-of its nearest placed agents (both leaders or a follower: acyclic, reachable from both leaders),
-one pair at least ``MIN_SPREAD_DEG`` from collinear (at 15 deg the smallest non-zero eigenvalue
-of ``M_i`` is 0.03: convergence crawls). An agent with no valid set waits for more agents.
+Agents fill a cube ``MIN_SPACING_M`` apart, the leaders near the centre; each follower sees 2-3
+of its nearest placed agents (acyclic, reachable from both leaders), one pair at least
+``MIN_SPREAD_DEG`` from collinear (at 15 deg the smallest eigenvalue of ``M_i`` is 0.03).
 
 Moving fleets (``speed > 0``, as ``config/paper_8_agents_moving.yaml``): ``v_a(t) = V (cos(w t
 + φ_a), sin(w t + φ_a), 0.3 cos(0.6 w t + 2 φ_a))`` in the world frame, a circle of radius
@@ -51,16 +50,14 @@ def _positions(n: int, rng: np.random.Generator) -> np.ndarray:
     return pts[[first, second] + rest]
 
 
-def _spread_ok(p: np.ndarray, i: int, nbrs: list[int]) -> bool:
-    d = p[nbrs] - p[i]
+def _valid(p: np.ndarray, i: int, pick: list[int]) -> bool:
+    # Reachable from both leaders (0, 1): sees both, or a follower (by induction).
+    if not (any(j >= 2 for j in pick) or {0, 1} <= set(pick)):
+        return False
+    d = p[pick] - p[i]
     b = d / np.linalg.norm(d, axis=1, keepdims=True)
     sines = np.linalg.norm(np.cross(b[:, None, :], b[None, :, :]), axis=-1)
     return bool(sines.max() >= np.sin(np.radians(MIN_SPREAD_DEG)))
-
-
-def _valid(p: np.ndarray, i: int, pick: list[int]) -> bool:
-    # Reachable from both leaders (0, 1): sees both, or a follower (by induction).
-    return (any(j >= 2 for j in pick) or {0, 1} <= set(pick)) and _spread_ok(p, i, pick)
 
 
 def _choose_neighbours(p: np.ndarray, i: int, placed: np.ndarray, tree: cKDTree,

@@ -24,8 +24,7 @@ class Neighbour:
 
 @dataclass(frozen=True)
 class Agent:
-    """One agent. Units SI; frames: ``position`` and ``attitude`` (body → world) in ``world``,
-    at t = 0; ``velocity``: its translation (None: static)."""
+    """One agent: ``position``, ``attitude`` (body → world) at t = 0; ``velocity`` or None."""
 
     name: str
     position: NDArray[np.float64]
@@ -51,9 +50,8 @@ class RandomInit:
 
 @dataclass(frozen=True)
 class BearingPerturbation:
-    """Deterministic bearing perturbation (Tran, Anderson & Ahn 2020): every measured bearing
-    is ``rot_X(θ0 sin(2π f t)) b``, the rotation about the body axis ``X`` (the paper: "an
-    arbitrary direction, e.g. the principal axes"; default x)."""
+    """Tran, Anderson & Ahn (2020): every bearing is ``rot_X(θ0 sin(2π f t)) b``, about the body
+    axis ``X`` (the paper: "an arbitrary direction, e.g. the principal axes")."""
 
     amplitude_deg: float   # θ0, in [0, 90]
     frequency_hz: float    # f > 0
@@ -62,17 +60,10 @@ class BearingPerturbation:
 
 @dataclass(frozen=True)
 class Noise:
-    """Measurement noise, all off by default; applied by :mod:`sim.noise`.
-
-    - ``gyro_std`` [rad/s]: white noise on each gyro sample (at ``simulation.imu_rate``), per
-      axis; ``gyro_bias`` [rad/s]: constant body-frame bias, the same for every agent, plus
-      each agent's own, drawn once per axis from ``N(0, gyro_bias_std²)``.
-    - ``bearing_std`` [rad]: each bearing is turned by a random rotation perpendicular to it,
-      each of whose two components has this standard deviation (the RMS angle is
-      ``√2 · bearing_std``: 1° gives 1.41°).
-    - ``bearing_perturbation``: the deterministic ``rot_X(θ0 sin 2πft)`` of each bearing;
-      ``outlier_probability``: chance that a bearing is replaced by a random unit vector.
-    - ``seed``: seeds every random draw, so a scenario and seed give the same run."""
+    """Measurement noise, all off by default (:mod:`sim.noise`): ``gyro_std`` [rad/s] per gyro
+    sample and axis; ``gyro_bias`` [rad/s] plus each agent's own, ``N(0, gyro_bias_std²)``;
+    ``bearing_std`` [rad] per component of a rotation perpendicular to each bearing (RMS angle
+    ``√2 · bearing_std``); the probability of an outlier; the ``seed`` of every draw."""
 
     gyro_std: float = 0.0
     gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -85,10 +76,9 @@ class Noise:
 
 @dataclass(frozen=True)
 class SensorSpec:
-    """One simulated moving-robot sensor: its rate [Hz] and the standard deviation of the
-    white noise on each component of every sample (0: noise-free). Odometry: ``std`` on the
-    linear velocity [m/s], ``angular_std`` on the angular rate [rad/s]; relative positions and
-    ranges [m]; bearing rates [1/s]."""
+    """One simulated moving-robot sensor: its rate [Hz] and the white noise's std on each
+    component of a sample: [m] (relative positions, ranges), [1/s] (bearing rates), [m/s]
+    (odometry; ``angular_std`` [rad/s] on its rate)."""
 
     rate: float
     std: float = 0.0
@@ -101,8 +91,7 @@ class SensorSpec:
 
 @dataclass(frozen=True)
 class Sensors:
-    """The sensors beyond gyro and bearings (``sensors:`` in the file). Each is simulated when
-    the file lists it or the method needs it; odometry also whenever the fleet moves."""
+    """The sensors beyond gyro and bearings (``sensors:``; :meth:`Scenario.simulates`)."""
 
     odometry: SensorSpec = SensorSpec(100.0)
     relative_positions: SensorSpec = SensorSpec(50.0)
@@ -118,11 +107,10 @@ class Sensors:
 
 @dataclass(frozen=True)
 class FormationControl:
-    """The formation controller that moves the agents with a ``formation_position``
+    """The formation controller of the agents with a ``formation_position``
     (:mod:`core.formation`, De Carli et al. (30)-(31)): gain ``k_c`` [1/s], speed bound
-    ``nu_max`` [m/s]; ``mode`` ``exogenous`` (true yaws: the motion does not depend on the
-    estimates) or ``paper`` (estimated yaws: a closed loop, batch simulator only); evaluated
-    at ``rate`` [Hz] and held in the body frame in between."""
+    ``nu_max`` [m/s], ``mode`` (``paper``, on the estimated yaws: batch simulator only),
+    evaluated at ``rate`` [Hz] and held in the body frame in between."""
 
     k_c: float = 1.0
     nu_max: float = 1.0
@@ -204,8 +192,7 @@ class Scenario:
         return estimators.build(self.method, self.gains)
 
     def fleet(self) -> Fleet:
-        """What the method knows of this fleet (:class:`estimators.fleet.Fleet`), built once
-        (the initial estimates come from the scenario's own seed)."""
+        """What the method knows of this fleet (:class:`estimators.fleet.Fleet`), built once."""
         if self._fleet is None:
             R0, p0 = initial_estimates(self)
             positions = np.stack([a.position for a in self.agents])
@@ -271,8 +258,7 @@ class Scenario:
         return any(a.yaw is not None for a in self.agents)
 
     def simulates(self, sensor: str) -> bool:
-        """The simulators produce ``sensor`` (a :data:`Sensors.NAMES` entry): listed in
-        ``sensors:``, needed by the method, or odometry of a moving fleet."""
+        """``sensor`` is listed, needed by the method, or odometry of a moving fleet."""
         if sensor == 'bearing_rates' and self.sensors.bearing_rates.from_bearings:
             return False   # estimated by the robots from their bearings: no sensor
         needs = {s.value for s in estimators.get(self.method).sensors}
@@ -285,8 +271,7 @@ class Scenario:
                                           and self.sensors.bearing_rates.from_bearings)
 
     def not_distributable(self) -> str | None:
-        """Why the nodes (and netsim) cannot run this scenario, with the fix; None if they
-        can. (Formation control's paper mode is refused where it is chosen.)"""
+        """Why the nodes (and netsim) cannot run this scenario, with the fix, or None."""
         closed = [a.name for a in self.agents
                   if a.velocity is not None and a.velocity.frame == 'anchor_estimate']
         if closed:
@@ -308,9 +293,7 @@ class Scenario:
 
     def sensing_edges(self) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
         """``(tail, head)`` of every sensing edge (i measures its neighbour j), in file order."""
-        edges = np.array([(i, self.index[nb.name]) for i, a in enumerate(self.agents)
-                          for nb in a.neighbours], dtype=np.intp).reshape(-1, 2)
-        return edges[:, 0].copy(), edges[:, 1].copy()
+        return self.fleet().sensing_edges()
 
     def sensing_targets(self, name: str) -> list[str]:
         """Agents that ``name`` measures bearings to: its neighbours, and its listeners unless
@@ -329,9 +312,7 @@ class Scenario:
 
 
 def initial_truth(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The true poses at t = 0 in the method's estimate frame, ``(R (N,3,3), p (N,3))``: the
-    world frame, or the anchor's body frame (``Q_i = R_aᵀ R_i``, ``q_i = R_aᵀ (p_i - p_a)``)
-    for methods with an anchor."""
+    """The true poses at t = 0 in the method's estimate frame, ``(R (N,3,3), p (N,3))``."""
     R0 = np.stack([a.attitude for a in scenario.agents])
     p0 = np.stack([a.position for a in scenario.agents])
     if scenario.anchor is not None:

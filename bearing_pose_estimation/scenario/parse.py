@@ -1,9 +1,6 @@
-"""Scenario files: YAML → validated, typed :class:`.model.Scenario`.
-
-The format: the README ("Scenario format") and ``config/paper_8_agents.yaml``. Every error names
-the file, the field (``agents[3] (agent_4).neighbours[1]``) and the fix. Structural checks live
-here; each method's graph assumptions in its estimator's ``check`` (:func:`.check_scenario`).
-"""
+"""Scenario files (README, "Scenario format"): YAML → validated, typed :class:`.model.Scenario`.
+Every error names the file, the field (``agents[3] (agent_4).neighbours[1]``) and the fix. The
+methods' graph assumptions are their estimators' ``check`` (:func:`.check_scenario`)."""
 from __future__ import annotations
 
 import dataclasses
@@ -159,9 +156,8 @@ def _profile(ctx: _Ctx, value: Any, where: str) -> VectorProfile:
 
 
 def _velocity(ctx: _Ctx, value: Any, where: str) -> LinearVelocity:
-    """``{world: [x, y, z]}`` (dp/dt = v), ``{body: [x, y, z]}`` (dp/dt = R v) or
-    ``{anchor_estimate: [x, y, z]}`` (a velocity v wanted in the anchor's frame, applied as the
-    body command ``u = Q̂ᵀ v`` with the agent's own attitude estimate) [m/s]."""
+    """``{world: [x, y, z]}``, ``{body: [...]}`` or ``{anchor_estimate: [...]}`` [m/s]
+    (:class:`core.motion.LinearVelocity`)."""
     m = _mapping(ctx, value, where, {'world', 'body', 'anchor_estimate'})
     if len(m) != 1:
         raise ctx.fail(where, 'give the velocity in exactly one frame, `world`, `body` or '
@@ -173,8 +169,7 @@ def _velocity(ctx: _Ctx, value: Any, where: str) -> LinearVelocity:
 
 def _anchor(ctx: _Ctx, value: Any) -> tuple[str, tuple[str, ...], bool]:
     """``{agent: agent_1, ranged: [agent_2, agent_3], pinned: false}``: the anchor, the two
-    agents whose relative position (bearing and range) it measures, and whether it holds
-    ``(I, 0)`` instead of estimating its own pose."""
+    agents whose relative position it measures, and whether it holds ``(I, 0)``."""
     m = _mapping(ctx, value, 'anchor', {'agent', 'ranged', 'pinned'}, {'agent', 'ranged'})
     agent = _string(ctx, m['agent'], 'anchor.agent')
     ranged = m['ranged']

@@ -12,8 +12,7 @@ from .model import Scenario, initial_estimates
 
 
 def agent_specs(scenario: Scenario) -> list[AgentSpec]:
-    """Every agent's spec, in the scenario's order; ScenarioError when the nodes cannot run
-    the scenario (:meth:`Scenario.not_distributable`)."""
+    """Every agent's spec, in the scenario's order (ScenarioError: not distributable)."""
     problem = scenario.not_distributable()
     if problem:
         raise ScenarioError(f'{scenario.source}: {problem}')

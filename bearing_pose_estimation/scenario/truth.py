@@ -1,21 +1,12 @@
-"""The truth of a scenario, the one model behind the batch simulator, the simulator node and
-the check of a moving scenario (:func:`.check.sample_truth`).
-
-``dR_i/dt = R_i [ω_i(t)]x`` and ``dp_i/dt = v_i(t)`` (world-frame velocity) or ``R_i(t) v_i(t)``
-(body-frame) are advanced together over steps of ``dt`` (the estimator step in the batch
-simulator, ``simulation.internal_step`` in the node): the 4th-order Magnus increment for the
-rotation, the closed-form integral or 3-point Gauss-Legendre quadrature for the translation
-(:mod:`core.motion`). Static agents (the default) never move.
-
-Yaw-only fleets (``yaw:`` splines, De Carli et al.) have ``R_i = R_z(ψ_i(t))`` exactly. Their
-formation controller (:mod:`core.formation`) is evaluated every ``1/formation_control.rate``
-and its body-frame velocity held in between (a sampled-data plant, the note's §7). In the
-``paper`` mode it uses the estimated yaws: the batch simulator sets
-:attr:`Truth.controller_yaws` before each step (unset: the true yaws). Agents with an
-``anchor_estimate`` velocity (Presenza et al., case 2) apply ``u_i = Q̂_iᵀ v_i(t)`` with their
-attitude estimate in the anchor frame, held over the step: the batch simulator calls
-:meth:`Truth.command` before each step (else the true ``Q_i = R_aᵀ R_i``, the converged loop).
-The sensors' true values are defined by its methods (:meth:`Truth.world_bearings` and after)."""
+"""The truth of a scenario, the one model behind the batch simulator, the simulator node and the
+check of a moving scenario, with the sensors' true values. Rotation and translation are advanced
+together over steps of ``dt`` (:mod:`core.motion`: Magnus, closed-form or Gauss-Legendre); yaw
+splines (De Carli et al.) give ``R_i = R_z(ψ_i(t))`` exactly. Their formation controller
+(:mod:`core.formation`) is evaluated every ``1/formation_control.rate`` and held in between (a
+sampled-data plant, the note's §7), in the ``paper`` mode on the yaws the batch simulator sets in
+:attr:`Truth.controller_yaws`. Agents with an ``anchor_estimate`` velocity (Presenza et al., case
+2) hold ``u_i = Q̂_iᵀ v_i(t)`` over the step with the estimate :meth:`Truth.command` gets (else the
+true ``Q_i = R_aᵀ R_i``)."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -128,8 +119,7 @@ class Truth:
         return self._next[1]
 
     def displacement(self) -> Array:
-        """``δ_i = R_i(t)ᵀ (p_i(t + dt) - p_i(t))`` ``(N, 3)`` [m]: the translation over the
-        step in the body frame at its start (what odometry integrates)."""
+        """``δ_i = R_i(t)ᵀ (p_i(t + dt) - p_i(t))`` ``(N, 3)`` [m], what odometry integrates."""
         if not self.moves:
             return np.zeros_like(self.p)
         if self._next_delta is None or self._next_delta[0] != self.k:
@@ -147,8 +137,7 @@ class Truth:
         return self._next_delta[1]
 
     def controller_velocity(self) -> Array:
-        """The formation controller's body-frame velocities now ``(N, 3)`` [m/s]
-        (:func:`core.formation.body_velocity`)."""
+        """The formation controller's body-frame velocities now ``(N, 3)`` [m/s]."""
         assert self.control is not None and self.yaws is not None
         psi = self.yaws(self.t)
         used = (self.controller_yaws if self.control.mode == 'paper'
@@ -158,9 +147,8 @@ class Truth:
                                        self._controlled)
 
     def command(self, Q_hat: Array | None = None) -> None:
-        """Set the held body commands of the ``anchor_estimate`` agents for the step from
-        now, ``u_i = Q̂_iᵀ v_i(t)``, with the attitude estimates ``Q_hat`` ``(N, 3, 3)`` in
-        the anchor frame (None: the true ``R_aᵀ R_i``)."""
+        """Hold ``u_i = Q̂_iᵀ v_i(t)`` over the step from now, ``Q_hat`` ``(N, 3, 3)`` the attitude
+        estimates in the anchor frame (None: the true ``R_aᵀ R_i``)."""
         if Q_hat is None:
             assert self.anchor is not None
             Q_hat = in_anchor_frame(self.R, self.p, self.anchor)[0]
@@ -246,8 +234,7 @@ class Truth:
 
 
 class OnTruth:
-    """What a simulator built on a :class:`Truth` shows of it: true attitudes ``R``
-    ``(N, 3, 3)``, positions ``p`` ``(N, 3)`` [m] and the time ``t`` [s]."""
+    """A simulator's true attitudes ``R``, positions ``p`` [m] and time ``t`` [s]."""
 
     truth: Truth
 

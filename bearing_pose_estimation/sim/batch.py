@@ -1,20 +1,7 @@
-"""Batch simulator: the whole network in one process, vectorised over agents and edges.
-
-The truth (:class:`scenario.truth.Truth`) is stepped at the estimator step ``h``; every agent's
-estimator advances with :meth:`estimators.base.Estimator.step` (what the estimator node calls
-for its one agent) on measurements taken at the step's start: own bearings
-``b^i_ij = R_iᵀ b_ij``, what each neighbour j sends i (:meth:`Estimator.outbox`, from j's state
-and its measurement ``b^j_ji = R_jᵀ b_ji`` at the same instant), the gyro increment
-``ΔR exp(h (bias + noise))`` over the step and, when the scenario simulates odometry, the
-displacement ``δ = R(t)ᵀ (p(t+h) - p(t))``, the exact integral of what the samples report.
-Noise comes from :class:`.noise.NoiseModel`, as in the simulator node's world. Leaders know
-their pose: their estimate is their truth.
-
-What a step reads follows the method's declarations (:mod:`estimators.base`): its edges
-(:func:`estimators.base.edge_table`), its own point sensors on the edges that measure them
-(noise drawn there only), the other end's measurement by its ``partner_sensor``, what every
-agent sends (round 1, then round 2 from what round 1 gave), the other ends' or the anchor's
-odometry. The truth moves with the estimates where it depends on them (:mod:`scenario.truth`)."""
+"""Batch simulator: the whole network in one process, vectorised over agents and edges. The
+truth is stepped at the estimator step ``h``; every agent's :meth:`Estimator.step` (what a node
+calls for its one agent) reads what the method declares, measured at the step's start with
+:class:`.noise.NoiseModel`'s noise. Leaders' estimates are their truth."""
 from __future__ import annotations
 
 import dataclasses
@@ -39,8 +26,7 @@ Array = NDArray[np.float64]
 
 
 class BatchSimulator(OnTruth):
-    """Simulate a parsed (and checked) scenario with all agents' estimators in lock-step;
-    ``step``: the integration and estimator step [s], default ``1 / scenario.frequency``."""
+    """All agents' estimators in lock-step; ``step`` [s]: default ``1 / scenario.frequency``."""
 
     def __init__(self, scenario: Scenario, step: float | None = None) -> None:
         self.scenario = scenario
@@ -48,15 +34,12 @@ class BatchSimulator(OnTruth):
         self.estimator = scenario.estimator()
         self.truth = Truth(scenario, self.h)
         self.n = len(scenario.agents)
-        self.leader_idx = np.array([scenario.index[name] for name in scenario.leaders],
-                                   dtype=np.intp)
-        self.follower_idx = np.array([scenario.index[a.name] for a in scenario.followers],
-                                     dtype=np.intp)
-        tail, head = scenario.sensing_edges()
-        k = np.array([nb.k for a in scenario.agents for nb in a.neighbours])
-        self.table = edge_table(type(self.estimator), self.n, tail, head, k,
-                                scenario.anchor_index,
-                                [scenario.index[r] for r in scenario.ranged])
+        fleet = scenario.fleet()
+        self.leader_idx = np.array(fleet.leaders, dtype=np.intp)
+        self.follower_idx = np.array(fleet.followers, dtype=np.intp)
+        k = np.array([k for nbrs in fleet.neighbours for _, k in nbrs])
+        self.table = edge_table(type(self.estimator), self.n, *fleet.sensing_edges(), k,
+                                fleet.anchor, fleet.ranged)
         self.edges = self.table.edges(self.n)
         self.edge_nbr = self.table.other
         # Static positions: the world bearings never change (per sensor's rows).
@@ -83,8 +66,7 @@ class BatchSimulator(OnTruth):
         self.x.p_hat = np.array(value, dtype=float)
 
     def true_estimates(self) -> tuple[Array, Array]:
-        """The true poses now in the method's estimate frame, ``(R (N,3,3), p (N,3))``: the
-        world's, or the anchor's body frame for methods with an anchor."""
+        """The true poses now in the method's estimate frame, ``(R (N,3,3), p (N,3))``."""
         a = self.scenario.anchor_index
         if a is None or self.estimator.frame is not EstimateFrame.ANCHOR_BODY:
             return self.R.copy(), self.p.copy()
@@ -163,8 +145,9 @@ class BatchSimulator(OnTruth):
                 have[:, None], derotated - so3.cross(omega[agent], bearings), 0.0)
             mask[Sensor.BEARING_RATES.value] = have   # none before the second bearing
         self._prev_delta_R = delta_R
-        if self.odometry:
-            values_agent[DISPLACEMENT] = self.odometry_displacement()
+        if self.odometry:   # R(t)ᵀ (p(t+h) - p(t)), noise averaged over the samples it spans
+            values_agent[DISPLACEMENT] = self.noise.odometry_displacement(
+                self.truth.displacement(), self.h, self.h * self.scenario.sensors.odometry.rate)
         displacement = values_agent.get(DISPLACEMENT, np.zeros((self.n, 3)))
         if cls.peer_odometry == 'links':
             edge[PEER_DELTA_R], edge[PEER_DISPLACEMENT] = delta_R[other], displacement[other]
@@ -204,12 +187,6 @@ class BatchSimulator(OnTruth):
             for name, err in zip(names, formation_error(self.p, self.truth.p_star)):
                 out[f'formation_err_{name}_m'] = float(err)
         return out
-
-    def odometry_displacement(self) -> Array:
-        """What odometry reports of the step, ``R(t)ᵀ (p(t+h) - p(t))`` ``(N, 3)`` [m], noise
-        averaged over the samples the step spans (``sensors.odometry.rate``)."""
-        samples = self.h * self.scenario.sensors.odometry.rate
-        return self.noise.odometry_displacement(self.truth.displacement(), self.h, samples)
 
     def gyro_increment(self, delta_R: Array) -> Array:
         """What the gyros report over the step: ``ΔR exp(h (bias + noise))`` (body frame),

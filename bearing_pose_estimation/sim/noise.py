@@ -1,20 +1,9 @@
-"""Measurement noise models of the batch simulator (:mod:`.batch`) and the simulator node's
-world (:mod:`.world`), all off unless the scenario's ``noise:`` (:class:`scenario.Noise`) says.
-
-- Gyro: measured rate = true rate + constant body-frame bias + white noise; agent i's bias is
-  ``gyro_bias + N(0, gyro_bias_std² I)``, drawn once.
-- Bearings, in this order: the deterministic ``rot_X(θ0 sin(2π f t)) b`` (Tran, Anderson & Ahn
-  2020; ``rot_X`` about the body axis ``X``, default x; t the measurement time), a random
-  rotation perpendicular to the bearing (:func:`perturb_bearings`) and, with probability
-  ``outlier_probability``, replacement by a uniformly random unit vector.
-- Moving-robot sensors (``sensors:``, :class:`scenario.Sensors`): white noise of the sensor's
-  ``std`` on each component of odometry velocities (``angular_std`` on its rates), relative
-  positions, bearing rates and ranges.
-
-The batch simulator's step of ``h`` gets ``h`` times the noise averaged over the samples it
-spans (gyro increments ``ΔR exp(h (bias + noise))``, odometry displacements). Every draw comes
-from generators seeded by ``noise.seed``, one stream each for the bias, the gyro white noise,
-the bearings and each moving-robot sensor: same scenario, seed and calls, same measurements."""
+"""Measurement noise of both simulators (:class:`scenario.Noise`, :class:`scenario.Sensors`).
+Bearings get, in this order, the deterministic ``rot_X(θ0 sin(2π f t)) b`` (t the measurement
+time), a random rotation perpendicular to them and outliers. A batch step of ``h`` gets ``h``
+times the noise averaged over the samples it spans. Every draw comes from generators seeded by
+``noise.seed``, one stream each for the bias, the gyro white noise, the bearings and each
+moving-robot sensor: same scenario, seed and calls, same measurements."""
 from __future__ import annotations
 
 import math
@@ -37,17 +26,6 @@ def perturb_bearings(b: Array, std: float, rng: np.random.Generator) -> Array:
     phi = std * rng.normal(size=b.shape)
     phi -= b * np.sum(phi * b, axis=-1, keepdims=True)
     return np.einsum('eab,eb->ea', so3.exp(phi), b)
-
-
-def replace_outliers(b: Array, probability: float, rng: np.random.Generator) -> Array:
-    """Replace each row of ``b`` ``(n, 3)``, with ``probability``, by a uniform unit vector."""
-    if probability == 0.0 or b.shape[0] == 0:
-        return b
-    hit = rng.random(b.shape[0]) < probability
-    out = b.copy()
-    v = rng.normal(size=(int(np.count_nonzero(hit)), 3))
-    out[hit] = v / np.linalg.norm(v, axis=1, keepdims=True)
-    return out
 
 
 class NoiseModel:
@@ -97,7 +75,13 @@ class NoiseModel:
             angle = math.radians(bp.amplitude_deg) * math.sin(2.0 * math.pi * bp.frequency_hz * t)
             b = b @ so3.axis_angle(bp.axis, angle).T
         b = perturb_bearings(b, nz.bearing_std, self.bearing_rng)
-        return replace_outliers(b, nz.outlier_probability, self.bearing_rng)
+        if nz.outlier_probability == 0.0 or b.shape[0] == 0:
+            return b
+        hit = self.bearing_rng.random(b.shape[0]) < nz.outlier_probability   # a uniform unit
+        v = self.bearing_rng.normal(size=(int(np.count_nonzero(hit)), 3))   # vector instead
+        b = b.copy()
+        b[hit] = v / np.linalg.norm(v, axis=1, keepdims=True)
+        return b
 
     def _white(self, sensor: str, x: Array, std: float) -> Array:
         return x if std == 0.0 else x + std * self.sensor_rng[sensor].normal(size=x.shape)

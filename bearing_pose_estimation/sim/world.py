@@ -1,16 +1,7 @@
-"""The simulated world of the simulator node: the truth (:class:`scenario.truth.Truth`) stepped
-every ``simulation.internal_step`` (1 ms by default, far finer than any published rate),
-sampled like sensors, with the noise of :class:`.noise.NoiseModel` (as the batch simulator's):
-
-- gyro: the interval average over the last IMU period, ``ω̄ = log(R(t_prev)ᵀ R(t)) / Δt`` (the
-  constant rate that produces the true rotation, :mod:`core.gyro`), plus bias and white noise;
-- bearings: instantaneous ``R_i(t)ᵀ b_ij`` to every agent i senses (its neighbours and its
-  listeners: sensing is two-way);
-- the moving-robot sensors the scenario simulates (:meth:`scenario.Scenario.simulates`), each
-  at its rate: odometry, the interval-average body twist over the last period (the SE(3)
-  logarithm of the pose increment over the period, :func:`core.odometry.twist_of`), with the
-  pose dead-reckoned from the twists; instantaneous relative positions, bearing rates and
-  ranges to the agents i senses."""
+"""The simulator node's world: the truth (:class:`scenario.truth.Truth`) stepped every
+``simulation.internal_step`` (1 ms by default), sampled with :class:`.noise.NoiseModel`'s noise:
+the gyro and odometry as interval averages over their last period (the constant rate, or SE(3)
+twist, that gives the true increment), the other sensors instantaneous."""
 from __future__ import annotations
 
 import numpy as np
@@ -88,8 +79,8 @@ class World(OnTruth):
         return j, self.noise.bearings(b_body, self.t)
 
     def odometry(self) -> tuple[Array, Array]:
-        """Interval-average body twists ``(v (N, 3) [m/s], ω (N, 3) [rad/s])`` over the odometry
-        period ending now, noise included; :attr:`odom_R`, :attr:`odom_p` advance by them."""
+        """Interval-average body twists ``(v [m/s], ω [rad/s])`` ``(N, 3)`` over the period
+        ending now, noise included; :attr:`odom_R`, :attr:`odom_p` advance by them."""
         period = self.sensor_every['odometry'] * self.dt
         R0, p0 = self._last_odometry
         v, omega = twist_of(np.swapaxes(R0, -1, -2) @ self.R,

@@ -1,4 +1,2 @@
-"""What is made of runs: summaries with one naming and one steady-state rule (:mod:`.summary`)
-of the recordings :mod:`metrics.results` measures, plots (:mod:`.plots`), and the studies:
-methods side by side (:mod:`.compare`), Monte Carlo (:mod:`.montecarlo`), Tran et al.'s noise
-experiment (:mod:`.noise_study`), on a process pool (:mod:`.parallel`). No rclpy."""
+"""What is made of runs: summaries (:mod:`.summary`), plots, and the studies (methods side by
+side, Monte Carlo, Tran et al.'s noise experiment) on a process pool. No rclpy."""

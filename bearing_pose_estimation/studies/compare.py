@@ -1,8 +1,6 @@
 """Several estimators on one scenario, side by side (``bearing-pose compare``); no rclpy.
-Every method runs with the same truth, initial estimates and noise seed; only ``method`` and the
-gains change. :func:`method_data` derives one scenario per method from the file's content (its
-gains: the file's where its method has them, else the defaults, then ``--gains``). The batch
-runs and the optional distributed ones (``bearing-pose run`` on the derived file) share it."""
+Every method runs with the same truth, initial estimates and noise seed: :func:`method_data`
+derives one scenario per method from the file, for the batch and the distributed runs."""
 from __future__ import annotations
 
 import copy
@@ -158,8 +156,8 @@ def rows(runs: list[Run]) -> list[dict[str, Any]]:
 
 
 def write_csv(runs: list[Run], path: Path) -> None:
-    """``t`` then, per run, its mean attitude [rad] and position [m] errors, on the batch
-    runs' time grid (DDS runs, recorded at the monitor's rows, are interpolated onto it)."""
+    """``t`` then each run's mean attitude [rad] and position [m] errors, on the batch runs'
+    time grid (DDS runs interpolated onto it)."""
     t = runs[0].rec.t
     series = [np.interp(t, r.rec.t, e.mean(axis=1), right=np.nan)
               for r in runs for e in (r.rec.att_err, r.rec.pos_err)]

@@ -1,10 +1,8 @@
 """Monte Carlo runs of the batch simulator (``bearing-pose montecarlo``); no rclpy.
 
-Run ``i`` (0-based) with first seed ``S`` is the scenario with ``noise.seed`` and, if it draws
-random initial estimates, ``initial_estimates.random.seed`` set to ``S + i``, so
-``bearing-pose simulate`` with those seeds replays it exactly. Each worker of the process pool
-loads the file itself. Per run: every quantity of :mod:`.summary`. Outputs: ``runs.csv`` (one
-row per run), ``summary.json`` (statistics over runs) and ``montecarlo.png``."""
+Run ``i`` (0-based) with first seed ``S`` is the scenario with ``noise.seed`` and any
+``initial_estimates.random.seed`` set to ``S + i``, so ``bearing-pose simulate`` with those
+seeds replays it exactly. Per run: every quantity of :mod:`.summary`."""
 from __future__ import annotations
 
 import math
@@ -41,7 +39,7 @@ def reseed(scenario: Scenario, seed: int) -> Scenario:
 
 @dataclass
 class RunResult:
-    """One run: its mean errors over time and the per-run quantities (see module doc)."""
+    """One run: its mean errors over time and its quantities."""
 
     run: int
     seed: int
@@ -69,16 +67,14 @@ def run_montecarlo(scenario_file: str | Path, runs: int, seed: int, duration: fl
                    jobs: int | None = None,
                    progress: Callable[[int, int, RunResult], None] | None = None
                    ) -> list[RunResult]:
-    """``runs`` simulations with seeds ``seed .. seed + runs - 1`` on ``jobs`` processes
-    (:func:`.parallel.run_all`), in run order."""
+    """``runs`` simulations, seeds ``seed ..``, on ``jobs`` processes, in run order."""
     calls = [(str(scenario_file), i, seed + i, duration) for i in range(runs)]
     return run_all(run_one, calls, jobs, progress)
 
 
 def statistics(values: list[float | None]) -> dict[str, Any]:
-    """mean, std (population, ddof=0), p5, p50, p95 (numpy's linear interpolation) and max over
-    the runs that have a finite value; ``n`` counts those runs, ``never_converged`` the None
-    ones. Every statistic is None when no run has a value."""
+    """mean, std (ddof=0), p5, p50, p95 and max over the ``n`` runs with a finite value (None
+    without any); ``never_converged`` counts the None ones."""
     finite = np.array([v for v in values if v is not None and math.isfinite(v)], dtype=float)
     out: dict[str, Any] = {'n': int(finite.size)}
     if finite.size:

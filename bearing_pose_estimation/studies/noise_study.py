@@ -1,11 +1,9 @@
-"""The Tran, Anderson & Ahn (2020) noise experiment for several methods (``noise-study``).
-Every measured bearing is ``rot_X(θ0 sin 2πft) · b`` (Section 5.1: θ0 up to 10°, f from 1 to
-25 Hz; ``rot_X`` about a body axis ``X``, x by default). For each method (derived as
-``compare`` does) and each (θ0, f), one batch run; the perturbation replaces the file's
-``bearing_perturbation``, the rest of its noise stays. The estimates stay in a neighbourhood of
-the truth: per run, the ``steady_*`` quantities of :mod:`.summary` (``*_max``: its radius).
-The bearings are sampled once per estimator step ``h``: frequencies above ``1/(4h)`` (fewer
-than 4 samples per period) would alias and are refused."""
+"""The Tran, Anderson & Ahn (2020) noise experiment for several methods (``noise-study``):
+every bearing is ``rot_X(θ0 sin 2πft) · b`` (Section 5.1: θ0 up to 10°, f from 1 to 25 Hz),
+replacing the file's ``bearing_perturbation``; one batch run per method (derived as
+``compare`` does) and (θ0, f), and its ``steady_*`` quantities (``*_max``: the radius of the
+neighbourhood of the truth the estimates stay in). The bearings are sampled once per step
+``h``: frequencies above ``1/(4h)`` would alias and are refused."""
 from __future__ import annotations
 
 import dataclasses
@@ -43,15 +41,6 @@ class CaseResult:
     values: dict[str, float]
 
 
-def perturbed(scenario: Scenario, amplitude_deg: float, frequency_hz: float,
-              axis: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> Scenario:
-    """``scenario`` with every bearing perturbed by ``rot_X(θ0 sin 2πft)``, X = ``axis``."""
-    bp = BearingPerturbation(amplitude_deg=amplitude_deg, frequency_hz=frequency_hz,
-                             axis=axis)
-    return dataclasses.replace(scenario, noise=dataclasses.replace(scenario.noise,
-                                                                   bearing_perturbation=bp))
-
-
 def check_frequencies(frequencies_hz: Sequence[float], scenario: Scenario) -> None:
     """ValueError if a frequency is not resolved by the estimator step (< 4 samples/period)."""
     limit = 0.25 / scenario.step
@@ -64,8 +53,11 @@ def check_frequencies(frequencies_hz: Sequence[float], scenario: Scenario) -> No
 
 
 def run_case(scenario: Scenario, case: Case, duration: float) -> CaseResult:
-    """One run (in a worker process): simulate, then the steady-state quantities."""
-    sim = BatchSimulator(perturbed(scenario, case.amplitude_deg, case.frequency_hz, case.axis))
+    """One run (in a worker process) with the case's perturbation: the steady-state quantities."""
+    bp = BearingPerturbation(amplitude_deg=case.amplitude_deg, frequency_hz=case.frequency_hz,
+                             axis=case.axis)
+    noise = dataclasses.replace(scenario.noise, bearing_perturbation=bp)
+    sim = BatchSimulator(dataclasses.replace(scenario, noise=noise))
     values = quantities(sim.run(duration, record_every=max(RECORD_EVERY, scenario.step)))
     return CaseResult(case, {q: float(cast(float, values[q])) for q in QUANTITIES})
 

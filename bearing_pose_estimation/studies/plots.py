@@ -1,9 +1,7 @@
-"""PNG plots of a run: Boughellaba & Tayebi's Fig. 2, the average attitude error norm
-``(1/n_f) Σ |R̃_i|_I``, and Fig. 3, the average position error norm ``(1/n_f) Σ ‖p̃_i‖`` with
-``p̃_i = p_i − R̃_i p̂_i``, each in the paper's linear view and a log view, per follower.
-Also: De Carli et al.'s cascade (:func:`plot_cascade`), the errors by role of Presenza et al.
-(:func:`write_role_outputs`), the methods compared (:func:`write_compare_plot`) and a moving
-fleet's trajectories (:func:`plot_trajectories`)."""
+"""PNG plots of a run: Boughellaba & Tayebi's Fig. 2, the average ``|R̃_i|_I``, and Fig. 3, the
+average ``‖p_i − R̃_i p̂_i‖``, each in the paper's linear view and a log view, per follower; De
+Carli et al.'s cascade, Presenza et al.'s errors by role, the methods compared and a moving
+fleet's trajectories."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -68,9 +66,9 @@ ROLES_CSV = 'errors_by_role.csv'
 
 def write_role_outputs(rec: Recording, groups: dict[str, list[str]], out_dir: Path,
                        title: str = '', plot: bool = True) -> list[Path]:
-    """Robots with roles (Presenza et al.: sensing, free), as the paper's figures: :data:`ROLES_CSV`
-    (``t``, then per group its mean position [m] and attitude [rad] errors) and
-    :data:`ROLES_PLOT` (per robot, a line style per group, its mean bold); nothing if no groups."""
+    """Robots by role (Presenza et al.: sensing, free): :data:`ROLES_CSV` (``t``, then per group
+    its mean position [m] and attitude [rad] errors) and :data:`ROLES_PLOT` (a line style per
+    group, its mean bold); nothing without groups."""
     if not groups:
         return []
     cols = {g: [rec.followers.index(a) for a in names if a in rec.followers]
@@ -107,8 +105,8 @@ CASCADE_PLOT = 'cascade.png'
 
 
 def plot_cascade(rec: Recording, path: Path, title: str = '') -> Path | None:
-    """Write ``path`` (:data:`CASCADE_PLOT`): one panel per stage of the cascade (pairs'
-    relative yaw, yaw, position, formation); None (nothing written) without per-pair errors."""
+    """One panel per stage of the cascade (pairs' relative yaw, yaw, position, formation), or
+    None (nothing written) without per-pair errors."""
     pairs = {k: v for k, v in rec.extra.items() if k.startswith('rel_yaw_err_')}
     if not pairs:
         return None
@@ -214,9 +212,8 @@ def _equal_box(ax: Any, points: np.ndarray) -> None:
 
 
 def plot_trajectories(rec: Recording, path: Path, title: str | None = None) -> Path:
-    """Write ``path``: the true (solid) and estimated (dashed, world frame) trajectories in 3D,
-    one colour per agent (at most :data:`MAX_TRAJECTORIES`), next to the followers' position
-    errors ``‖p_i - p̂_i‖``. ValueError if ``rec`` has no trajectories."""
+    """The true (solid) and estimated (dashed, world frame) trajectories in 3D, one colour per
+    agent (at most :data:`MAX_TRAJECTORIES`), beside the followers' position errors."""
     from matplotlib.lines import Line2D
     from matplotlib.ticker import MaxNLocator
 
@@ -256,14 +253,11 @@ def plot_trajectories(rec: Recording, path: Path, title: str | None = None) -> P
     some = f'{len(shown)} of {n} agents shown' if len(shown) < n else f'{n} agents'
     ax.set_title(f'Trajectories in the world frame ({some})', fontsize=11)
 
-    key = [Line2D([], [], color='0.25', lw=1.6, label='true'),
-           Line2D([], [], color='0.25', lw=0.9, ls='--', label='estimate'),
-           Line2D([], [], color='0.25', marker='o', ls='', ms=5, mec='k', mew=0.5,
-                  label='start (true)'),
-           Line2D([], [], color='0.25', marker='o', ls='', ms=5, mfc='none',
-                  label='start (estimate)'),
-           Line2D([], [], color='0.25', marker='*', ls='', ms=10, mec='k', mew=0.5,
-                  label='leader (knows its pose)')]
+    key = [Line2D([], [], color='0.25', label=label, **style) for label, style in (
+        ('true', dict(lw=1.6)), ('estimate', dict(lw=0.9, ls='--')),
+        ('start (true)', dict(marker='o', ls='', ms=5, mec='k', mew=0.5)),
+        ('start (estimate)', dict(marker='o', ls='', ms=5, mfc='none')),
+        ('leader (knows its pose)', dict(marker='*', ls='', ms=10, mec='k', mew=0.5)))]
     if len(shown) <= 12:   # a key per agent
         key += [Line2D([], [], color=colours[i], lw=2.4 if is_leader[i] else 1.6,
                        label=tr.agents[i] + (' (leader)' if is_leader[i] else ''))

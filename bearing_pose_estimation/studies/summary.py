@@ -1,25 +1,17 @@
-"""What a run is summed up by, one name per quantity and one steady-state rule, for every
-output (``simulate``, ``run``, ``compare``, ``montecarlo``, ``noise-study``).
-
+"""What a run is summed up by, one name per quantity and one steady-state rule, for every output.
 The quantities of a :class:`metrics.results.Recording` (:data:`QUANTITIES`; "mean" is over the
 estimating agents at one time): ``final_*`` at the last record; ``steady_*_mean_*``, the time
-average of the mean error over the steady-state window (the last :data:`STEADY_FRACTION` of the
-run), ``steady_*_max_*`` the worst agent at any record of it (the radius of the neighbourhood
-the estimates stay in); ``*_below_*_from_s``, :func:`settling_time` of the mean errors to the
-fixed thresholds (None: never); ``*_settled_from_s``, the noise-robust convergence time: to
-``max(fixed threshold, SETTLE_FACTOR × steady mean)``.
+average of the mean error over the last :data:`STEADY_FRACTION` of the run, ``steady_*_max_*`` the
+worst agent at any record of it (the radius of the neighbourhood the estimates stay in);
+``*_below_*_from_s``, :func:`settling_time` of the mean errors to fixed thresholds (None: never);
+``*_settled_from_s``, to ``max(fixed threshold, SETTLE_FACTOR × steady mean)``.
 
 Why: with noise the errors settle on a floor (about 3.4e-3 rad and 2.2e-2 m with 1° bearing
-noise on the paper scenario) above the fixed thresholds, which then say "never"; a threshold
-relative to the run's own floor dates when it got there. Why 3: after converging, the mean
-attitude error still fluctuates up to 2.3 times its floor (20 runs of
-``config/paper_noisy.yaml``, after 20 s); with 2, two of them "settle" at 41 and 42 s instead
-of about 12 s. As the error decays exponentially, the factor only shifts the time by the log
-of its ratio in time constants. The run must be long enough for the window to hold the floor.
-
-Files: ``metrics.csv``: ``t``, ``attitude_error_mean_rad``, ``position_error_mean_m``, then
-``att_<agent>`` per estimating agent, then ``pos_<agent>``, then the extra columns;
-``summary.json``: the run's description, every quantity, per agent final errors and times."""
+noise on the paper scenario) above the fixed thresholds; a threshold relative to the run's own
+floor dates when it got there. Why 3: the converged mean attitude error still fluctuates up to
+2.3 times its floor (20 runs of ``config/paper_noisy.yaml``, after 20 s); with 2, two of them
+"settle" at 41 and 42 s instead of about 12 s (the factor shifts an exponential decay by the
+log of its ratio in time constants). The window must hold the floor."""
 from __future__ import annotations
 
 import csv

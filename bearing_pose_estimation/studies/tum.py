@@ -1,9 +1,6 @@
 """TUM trajectories from a run's bag (``bearing-pose export-tum DIR``), what evo reads: per
-agent, ``<agent>_estimate.tum`` (its ``estimate``, in the method's estimate frame) and
-``<agent>_truth.tum`` (its ``ground_truth``, world frame), one pose per line
-``t x y z qx qy qz qw``, t the message stamp [s] (a stamp sent twice, as the t = 0 state until
-the clock starts, once). ``evo_ape tum DIR/tum/agent_3_truth.tum DIR/tum/agent_3_estimate.tum``
-gives the agent's position errors (``--align`` for estimates that are not world poses)."""
+agent, ``<agent>_estimate.tum`` (in the method's estimate frame) and ``<agent>_truth.tum``, one
+pose per line ``t x y z qx qy qz qw``, t the message stamp [s] (a stamp sent twice, once)."""
 from __future__ import annotations
 
 from pathlib import Path
