@@ -16,7 +16,10 @@ A fleet "runs in real time" when speed >= 0.99 and missed < 1 %.
 
     .venv/bin/python bench/fleet_scale.py [--agents 8 16 32] [--per-process 1 4]
         [--frequency 50] [--publish-rate 50] [--imu-rate 50] [--duration 20]
-        [--executor events|draining|rclpy]
+        [--executor events|draining|rclpy] [--discovery-server] [--domain-id N]
+
+With ``--discovery-server`` the runs discover through their own Fast DDS discovery server
+(``bearing-pose run --discovery-server``), and may use more than 32 processes.
 """
 from __future__ import annotations
 
@@ -44,12 +47,13 @@ _MATCHED = re.compile(r'all matched after (?P<s>\S+) s')
 
 
 def run_config(scenario_file: Path, out_dir: Path, duration: float, domain_id: int,
-               agents_per_process: int = 1) -> plan.RunConfig:
+               agents_per_process: int = 1, discovery_server: bool = False) -> plan.RunConfig:
     """A fleet run as this bench makes it: paced at real time (``--real-time-factor 1``), no
     plots, a generous timeout."""
     return plan.RunConfig(scenario_file=scenario_file, out_dir=out_dir, duration=duration,
                           domain_id=domain_id, real_time_factor=1.0, plots=False,
-                          agents_per_process=agents_per_process, timeout=20 * duration + 300)
+                          agents_per_process=agents_per_process, timeout=20 * duration + 300,
+                          discovery_server=0 if discovery_server else None)
 
 
 def simulator_stats(log: str) -> dict[str, float]:
@@ -73,15 +77,16 @@ def run_one(n: int, k: int, args: argparse.Namespace, tmp: Path) -> dict[str, fl
     scenario_file = tmp / f'fleet_{n}.yaml'
     scenario_file.write_text(yaml.safe_dump(data, sort_keys=False))
     scenario = load_scenario(scenario_file)
-    cfg = run_config(scenario_file, tmp / f'run_{n}_{k}', args.duration,
-                     1 + os.getpid() % 101, k)
+    cfg = run_config(scenario_file, tmp / f'run_{n}_{k}', args.duration, args.domain_id, k,
+                     args.discovery_server)
     result = launch.launch_run(scenario, cfg)
     row: dict[str, float | str] = {'agents': n, 'per_process': k, 'ok': str(result.ok)}
     row.update(simulator_stats((cfg.logs_dir / 'simulator.log').read_text()))
-    est = {name: cpu for name, cpu in result.cpu_s.items() if name not in ('simulator', 'monitor')}
+    others = ('simulator', 'monitor', plan.DISCOVERY_SERVER)
+    est = {name: cpu for name, cpu in result.cpu_s.items() if name not in others}
     row['cpu_agent_pct'] = 100 * sum(est.values()) / n / result.wall_s
     row['cpu_sim_pct'] = 100 * result.cpu_s.get('simulator', float('nan')) / result.wall_s
-    rss = [v for name, v in result.rss_mb.items() if name not in ('simulator', 'monitor')]
+    rss = [v for name, v in result.rss_mb.items() if name not in others]
     row['rss_process_mb'] = sum(rss) / max(len(rss), 1)
     row['rss_agent_mb'] = sum(rss) / n
     summary = cfg.out_dir / 'summary.json'
@@ -104,11 +109,15 @@ def main() -> None:
     ap.add_argument('--position-std', type=float, help='initial position error std [m]')
     ap.add_argument('--executor', choices=sorted(EXECUTORS), default=DEFAULT_EXECUTOR,
                     help=f'executor of every node (default: {DEFAULT_EXECUTOR}, as in production)')
+    ap.add_argument('--discovery-server', action='store_true',
+                    help="discovery through the run's own Fast DDS discovery server")
+    ap.add_argument('--domain-id', type=int, default=1 + os.getpid() % 101)
     args = ap.parse_args()
     os.environ[EXECUTOR_ENV] = args.executor  # the children inherit it
     print(f'estimators at {args.frequency:g} Hz, publishing at {args.publish_rate:g} Hz, gyro at '
           f'{args.imu_rate:g} Hz, {args.executor} executor, {args.duration:g} s simulated, '
-          '--real-time-factor 1\n')
+          '--real-time-factor 1'
+          f'{", through a discovery server" if args.discovery_server else ""}\n')
     print('| agents | agents/process | speed | missed | CPU/agent | simulator CPU | '
           'RSS/process | RSS/agent | discovery | errors at end (rad, m) |')
     print('|---|---|---|---|---|---|---|---|---|---|')

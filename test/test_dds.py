@@ -22,7 +22,7 @@ from bearing_pose_estimation.core import so3
 from bearing_pose_estimation import msg_defs as wire
 from bearing_pose_estimation.msg_defs import cdr, rviz
 from bearing_pose_estimation.cli.main import main
-from bearing_pose_estimation.plan.dds import TEARDOWN_HUNG, dds_env, shm_files
+from bearing_pose_estimation.plan.dds import TEARDOWN_HUNG, dds_env, free_udp_port, shm_files
 from bearing_pose_estimation.plan.processes import (BAG_DIR, ProcessSpec, RunConfig,
                                                     find_executable, plan_processes, write_params)
 from bearing_pose_estimation.ros.estimator_group import CPU_SPLIT_ENV
@@ -530,3 +530,64 @@ def test_two_fleets_side_by_side_on_one_domain(tmp_path, no_leftovers):
         assert f'namespace="{fleet}"' in launch_file and f'to="/{fleet}/clock"' in launch_file
     a, b = (_read_metrics(runs[f][1] / 'metrics.csv') for f in ('team_a', 'team_b'))
     assert a[0.0] != b[0.0]   # two different runs, not one seen twice
+
+
+# A process's own participant (rclpy): hears /clock or not; on SIGINT prints how many clock
+# messages it heard and the most /clock publishers it ever matched.
+CLOCK_LISTENER = r'''
+import sys, rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.qos import qos_profile_sensor_data
+from rosgraph_msgs.msg import Clock
+
+rclpy.init()
+node = rclpy.create_node('clock_listener')
+heard, matched = [], 0
+sub = node.create_subscription(Clock, '/clock', heard.append, qos_profile_sensor_data)
+try:
+    while rclpy.ok():
+        rclpy.spin_once(node, timeout_sec=0.1)
+        matched = max(matched, sub.get_publisher_count())
+except (KeyboardInterrupt, ExternalShutdownException):
+    pass
+finally:
+    print(len(heard), matched, flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+'''
+
+
+def test_a_fleet_discovers_through_its_own_discovery_server(tmp_path, no_leftovers):
+    """`run --discovery-server`: the fleet discovers through the server `run` starts (the run
+    equals netsim), a participant pointed at that server hears the fleet's /clock, and one
+    that is not (simple discovery, same domain, same host) never even matches it: the fleet
+    is reachable only through the server. The server stops cleanly after the nodes, and
+    nothing is left in /dev/shm (no_leftovers)."""
+    scenario_file, out = tmp_path / 'explicit.yaml', tmp_path / 'run'
+    scenario_file.write_text(yaml.safe_dump(EXPLICIT_FLEET))
+    port = free_udp_port()
+    listeners = {}
+    for how, server in (('simple', None), ('client', f'127.0.0.1:{port}')):
+        env = dds_env(DOMAIN, tmp_path / f'{how}_ros', discovery_server=server)
+        listeners[how] = subprocess.Popen(   # tmp_path in argv: no_leftovers watches it
+            [sys.executable, '-c', CLOCK_LISTENER, str(tmp_path)], env=env,
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    with (tmp_path / 'run.log').open('w') as log:
+        run = subprocess.run(
+            [sys.executable, '-m', 'bearing_pose_estimation.cli.main', 'run', str(scenario_file),
+             '--duration', '3', '--real-time-factor', '1', '--out', str(out), '--no-plots',
+             '--domain-id', str(DOMAIN), '--discovery-server-port', str(port)],
+            cwd=Path(__file__).resolve().parents[1], stdout=log, stderr=subprocess.STDOUT,
+            timeout=240)
+    heard = {}
+    for how, listener in listeners.items():
+        listener.send_signal(signal.SIGINT)
+        heard[how] = tuple(map(int, listener.communicate(timeout=30)[0].split()))
+    text = (tmp_path / 'run.log').read_text()
+    assert run.returncode == 0, text[-3000:]
+    assert f'discovery server on 127.0.0.1:{port}' in text
+    assert_equals_netsim(out / 'metrics.csv', scenario_file)
+    assert heard['client'][0] > 0 and heard['client'][1] == 1, heard
+    assert heard['simple'] == (0, 0), heard
+    assert (out / 'logs' / 'discovery_server.log').read_text().rstrip().endswith(
+        '### Server shut down ###')   # SIGINT, not SIGKILL

@@ -46,8 +46,10 @@ params = next(iter(yaml.safe_load(Path(params_file).read_text()).values()))['ros
 default = 'monitor' if name == 'monitor' else 'loop'
 behaviour = os.environ.get('STANDIN_' + name.upper(), default)
 record = dict(pid=os.getpid(), argv=sys.argv, params=params, behaviour=behaviour,
+              started=time.monotonic(),
               env=dict((k, os.environ.get(k)) for k in
-                       ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID', 'ROS_LOG_DIR')))
+                       ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID', 'ROS_LOG_DIR',
+                        'ROS_DISCOVERY_SERVER', 'ROS_SUPER_CLIENT')))
 
 
 def stop(signum, frame):
@@ -115,15 +117,51 @@ while True:
 '''
 
 
+# fast-discovery-server: says it runs (or, as $STANDIN_DISCOVERY_SERVER=port_in_use, fails as
+# the real one does); on SIGINT records which node stand-ins were still alive.
+STANDIN_SERVER = '''#!{python}
+import json, os, signal, sys, time
+from pathlib import Path
+
+records = Path(os.environ['STANDIN_DIR'])
+if os.environ.get('STANDIN_DISCOVERY_SERVER') == 'port_in_use':
+    print('Server creation failed with the given settings. Please review locators setup.')
+    sys.exit(1)
+
+
+def alive(pid):
+    try:
+        stat = Path(f'/proc/{{pid}}/stat').read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(')') + 2] not in 'ZX'
+
+
+def stop(signum, frame):
+    others = [json.loads(p.read_text()) for p in records.glob('*.json')]
+    record['alive_at_stop'] = sorted(r['argv'][0] for r in others if alive(r['pid']))
+    (records / 'discovery_server.json').write_text(json.dumps(record))
+    sys.exit(0)
+
+
+record = dict(pid=os.getpid(), argv=sys.argv, started=time.monotonic())
+signal.signal(signal.SIGINT, stop)
+print('### Server is running ###', flush=True)
+while True:
+    time.sleep(0.05)
+'''
+
+
 @pytest.fixture
 def standins(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     """Install the stand-ins; return the folder where they record themselves."""
     bin_dir, records = tmp_path / 'bin', tmp_path / 'records'
     bin_dir.mkdir()
     records.mkdir()
-    for name in plan.NODE_EXECUTABLES:
+    for name in plan.NODE_EXECUTABLES + (plan.DISCOVERY_SERVER_EXE,):
         exe = bin_dir / name
-        exe.write_text(STANDIN.format(python=sys.executable))
+        standin = STANDIN_SERVER if name == plan.DISCOVERY_SERVER_EXE else STANDIN
+        exe.write_text(standin.format(python=sys.executable))
         exe.chmod(0o755)
     monkeypatch.setenv(plan.BIN_DIR_ENV, str(bin_dir))
     monkeypatch.setenv('STANDIN_DIR', str(records))
@@ -212,7 +250,7 @@ def test_executable_lookup_follows_ros2_run(tmp_path, monkeypatch):
 
 def test_bad_command_lines_exit_2(capsys):
     for bad in (['--domain-id', '300'], ['--real-time-factor', '-1'], ['--timeout', '0'],
-                ['--duration', 'nan']):
+                ['--duration', 'nan'], ['--discovery-server-port', '0']):
         with pytest.raises(SystemExit) as exc:
             main(['run', str(PAPER), *bad])
         assert exc.value.code == 2
@@ -230,8 +268,13 @@ def test_a_run_stays_within_the_processes_discovery_connects():
     assert plan.fit_agents_per_process(100, None) == 4                 # 25 + 2
     assert plan.fit_agents_per_process(100, 8) == 8
     with pytest.raises(plan.LaunchError, match=r'40 agents at 1 per process need 42 '
-                       r'processes.*Fix: --agents-per-process 2 or more'):
+                       r'processes.*Fix: --agents-per-process 2 or more.*--discovery-server'):
         plan.fit_agents_per_process(40, 1)
+    # Through a discovery server every process discovers every other (BENCHMARKS.md, "The
+    # discovery server"): no limit, one agent per process unless asked otherwise.
+    assert plan.fit_agents_per_process(40, 1, discovery_server=True) == 1
+    assert plan.fit_agents_per_process(100, None, rviz=True, discovery_server=True) == 1
+    assert plan.fit_agents_per_process(100, 8, discovery_server=True) == 8
 
 
 def test_large_fleets_share_processes(tmp_path, monkeypatch, capsys):
@@ -250,6 +293,14 @@ def test_large_fleets_share_processes(tmp_path, monkeypatch, capsys):
     main(['run', str(big), '--out', str(tmp_path / 'out'), '--duration', '1'])
     assert '40 agents run 2 per process' in capsys.readouterr().err
     assert [cfg.agents_per_process for cfg in started] == [2]
+    assert started[0].discovery_server is None
+    # With its own discovery server: one process per agent, 42 processes.
+    for i, extra in enumerate((['--discovery-server'], ['--discovery-server-port', '11811'])):
+        assert main(['run', str(big), '--out', str(tmp_path / f'server_{i}'), '--duration', '1',
+                     '--agents-per-process', '1', *extra]) == 1   # the stand-in launch_run
+        assert 'per process' not in capsys.readouterr().err
+    assert [(c.agents_per_process, c.discovery_server) for c in started[1:]] == [(1, 0),
+                                                                                 (1, 11811)]
 
 
 def test_missing_executables_name_the_fix(tmp_path, monkeypatch, capsys):
@@ -265,6 +316,7 @@ def test_run_succeeds_and_leaves_nothing_behind(standins, tmp_path, monkeypatch,
     monkeypatch.setattr(dds, 'SHM_GLOB', str(shm / 'fastrtps_*'))
     monkeypatch.setenv('STANDIN_SHM', str(shm))
     monkeypatch.setenv('ROS_DOMAIN_ID', '0')
+    monkeypatch.setenv('ROS_DISCOVERY_SERVER', '192.0.2.1:11811')   # not this run's
     out = tmp_path / 'out'
     assert main(['run', str(PAPER), '--out', str(out), '--duration', '5']) == 0
     captured = capsys.readouterr()
@@ -274,7 +326,8 @@ def test_run_succeeds_and_leaves_nothing_behind(standins, tmp_path, monkeypatch,
     domain = str(1 + os.getpid() % 101)      # private, not the caller's 0
     for rec in recs.values():
         assert rec['env'] == {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
-                              'ROS_DOMAIN_ID': domain, 'ROS_LOG_DIR': str(out / 'logs' / 'ros')}
+                              'ROS_DOMAIN_ID': domain, 'ROS_LOG_DIR': str(out / 'logs' / 'ros'),
+                              'ROS_DISCOVERY_SERVER': None, 'ROS_SUPER_CLIENT': None}
     assert f'ROS_DOMAIN_ID={domain}' in captured.err
     assert recs['agent_2']['params']['agent'] == 'agent_2'
     assert 'known_pose:=ground_truth' in recs['agent_2']['argv']
@@ -323,6 +376,49 @@ def _env(path: Path) -> list[tuple[str, str]]:
     import xml.etree.ElementTree as ET
 
     return [(e.get('name'), e.get('value')) for e in ET.parse(path).getroot().iter('set_env')]
+
+
+def test_run_with_its_own_discovery_server(standins, tmp_path, capsys):
+    """`--discovery-server`: the server starts first, on 127.0.0.1, and says it runs before any
+    node starts; every node gets its address, the simulator (which counts readers in the
+    graph) as a super client; the server stops last, cleanly; fleet.launch.xml starts the
+    same."""
+    out = tmp_path / 'out'
+    assert main(['run', str(PAPER), '--out', str(out), '--duration', '5',
+                 '--discovery-server']) == 0
+    err = capsys.readouterr().err
+    recs = records(standins)
+    server = recs.pop('discovery_server')
+    assert_all_gone({**recs, 'discovery_server': server})
+    port = server['argv'][-1]
+    assert server['argv'][1:] == ['-i', '0', '-l', '127.0.0.1', '-p', port] and int(port) > 0
+    assert f'discovery server on 127.0.0.1:{port}' in err
+    assert server['started'] < min(r['started'] for r in recs.values())
+    assert server['alive_at_stop'] == []   # every node had exited
+    for name, rec in recs.items():
+        assert rec['env']['ROS_DISCOVERY_SERVER'] == f'127.0.0.1:{port}', name
+        assert rec['env']['ROS_SUPER_CLIENT'] == ('TRUE' if name == 'simulator' else None)
+    assert (out / 'logs' / 'discovery_server.log').read_text().startswith(
+        '### Server is running ###')
+    assert ('ROS_DISCOVERY_SERVER', f'127.0.0.1:{port}') in _env(out / plan.LAUNCH_FILE)
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(out / plan.LAUNCH_FILE).getroot()
+    assert [e.get('cmd') for e in root.iter('executable')] == [
+        f'fast-discovery-server -i 0 -l 127.0.0.1 -p {port}']
+    assert [(n.get('exec'), e.get('name'), e.get('value')) for n in root.iter('node')
+            for e in n.iter('env')] == [('simulator', 'ROS_SUPER_CLIENT', 'TRUE')]
+
+
+def test_a_discovery_server_that_cannot_start_stops_the_run(standins, tmp_path, monkeypatch,
+                                                            capsys):
+    monkeypatch.setenv('STANDIN_DISCOVERY_SERVER', 'port_in_use')
+    assert main(['run', str(PAPER), '--out', str(tmp_path / 'out'),
+                 '--discovery-server-port', '11811']) == 1
+    err = capsys.readouterr().err
+    assert 'error: discovery_server exited with code 1' in err
+    assert '| Server creation failed' in err and 'Fix: another --discovery-server-port' in err
+    assert records(standins) == {}   # no node started
 
 
 @pytest.mark.parametrize('behaviour, there_before, warning', [

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from ..plan.dds import (CLEAN_EXITS, DDS_VARIABLES, TEARDOWN_HUNG, clean_shm, dds_env,
-                        shm_files)
+                        free_udp_port, shm_files)
 from ..plan.processes import (CLOCK_STARTED, LAUNCH_FILE, MARKERS, LaunchError, ProcessSpec,
                               RunConfig, find_executable, fit_agents_per_process, launch_xml,
                               plan_processes, write_params)
@@ -40,6 +40,8 @@ RUN_MARKER, PROCESS_MARKER = 'BEARING_POSE_RUN', 'BEARING_POSE_PROCESS'
 # The processes a run goes on without (robots, and the RViz markers); without the simulator
 # (the clock and the truth) or the monitor (the results) it cannot.
 SURVIVABLE = ('estimator', 'estimators', MARKERS)
+SERVER_READY = '### Server is running ###'   # what fast-discovery-server prints once it listens
+SERVER_READY_TIMEOUT_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -188,7 +190,8 @@ class ProcessGroup:
 
     def _popen(self, spec: ProcessSpec, stdout: Any, stderr: Any) -> subprocess.Popen:
         try:
-            return subprocess.Popen(spec.argv, env=self.env, stdin=subprocess.DEVNULL,
+            return subprocess.Popen(spec.argv, env={**self.env, **dict(spec.env)},
+                                    stdin=subprocess.DEVNULL,
                                     stdout=stdout, stderr=stderr, start_new_session=True)
         except OSError as exc:
             raise LaunchError(f'{spec.label}: cannot start {spec.argv[0]}: {exc}') from exc
@@ -317,9 +320,12 @@ class ProcessGroup:
 
     def shutdown(self, grace: float = 10.0, term_grace: float = 5.0) -> list[str]:
         """Stop every child (SIGINT in reverse start order, ``grace`` s in all; SIGTERM,
-        ``term_grace`` s; SIGKILL, loudly); return who needed SIGKILL. Safe to repeat."""
+        ``term_grace`` s; SIGKILL, loudly), the ``stop_last`` ones once the others have exited;
+        return who needed SIGKILL. Safe to repeat."""
+        children = list(reversed(self._children.values()))
         with _signals_deferred(replay=False):
-            killed = self._stop(list(reversed(self._children.values())), grace, term_grace)
+            killed = [name for last in (False, True) for name in self._stop(
+                [c for c in children if c.spec.stop_last == last], grace, term_grace)]
             for child in self._children.values():
                 self._release(child)
         self._after_hung_teardowns()
@@ -342,6 +348,8 @@ class ProcessGroup:
     def _stop(self, children: list[_Child], grace: float, term_grace: float) -> list[str]:
         err = self._stderr or sys.stderr
         alive = self._still_running(children)
+        if not alive:
+            return []
         for child in alive:
             self._signal(child, signal.SIGINT)
         alive = self._wait_all(alive, grace)
@@ -487,15 +495,20 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
     """Write the parameter files, start every process, wait for the monitor, stop the rest.
     Ctrl-C stops everything and propagates. LaunchError: too many processes
     (:func:`fit_agents_per_process`), a missing executable, a failed start."""
-    fit_agents_per_process(len(scenario.agents), cfg.agents_per_process, cfg.rviz)
+    fit_agents_per_process(len(scenario.agents), cfg.agents_per_process, cfg.rviz,
+                           cfg.discovery_server is not None)
     needed = ('estimators' if cfg.agents_per_process > 1 else 'estimator', 'simulator', 'monitor',
               *([MARKERS] if cfg.rviz else []))
     exes = {name: find_executable(name, bin_dir) for name in needed}
     cfg.logs_dir.mkdir(parents=True, exist_ok=True)   # in out_dir
     params = write_params(scenario, cfg)
+    port = None if cfg.discovery_server is None else cfg.discovery_server or free_udp_port()
     specs = plan_processes(scenario, params, cfg.logs_dir, exes.__getitem__,
-                           cfg.agents_per_process, cfg.fleet_namespace)
-    env = dds_env(cfg.domain_id, cfg.logs_dir / 'ros') | {RUN_MARKER: str(cfg.out_dir)}
+                           cfg.agents_per_process, cfg.fleet_namespace, port)
+    server = specs[0] if port is not None else None
+    env = dds_env(cfg.domain_id, cfg.logs_dir / 'ros',
+                  discovery_server=None if port is None else f'127.0.0.1:{port}'
+                  ) | {RUN_MARKER: str(cfg.out_dir)}
     shm_before = shm_files()
     started = time.time()
     (cfg.out_dir / LAUNCH_FILE).write_text(launch_xml(specs, env))
@@ -526,7 +539,10 @@ def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = Non
     try:
         with ProcessGroup(env) as group:
             for spec in specs:
-                group.start(spec)
+                if spec is server:
+                    start_discovery_server(group, spec)
+                else:
+                    group.start(spec)
             print(f'started {len(specs)} processes (logs in {cfg.logs_dir}); waiting for the '
                   f'monitor (timeout {cfg.wall_timeout:g} s)', file=sys.stderr)
             survive = [s.name for s in specs if s.kind in SURVIVABLE]
@@ -582,6 +598,23 @@ def _report_deaths(cfg: RunConfig, deaths: list[Death]) -> None:
         data = json.loads(summary.read_text())
         data['deaths'] = [d.record() for d in deaths]
         summary.write_text(json.dumps(data, indent=2) + '\n')
+
+
+def start_discovery_server(group: ProcessGroup, spec: ProcessSpec) -> None:
+    """Start the server and wait until it listens (a client that starts earlier would find it
+    only at its next retry); LaunchError if it exits or stays silent."""
+    group.start(spec)
+    deadline = time.monotonic() + SERVER_READY_TIMEOUT_S
+    while SERVER_READY not in spec.log.read_text(errors='replace'):
+        code = group.returncode(spec.name)
+        if code is not None or time.monotonic() > deadline:
+            why = (describe_exit(code) if code is not None else
+                   f'did not say it runs within {SERVER_READY_TIMEOUT_S:g} s')
+            raise LaunchError(f'{spec.label} {why}; {quote_tail(spec.log, log_tail(spec.log))}\n'
+                              'Fix: another --discovery-server-port (or leave it out: a free one)')
+        time.sleep(POLL_S)
+    print(f'discovery server on 127.0.0.1:{spec.argv[-1]}: every process discovers through it '
+          f'(ROS_DISCOVERY_SERVER; log {spec.log})', file=sys.stderr)
 
 
 def _failure_after_stop(cfg: RunConfig, specs: list[ProcessSpec], result: RunResult,

@@ -24,7 +24,7 @@ import yaml
 
 from .. import __version__, estimators
 from ..estimators.base import format_gains
-from ..plan.processes import BAG_DIR, MARKERS, LaunchError
+from ..plan.processes import BAG_DIR, DISCOVERY_SERVER, MARKERS, LaunchError
 from ..scenario import Scenario, ScenarioError, check_scenario, load_scenario, parse_scenario
 
 if TYPE_CHECKING:
@@ -308,8 +308,9 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
     if args.domain_id is None and os.environ.get('ROS_DOMAIN_ID'):
         how += f"; the caller's ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} is not used"
     rviz = getattr(args, 'rviz', False)
+    server = args.discovery_server or args.discovery_server_port is not None
     per_process = processes.fit_agents_per_process(len(scenario.agents), args.agents_per_process,
-                                                   rviz)
+                                                   rviz, server)
     if args.agents_per_process is None and per_process > 1:
         print(f'note: {len(scenario.agents)} agents run {per_process} per process, so that '
               f'the run needs at most {processes.MAX_PROCESSES} processes (DDS discovery on '
@@ -318,7 +319,8 @@ def _run_over_dds(scenario: Scenario, scenario_file: Path, out: Path, duration: 
         scenario_file=scenario_file.resolve(), out_dir=out.resolve(), duration=duration,
         domain_id=domain_id, real_time_factor=args.real_time_factor, plots=not args.no_plots,
         timeout=args.timeout, agents_per_process=per_process,
-        record=getattr(args, 'record', False), rviz=rviz, fleet_namespace=args.fleet_namespace)
+        record=getattr(args, 'record', False), rviz=rviz, fleet_namespace=args.fleet_namespace,
+        discovery_server=(args.discovery_server_port or 0) if server else None)
     pace = (f'at most {cfg.real_time_factor:g}x real time' if cfg.real_time_factor > 0
             else 'as fast as the estimators keep up')
     print(f'running {scenario.name} ({scenario.method}) over DDS: {len(scenario.agents)} '
@@ -350,7 +352,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     _refuse_paper_mode_over_dds(scenario)
     derived = args.formation_mode is not None and scenario.formation is not None
     processes = ([a.name for a in scenario.agents] + ['simulator', 'monitor']
-                 + ([MARKERS] if args.rviz else []))
+                 + ([MARKERS] if args.rviz else [])
+                 + ([DISCOVERY_SERVER] if args.discovery_server_port or args.discovery_server
+                    else []))
     plots = [] if args.no_plots else PLOT_FILES + (['trajectories.png'] if scenario.moves
                                                    else [])
     outputs = (['metrics.csv', 'summary.json', 'fleet.launch.xml'] + plots
@@ -462,7 +466,14 @@ def _add_dds_options(p: argparse.ArgumentParser) -> None:
                    help='cap on simulated seconds per wall second (default: 0, no cap)')
     p.add_argument('--agents-per-process', type=int, metavar='K',
                    help='agents per `estimators` process, one node each (default: 1, or the '
-                   'fewest that keep the run within the 32 processes DDS discovery connects)')
+                   'fewest that keep the run within the 32 processes DDS discovery connects; '
+                   'with --discovery-server: 1)')
+    p.add_argument('--discovery-server', action='store_true',
+                   help='start a Fast DDS discovery server on 127.0.0.1 and point every process '
+                   'at it (ROS_DISCOVERY_SERVER): discovery through it, no 32-process limit; '
+                   'for large fleets (docs/discovery_server.md)')
+    p.add_argument('--discovery-server-port', type=int, metavar='PORT',
+                   help="the server's UDP port (implies --discovery-server; default: a free one)")
     p.add_argument('--fleet-namespace', default='', metavar='NS',
                    help='run every node and topic under /NS/, so that fleets share a domain')
     p.add_argument('--timeout', type=float, metavar='S', help='wall-time safety net [s] '
@@ -626,6 +637,9 @@ def main(argv: list[str] | None = None) -> int:
                                      fleet_ns.strip('/')):
         parser.error(f'--fleet-namespace {fleet_ns!r} is not a ROS namespace: letters, digits '
                      'and underscores, not starting with a digit, segments separated by /')
+    port = getattr(args, 'discovery_server_port', None)
+    if port is not None and not 1 <= port <= 65535:
+        parser.error('--discovery-server-port must be in 1..65535 (leave it out: a free one)')
     if getattr(args, 'domain_id', None) is not None and not 0 <= args.domain_id <= 232:
         parser.error('--domain-id must be in 0..232 (ROS 2 domain ids)')
     rtf = getattr(args, 'real_time_factor', None)

