@@ -475,8 +475,7 @@ class Estimator(ABC, Generic[G, S]):
     sends: ClassVar[tuple[Channel, ...]]
     frame: ClassVar[EstimateFrame]
     edge_gains: ClassVar[bool] = True      # per-edge k_ij (`gains.k_ij`, a neighbour's `k`)
-    # 'sensing': one edge per neighbour i → j, j's channels flow to i; 'communication': one
-    # per communication neighbour, both ways (edge_table).
+    # One edge per neighbour i → j, j's channels to i; or per communication neighbour, both ways.
     links: ClassVar[Literal['sensing', 'communication']] = 'sensing'
     # A robot measures its `neighbours` only, not its listeners too (Presenza et al.).
     directed_sensing: ClassVar[bool] = False
@@ -486,8 +485,7 @@ class Estimator(ABC, Generic[G, S]):
     # An own point sensor's sample for the step at t: 'newest', bridged to t by the gyro (a
     # moving fleet: the one at the stamp of the neighbour's values); 'interpolated' (waited for).
     own_pairing: ClassVar[Literal['newest', 'interpolated']] = 'newest'
-    # Whose odometry the step reads besides the own: 'links', every edge's other end (its
-    # motion over the step, PEER_*); 'anchor', the anchor's (ANCHOR_*); 'none'.
+    # Whose odometry the step reads besides the own: 'links', each edge's other end's (PEER_*).
     peer_odometry: ClassVar[Literal['none', 'links', 'anchor']] = 'none'
     # The step takes edges with inputs missing (masks); False: only the complete ones.
     partial_edges: ClassVar[bool] = False
@@ -496,9 +494,8 @@ class Estimator(ABC, Generic[G, S]):
     # The sensor whose measurement of the listener outbox's per-edge channels are formed from.
     partner_sensor: ClassVar[Sensor | None] = None
     reference_scenario: ClassVar[str]      # the file in config/ with the paper's simulation
-    # How far the truth drifts from a fixed point of the step in a moving fleet, over 300
-    # steps of the reference scenario [m, rad]: rounding for methods that dead-reckon with the
-    # exact odometry increments; first-order methods (Presenza et al.) set their own.
+    # How far the truth drifts from a fixed point of the step in a moving fleet over 300 steps
+    # of the reference scenario [m, rad]: rounding, unless the method is first order in h.
     moving_fixed_point_atol: ClassVar[float] = 1e-12
 
     def __init__(self, gains: G) -> None:

@@ -14,11 +14,10 @@ near 2.4 on the paper's scenario)::
 
 The term ``-k_R [σ_i]x p̂_i`` cancels the attitude correction in ``d(R̃_i p̂_i)/dt``; the
 position error is ``p̃_i = p_i - R̃_i p̂_i`` (v1 writes ``R̂_i``: a typo), while ``p̂_i`` itself
-converges to ``p_i`` and is what the agent reports. The attitude error obeys
-``dR̃_i/dt = k_R R̃_i [σ_i]x``. Lemma 1 needs ``M_i = Σ_j k_ij b_ij b_ijᵀ`` to have three
-distinct eigenvalues (checked as a warning: the paper's own agent 8 has {0, 1, 1} and still
-converges); the paper's (13) is off by a factor ½
-(``psi(R̃)ᵀ psi(M R̃) = ½ psi(R̃)ᵀ Q psi(R̃)``, ``Q = tr(M) I - M``).
+converges to ``p_i``; ``dR̃_i/dt = k_R R̃_i [σ_i]x``. Lemma 1 needs three distinct eigenvalues
+of ``M_i = Σ_j k_ij b_ij b_ijᵀ`` (a warning: the paper's own agent 8 has {0, 1, 1} and
+converges); the paper's (13) is off by ½ (``psi(R̃)ᵀ psi(M R̃) = ½ psi(R̃)ᵀ Q psi(R̃)``, ``Q =
+tr(M) I - M``).
 
 Discretisation over a step ``h`` (``ΔR`` the gyro increment ``R(t)ᵀ R(t+h)``)::
 

@@ -3,11 +3,9 @@ written out for Boughellaba & Tayebi (Tran et al.: :func:`tran_jacobians`). Erro
 in the order of ``geometry_msgs/PoseWithCovariance``: ``x_i = (e_i, φ_i)``, ``e_i = p̂_i − p_i``
 [m] (world) and ``R̂_i = exp([φ_i]x) R_i`` (about the world axes [rad]).
 
-Linearising :func:`.boughellaba_tayebi.cascade_step` about the truth (``y_ij = R̂_i b^i_ij ≈
-b_ij + φ_i × b_ij + ν_ij``, the neighbour's ``R̂_j b^j_ij ≈ b_ij + φ_j × b_ij + ν'_ij``, each
-bearing noise ``ν ~ N(0, σ_b² P_b)``, ``d_ij = ‖p_j − p_i‖``; (23) sums its projectors
-unweighted, ``M_i = Σ_j P_{b_ij}``, while ``σ_i`` weighs with ``k_ij``,
-``Q_i = Σ_j k_ij P_{b_ij}``)::
+Linearising :func:`.boughellaba_tayebi.cascade_step` about the truth (``R̂_i b^i_ij ≈ b_ij +
+φ_i × b_ij + ν_ij``, ``R̂_j b^j_ij ≈ b_ij + φ_j × b_ij + ν'_ij``, ``ν ~ N(0, σ_b² P_b)``, ``d_ij =
+‖p_j − p_i‖``; (23) sums ``M_i = Σ_j P_{b_ij}``, ``σ_i`` weighs ``Q_i = Σ_j k_ij P_{b_ij}``)::
 
     σ_i  ≈ Σ_j k_ij (P_b (φ_i − φ_j) + [b]x (ν_ij − ν'_ij))
     φ_i⁺ = φ_i − h k_R σ_i + w_i,                        w_i ~ N(0, h N_g² I)

@@ -5,12 +5,11 @@ Robot i's pose error in the estimation frame, ``e_i = p̂_i − p_i`` [m] and ``
 (:data:`POSE`), after the exact alignment (de-carli-2024.md §6): the common yaw and translation
 that nothing observes removed.
 
-**Each pair** ``{o, x}`` (owner o, the other robot x; de_carli.py's stage 1) has its own error
-``s = (E_out, ζ, E_in)``, complex numbers as real pairs: ``E_out = ᵒP̂_ox − ᵒP_ox`` (the owner's
-horizontal relative-position estimate), ``ζ = ẑ_ox − z_ox`` (the relative yaw's, unnormalised)
-and, for a two-way pair, ``E_in = ˣP̂_xo − ˣP_xo``. Linearising (7)-(8) with the measurement
-noise ``ν, ν'`` (std ``relative_position_std`` per component), the odometry displacement noise
-``η_o, η_x`` and the gyro's yaw-increment noise ``γ_o, γ_x``::
+**Each pair** ``{o, x}`` (owner o; de_carli.py's stage 1) has its own error ``s = (E_out, ζ,
+E_in)``, complex numbers as real pairs: ``E_out = ᵒP̂_ox − ᵒP_ox`` (the owner's horizontal
+relative position), ``ζ = ẑ_ox − z_ox`` (the relative yaw, unnormalised) and, two-way, ``E_in =
+ˣP̂_xo − ˣP_xo``. Linearising (7)-(8) with the noise of the measurements ``ν, ν'``, of the
+odometry displacements ``η_o, η_x`` and of the gyros' yaw increments ``γ_o, γ_x``::
 
     ζ'     = ζ − k_ψ (conj(δ'_x) (E_out − ν) + δ'_o conj(E_in − ν'))
     E_out⁺ = r_o ((1 − h k_pe) E_out + h k_pe ν + δ_x ζ' − η_o + z η_x) − ι γ_o P̂_out⁺

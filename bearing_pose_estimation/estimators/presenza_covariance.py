@@ -1,9 +1,8 @@
 """Covariance of Presenza et al.'s estimates: the step of :mod:`.presenza` linearised.
 
-Robot i's error, in the anchor frame and in the order of ``geometry_msgs/PoseWithCovariance``:
-``x_i = (q̃_i, φ_i)`` with ``q̃_i = q̂_i − q_i`` [m] and ``Q̂_i = exp([φ_i]x) Q_i`` (a rotation
-about the anchor frame's axes [rad]; the notes' ``ξ_i`` of (20) is ``Q_iᵀ φ_i``). The anchor's
-measurements fix the gauge: no alignment, plain 3 + 3 dof (notes §11).
+Robot i's error in the anchor frame, ``x_i = (q̃_i, φ_i)``, ``q̃_i = q̂_i − q_i`` [m] and ``Q̂_i =
+exp([φ_i]x) Q_i`` [rad] (the notes' ``ξ_i`` of (20) is ``Q_iᵀ φ_i``); the anchor fixes the gauge
+(§11).
 
 **The own error** (the notes' §5, Step 1, through the preconditioned step; ``M_i = (I + 2 w h
 κ_q D̂_i)⁻¹``, ``N_i = (I + w h κ_Q K_i)⁻¹`` with ``K_i = Σ_j d_ij Π(𝔟_ij)`` for sensing robots
@@ -16,18 +15,15 @@ D̂_i`` exactly (Lemma 1)::
     free:     q̃⁺ = (I − G_q D̂ + h L) q̃ + h dυ_i,  L = [ω_a]x + P̂⁻¹ Σ_j ṙ_ji 𝔟_jiᵀ
               φ⁺ = (I − G_Q K) φ + G_Q [γ]x (L q̃ + dυ_i)       ((13) linearised)
 
-then turned by ``ΔR_aᵀ``. ``ṙ_ji`` is the rate of the anchor-frame bearing 𝔟_ji (the
-velocity term's distance factor ``‖q̂_i − q̂_j‖`` moves with ``q̂_i``), ``dυ_i = P̂⁻¹ Σ_j dn'_ji``
-the error of the reconstructed velocity (11) from what the sensing robots j know.
+then turned by ``ΔR_aᵀ``; ``ṙ_ji`` the rate of 𝔟_ji, ``dυ_i = P̂⁻¹ Σ_j dn'_ji`` the error of
+the reconstructed velocity (11) from what the sensing robots j know.
 
-**What comes from elsewhere**, as for the other methods (covariance.py, de_carli_covariance.py):
-white noise per step and slow inputs, the neighbours' errors, which enter as white noise of
-``c / ρ`` times their covariance, ``ρ`` the loop's decay per step (here matrix-valued, ``A_q =
-G_q D̂`` and ``A_Q = G_Q K``, the inputs scaled by ``A^{-1/2}``): ``c_Q = 2`` (a fast loop under
-slow position errors: their steady state, exactly), ``c_q = 1.3`` for the position, whose
-inputs decay with it (on config/presenza_noisy.yaml, 10 runs, the position NEES was 4.06 with
-De Carli et al.'s 1, 3.01 with 1.3; at 2 the covariances feed each other without bound). The
-robots that see i send it, in their second round, what only they know (:data:`TERM_COV`):
+**What comes from elsewhere**, as in covariance.py: white noise per step, and the neighbours'
+errors, slow inputs that enter as white noise of ``c / ρ`` times their covariance, ``ρ`` the
+loop's decay per step (matrix-valued, ``A_q = G_q D̂``, ``A_Q = G_Q K``: inputs scaled by
+``A^{-1/2}``): ``c_Q = 2`` (a fast loop under slow errors: their steady state), ``c_q = 1.3`` (the
+position NEES on config/presenza_noisy.yaml: 3.01, 4.06 with 1; at 2 the covariances feed each
+other without bound). The robots that see i send, in round 2, what only they know (TERM_COV):
 
 - the covariance of their angle terms of ``ζ_i`` (6): white from their bearings' noise
   (``dα_jik = β_kᵀ ν_i + β_iᵀ ν_k``), slow from their own and the other robot's position

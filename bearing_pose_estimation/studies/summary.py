@@ -7,11 +7,10 @@ worst agent at any record of it (the radius of the neighbourhood the estimates s
 ``*_settled_from_s``, to ``max(fixed threshold, SETTLE_FACTOR × steady mean)``.
 
 Why: with noise the errors settle on a floor (about 3.4e-3 rad and 2.2e-2 m with 1° bearing
-noise on the paper scenario) above the fixed thresholds; a threshold relative to the run's own
-floor dates when it got there. Why 3: the converged mean attitude error still fluctuates up to
-2.3 times its floor (20 runs of ``config/paper_noisy.yaml``, after 20 s); with 2, two of them
-"settle" at 41 and 42 s instead of about 12 s (the factor shifts an exponential decay by the
-log of its ratio in time constants). The window must hold the floor."""
+noise on the paper scenario) above the fixed thresholds; one relative to the run's floor dates
+when it got there. Why 3: the converged mean attitude error fluctuates up to 2.3 times its floor
+(20 runs of ``config/paper_noisy.yaml``, after 20 s); with 2, two "settle" at 41 and 42 s
+instead of about 12 s. The window must hold the floor."""
 from __future__ import annotations
 
 import csv
