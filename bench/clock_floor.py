@@ -66,7 +66,8 @@ def main() -> None:
                     help='scenario files (default: every method\'s reference scenario)')
     ap.add_argument('--duration', type=float, help='[s] (default: each scenario\'s)')
     ap.add_argument('--offsets', type=float, nargs='*', default=[0.005, 0.05], help='[s]')
-    ap.add_argument('--drift', type=float, default=1e-4, help='[s/s] (1e-4: 100 ppm)')
+    ap.add_argument('--drift', type=float, default=1e-4,
+                    help='[s/s] (1e-4: 100 ppm; 0: no drift row)')
     ap.add_argument('--jobs', type=int, default=os.cpu_count() or 1)
     args = ap.parse_args()
     paths = args.scenario or [CONFIG / estimators.get(m).reference_scenario

@@ -173,11 +173,11 @@ def clock_cases(offsets: Sequence[float] = (0.005, 0.05), drift: float = 1e-4
                 ) -> list[FaultCase]:
     """The clock rows (:class:`Clocks`): every robot's clock off by ``±offset`` [s], signs
     alternating over the agents (neighbours then often disagree by twice as much), and
-    drifting by ``±drift`` [s/s] from agreeing at t = 0."""
+    drifting by ``±drift`` [s/s] from agreeing at t = 0 (0: no such row)."""
     rows = [FaultCase(f'clock_{1000 * o:g}ms', f'clocks off by ±{1000 * o:g} ms (alternating '
                       'over the agents)', clocks=Clocks(offset=o)) for o in offsets]
     return rows + [FaultCase('clock_drift', f'clocks drifting by ±{1e6 * drift:g} ppm from '
-                             'agreeing at t = 0', clocks=Clocks(drift=drift))]
+                             'agreeing at t = 0', clocks=Clocks(drift=drift))] * bool(drift)
 
 
 class _Corruptor:
