@@ -26,6 +26,7 @@ import pytest
 from bearing_pose_estimation.scenario import parse_scenario
 from bearing_pose_estimation.scenario.parse import read_scenario_data
 from bearing_pose_estimation.sim.netsim import convergence_cost, fault_cases, run_case
+from clock_rows import clocks_ahead, flagged
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'de_carli_8_quadrotors.yaml'
 DURATION = 2.5
@@ -62,12 +63,16 @@ EXPECT = {
     # From its initial estimate again, 1 s before the end: converging, not yet back.
     'restart': Expect(cost=1.5, events={'gyro_gap': 1, 'odometry_gap': 3}),
     'late_join': Expect(back=1.5, cost=0.75, events={'gyro_gap': 1, 'odometry_gap': 6}),
-    # Every robot restarts from its initial estimate; messages sent before the jump and
-    # delivered after it are out of order.
-    'clock_jump': Expect(back=1.75, cost=1.25, events={'time_jump': 8},
-                         rejected={'out_of_order': 24}),
+    # Every robot restarts from its initial estimate (a neighbour's odometry stamped at the
+    # restart instant starts its integration: no longer rejected as out of order).
+    'clock_jump': Expect(back=1.75, cost=1.25, events={'time_jump': 8}),
     'garbage': Expect(),
     'garbage_replacing': Expect(cost=2.25),   # the good data it displaces is what it costs
+    # Each robot on its own clock: a floor instead of the fault-free run's rounding level
+    # (test_clock_rows).
+    'clock_5ms': Expect(cost=2.0),
+    'clock_50ms': Expect(cost=2.25),
+    'clock_drift': Expect(cost=2.0),
 }
 
 
@@ -122,6 +127,35 @@ def test_de_carli_fault_matrix_row(key, matrix_runs):
         back = rec.t[(rec.t >= end - 1e-9) & (att < 1e-3) & (pos < 5e-2)]
         assert back.size and back[0] - end <= exp.back + 1e-9, (back, end)
     assert convergence_cost(rec, ref.recording) <= exp.cost
+    if key.startswith('clock_'):   # at its floor (test_clock_rows)
+        return
     # Converging at the end: well below the row's worst record (the first is at 0.25 s, when
     # the reference is already down to 2e-2 rad).
     assert att[-1] < 0.2 * att.max() and pos[-1] < 0.1 * pos.max()
+
+
+
+def test_clock_rows(matrix_runs):
+    """Each robot stamps what it measures and sends, and steps, on its own clock
+    (netsim.Clocks). The robots move and turn: what a neighbour on a clock 2 × offset away
+    sends is paired with the wrong instant of the own motion, so each clock row has a floor,
+    linear in the offset (measured over the last second: 1.3e-3 rad at ±5 ms, of the order of
+    the yaw rates times 10 ms; 10.8 times that at ±50 ms), never a non-finite estimate
+    (test_de_carli_fault_matrix_row). ±100 ppm of drift (at most ±0.25 ms apart by 2.5 s)
+    costs 5.6e-5 rad and the position nothing. Only the listeners 100 ms behind a neighbour
+    flag it."""
+    ref = matrix_runs['reference'].recording
+    last = ref.t >= DURATION - 1.0 - 1e-9
+    att, pos = {}, {}
+    for key in ('clock_5ms', 'clock_50ms', 'clock_drift'):
+        a, p = matrix_runs[key].recording.mean_errors()
+        att[key], pos[key] = a[last].mean(), p[-1]
+    ref_pos = ref.mean_errors()[1][-1]
+    assert att['clock_5ms'] < 2e-3 and pos['clock_5ms'] < 1e-2             # 1.3e-3, 6.3e-3
+    assert 7.0 < att['clock_50ms'] / att['clock_5ms'] < 14.0                # 10.8
+    assert pos['clock_50ms'] < 0.1                                         # 4.7e-2
+    assert att['clock_drift'] < 1e-4 and pos['clock_drift'] < 1.05 * ref_pos  # 5.6e-5, 1.01
+    assert flagged(matrix_runs['clock_50ms'].ahead) == clocks_ahead(scenario(),
+                                                                    CASES['clock_50ms'].clocks)
+    assert matrix_runs['clock_50ms'].ahead
+    assert not matrix_runs['clock_5ms'].ahead and not matrix_runs['clock_drift'].ahead

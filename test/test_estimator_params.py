@@ -723,3 +723,27 @@ def rclpy_node(context, name):
     from rclpy.node import Node
 
     return Node(name, context=context)
+
+
+def test_a_neighbour_whose_clock_runs_ahead_is_flagged(context):
+    """On its own (wall) clock the node hands the runtime ``now`` with every neighbour input:
+    a pose stamped 0.5 s ahead is used, counted as ahead and reported in /diagnostics by name
+    and lead; ``max_clock_lead`` is a live parameter."""
+    from bearing_pose_estimation.runtime.health import OK, WARN, health
+
+    node = _node(context, start_time=-1.0, **EXPLICIT)   # t = 0: its first gyro sample
+    try:
+        now = node._now()
+        for t in (now, now + 0.005):
+            node.on_imu(cdr.encode_imu_raw(t, 'agent_5', np.zeros(3)))
+        on_pose = next(s for s in node.subscriptions if s.topic_name == '/agent_1/pose').callback
+        on_pose(cdr.encode_pose_covariance_raw(node._now() + 0.5, 'world', np.eye(3),
+                                               np.zeros(3), np.eye(6)))
+        assert not node.rejected and dict(node.rt.ahead) == {'agent_1': 1}
+        assert 0.4 < node.rt.leads['agent_1'] <= 0.5
+        report = health(node.rt, node.rejected, node.events)
+        assert report.level == WARN and 'clock ahead of ours: agent_1 by 0.' in report.message
+        assert node.set_parameters([Parameter('max_clock_lead', value=1.0)])[0].successful
+        assert health(node.rt, node.rejected, node.events).level == OK
+    finally:
+        node.destroy_node()

@@ -63,6 +63,7 @@ class EstimatorNode(Node):
         self.link = FaultyLink(s.faults)
         self.tf = tf_broadcaster(self, s.publish_tf)
         self.rt = self._runtime(s.start_time) if s.start_time >= 0.0 else None
+        self._sim_time = bool(self.get_parameter('use_sim_time').value)
         self.rejected: Counter[str] = Counter()
         self.events: Counter[str] = Counter()
         self._published_k = -1
@@ -195,6 +196,12 @@ class EstimatorNode(Node):
         ns = self.get_clock().now().nanoseconds
         return ns * 1e-9 if ns > 0 else None
 
+    def _lead_now(self) -> float | None:
+        """The clock a neighbour's stamps are compared with for its clock lead: None on the
+        simulated clock, which every node shares (its one-step ticks and lockstep's lag would
+        read as leads)."""
+        return None if self._sim_time else self._now()
+
     def _counted(self, causes: Sequence[str | None], what: str) -> None:
         if not any(causes):
             return   # every input used (the common case: no Counter)
@@ -279,20 +286,23 @@ class EstimatorNode(Node):
         for name, problem in problems.items():
             self._reject('malformed', f'{name} of {what} ({problem})')
         if values:
-            self._counted([self.rt.add_message(sub.source_id, t, values)], f'{what} at {t:.6f}')
+            self._counted([self.rt.add_message(sub.source_id, t, values, now=self._lead_now())],
+                          f'{what} at {t:.6f}')
             self.run_ready_steps()
 
     def on_peer_points(self, sub: Subscription, msg: Any) -> None:
         what = f'{sub.topic} of {sub.source}'
         sensor = next(c.sensor for c in self.method.sends if c.name == sub.channels[0])
         self._use(self._decoded(msg, wire.body_frame(sub.source), what, cdr.decode_vectors_raw),
-                  lambda rt, *d: rt.add_peer_points(sub.source_id, sensor, *d), what)
+                  lambda rt, *d: rt.add_peer_points(sub.source_id, sensor, *d,
+                                                    now=self._lead_now()), what)
 
     def on_peer_odometry(self, sub: Subscription, msg: Any) -> None:
         decoded = self._decoded(msg, '', f'odom of {sub.source}', lambda b: (
             cdr.decode_odometry_raw(b, wire.body_frame(sub.source))))
         if decoded is not None and self.rt is not None:
-            cause = self.rt.add_peer_odometry(sub.source_id, *decoded)
+            cause = self.rt.add_peer_odometry(sub.source_id, *decoded,
+                                              now=self._lead_now())
             if cause == 'odometry_gap':
                 self.events[f'{cause}_{sub.source}'] += 1
             else:

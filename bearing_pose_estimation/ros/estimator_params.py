@@ -7,9 +7,10 @@ Parameters: either ``scenario_file`` (+ ``agent``, default: the namespace) or th
 ``initial_position``, ``initial_orientation`` (x, y, z, w), with ``method`` (empty: the
 registry's default); ``frequency`` [Hz], ``publish_rate`` [Hz] and the method's gains, named as
 in a scenario's ``gains:`` (a gain of another method is an error). The gains, the input limits
-(``sensor_timeout``, ``neighbour_timeout``, ``max_rate``, ``link_wait``) and ``neighbour_wait``
-can be set while the node runs: a change is validated (range, the gain's minimum, and the
-method's check on the scenario) and applies from the next step, or is refused with the reason.
+(``sensor_timeout``, ``neighbour_timeout``, ``max_rate``, ``link_wait``, ``max_clock_lead``)
+and ``neighbour_wait`` can be set while the node runs: a change is validated (range, the gain's
+minimum, and the method's check on the scenario) and applies from the next step, or is refused
+with the reason.
 The node's own: ``start_time``, the expected frames ``imu_frame``, ``bearings_frame``,
 ``odom_child_frame`` (empty: accept any), ``diagnostics_period`` [s, wall clock],
 ``publish_tf``, ``raw_messages``, ``fixed_exchange``, and the fault injection for tests and
@@ -46,7 +47,8 @@ from .node_main import declare, parameter_overrides
 EXPLICIT = ('agent_id', 'leader', 'neighbours', 'neighbour_ids', 'neighbour_gains',
             'initial_position', 'initial_orientation')
 # The input limits a running node takes (with the gains and neighbour_wait).
-LIVE_LIMITS = ('sensor_timeout', 'neighbour_timeout', 'max_rate', 'link_wait')
+LIVE_LIMITS = ('sensor_timeout', 'neighbour_timeout', 'max_rate', 'link_wait',
+               'max_clock_lead')
 
 
 @dataclass
@@ -166,7 +168,10 @@ def setup(node: Node) -> Setup:
         max_rate=p('max_rate', d.max_rate, 'gyro rates above this are rejected [rad/s]',
                    0.0, 1e6, read_only=False),
         link_wait=p('link_wait', d.link_wait, 'a step waits for an input until the own '
-                    'sensors are this far ahead [s]', 0.0, 1e6, read_only=False))
+                    'sensors are this far ahead [s]', 0.0, 1e6, read_only=False),
+        max_clock_lead=p('max_clock_lead', d.max_clock_lead, 'a neighbour whose stamps are '
+                         'further ahead of this clock is flagged in /diagnostics [s]',
+                         0.0, 1e6, read_only=False))
     explicit = _explicit_parameters(node)
     if method and method not in methods:
         raise ScenarioError(f'parameter method: unknown method {method!r}. Fix: one of '

@@ -256,6 +256,10 @@ class AgentRuntime:
         self.warm_note = ''                       # the latest warm start's outcome
         self.clocked = False                      # a gyro sample has set its time
         self.warm_starts: Counter[str] = Counter()   # accepted, refused, unavailable
+        # Per neighbour: how far [s] the stamp of its newest input was ahead of the own clock,
+        # and how many of its inputs were more than max_clock_lead ahead.
+        self.leads: dict[str, float] = {}
+        self.ahead: Counter[str] = Counter()
         self.impatient = False
         self._stuck: tuple[int, float, float] | None = None   # (k, gyro end, wall) waiting
         self._pending: StepInputs | None = None   # the inputs of step _pending_k
@@ -358,8 +362,9 @@ class AgentRuntime:
     def _add_twist(self, odometry: OdometryBuffer, stamp: float, v: Array, omega: Array,
                    own: bool, now: float | None = None) -> str | None:
         """A twist into ``odometry``, or why not (non-finite, absurd, future, out of order);
-        after a gap its integration restarts at it (``odometry_gap``), and another agent's clock
-        that jumped back restarts it too (``own``: the gyro's time rules decide)."""
+        after a gap its integration restarts at it (``odometry_gap``), and another agent's first
+        sample or clock that jumped back restarts it too (``own``: the gyro's time rules
+        decide)."""
         v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
         problem = twist_problem(stamp, v, omega, self.limits)
         if problem is not None:
@@ -370,7 +375,9 @@ class AgentRuntime:
         if stamp <= end:
             if own and odometry.empty and stamp >= end - 1e-9:
                 return None   # the sample that closed a gap: the restart began at its stamp
-            if not own and stamp < end - self.limits.jump_back:   # its clock restarted
+            # Its first sample, stamped before our start (its clock is behind ours), or its
+            # clock restarted: integrate from it.
+            if not own and (odometry.empty or stamp < end - self.limits.jump_back):
                 odometry.reset(stamp)
                 return None
             return 'out_of_order'
@@ -448,11 +455,12 @@ class AgentRuntime:
             self._pose_stamps.append(float(stamp))
         return None
 
-    def add_message(self, sender: int, stamp: float, values: Mapping[str, object]) -> str | None:
+    def add_message(self, sender: int, stamp: float, values: Mapping[str, object], *,
+                    now: float | None = None) -> str | None:
         """A message of neighbour ``sender`` with its values of some channels at its state
         time ``stamp``: per-agent channels as arrays, per-edge ones as ``{listener id:
         value}`` (this agent takes its own; ``not_seen`` when none of them has one). Used
-        whole or rejected whole."""
+        whole or rejected whole. ``now``: the own clock, for :meth:`note_lead`."""
         peer = self._by_id.get(sender)
         if peer is None:
             return 'unknown_id'
@@ -508,12 +516,15 @@ class AgentRuntime:
         peer.last = max(peer.last, float(stamp))
         for name in heard:
             peer.heard[name] = max(peer.heard.get(name, -math.inf), float(stamp))
+        self.note_lead(peer.name, stamp, now)
         return None
 
     def add_peer_points(self, sender: int, sensor: Sensor, stamp: float,
-                        ids: NDArray[np.integer], vectors: Array) -> str | None:
+                        ids: NDArray[np.integer], vectors: Array, *,
+                        now: float | None = None) -> str | None:
         """Neighbour ``sender``'s point sensor message: its point of this agent is kept when a
-        channel of the method carries that sensor's readings from it."""
+        channel of the method carries that sensor's readings from it. ``now``: the own clock,
+        for :meth:`note_lead`."""
         peer = self._by_id.get(sender)
         if peer is None:
             return 'unknown_id'
@@ -535,20 +546,36 @@ class AgentRuntime:
             return problem
         hist.add(float(stamp), v.copy())
         peer.last = max(peer.last, float(stamp))
+        self.note_lead(peer.name, stamp, now)
         return None
 
     def add_peer_odometry(self, sender: int, stamp: float, v: Array,
-                          omega: Array) -> str | None:
+                          omega: Array, *, now: float | None = None) -> str | None:
         """Another agent's odometry sample, for a method that reads it (its edges' other
-        ends', or the anchor's)."""
+        ends', or the anchor's). ``now``: the own clock, for :meth:`note_lead`."""
+        odometry, name = None, ''
         if self.anchor_odometry is not None and self.spec.anchor is not None:
-            odometry = self.anchor_odometry if sender == self.spec.anchor[1] else None
-        else:
-            peer = self._by_id.get(sender)
-            odometry = None if peer is None else peer.odometry
+            if sender == self.spec.anchor[1]:
+                odometry, name = self.anchor_odometry, self.spec.anchor[0]
+        elif (peer := self._by_id.get(sender)) is not None:
+            odometry, name = peer.odometry, peer.name
         if odometry is None:
             return 'unknown_id'
-        return self._add_twist(odometry, stamp, v, omega, own=False)
+        cause = self._add_twist(odometry, stamp, v, omega, own=False)
+        if cause is None:
+            self.note_lead(name, stamp, now)
+        return cause
+
+    def note_lead(self, sender: str, stamp: float, now: float | None) -> None:
+        """How far the stamp of ``sender``'s input was ahead of the own clock ``now`` (None:
+        not known): its clock's lead, less the input's latency. Counted in :attr:`ahead` when
+        beyond ``max_clock_lead``."""
+        if now is None:
+            return
+        lead = stamp - now
+        self.leads[sender] = lead
+        if lead > self.limits.max_clock_lead:
+            self.ahead[sender] += 1
 
     # ------------------------------------------------------------------------------ readiness
     def stale_neighbours(self, t: float) -> list[str]:

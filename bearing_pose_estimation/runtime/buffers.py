@@ -42,6 +42,9 @@ class Limits:
     # An agent with no trustworthy estimate tries its method's warm start at every step for
     # this long [s] (its neighbours may not be heard yet); 0: never.
     warm_window: float = 2.0
+    # A neighbour's stamps further ahead [s] of the own clock: its clock runs ahead (counted,
+    # and /diagnostics warns); well above a LAN's latency and a step, below a 50 ms offset.
+    max_clock_lead: float = 0.02
 
 
 @dataclass(frozen=True)

@@ -27,8 +27,11 @@ def health(rt: AgentRuntime | None, rejected: Counter[str], events: Counter[str]
            steps_per_second: float | None = None) -> Health:
     """The report: the state time and step rate, the edges used and the silent neighbours,
     the spectrum of the method's local matrix and its verdict, the method's own per-agent
-    and per-neighbour values, what steps went without, rejections by cause, time events.
-    WARN for silent neighbours, a spectrum the method's proof objects to, or rejections."""
+    and per-neighbour values, each neighbour's clock lead (``clock_lead_<name>_s``: its newest
+    input's stamp less the own clock; ``clock_ahead_<name>``: its inputs beyond
+    ``max_clock_lead``), what steps went without, rejections by cause, time events. WARN for
+    silent neighbours, a spectrum the method's proof objects to, a neighbour whose newest
+    input leads the own clock by more than ``max_clock_lead``, or rejections."""
     values = {'state_time_s': 'n/a'}
     level, problems = OK, list[str]()
     if rt is not None:
@@ -64,6 +67,16 @@ def health(rt: AgentRuntime | None, rejected: Counter[str], events: Counter[str]
             if rt.warm_note:
                 values['warm_start'] = rt.warm_note
             values['incomplete_steps'] = str(sum(rt.incomplete.values()))
+        limit = rt.limits.max_clock_lead
+        ahead = {name: lead for name, lead in rt.leads.items() if lead > limit}
+        for name, lead in sorted(rt.leads.items()):
+            values[f'clock_lead_{name}_s'] = f'{lead:.4f}'
+            values[f'clock_ahead_{name}'] = str(rt.ahead[name])
+        if ahead:
+            level = max(level, WARN)
+            problems.append('clock ahead of ours: ' + ', '.join(
+                f'{name} by {lead:.3f} s' for name, lead in sorted(ahead.items()))
+                + f' (max_clock_lead {limit:g} s)')
         values['non_finite_steps'] = str(rt.non_finite_steps)
         values['gyro_gaps_bridged'] = str(rt.gyro.bridged)
         if rt.uses_odometry:
@@ -83,11 +96,13 @@ def health(rt: AgentRuntime | None, rejected: Counter[str], events: Counter[str]
 def summary(rt: AgentRuntime, rejected: Counter[str], events: Counter[str],
             wall: float) -> str:
     """What an agent achieved, for the end of its log: steps, their rate in wall time, what
-    was rejected, bridged, waited for, left out and carried."""
+    was rejected, bridged, waited for, left out and carried, and the neighbours' inputs
+    stamped more than ``max_clock_lead`` ahead of its clock."""
     return (f'{rt.k} steps ({rt.k * rt.h:.2f} s of state time) in {wall:.1f} s wall: '
             f'{rt.k / max(wall, 1e-9):.1f} steps/s; rejected: {dict(rejected) or 0}; events: '
             f'{dict(events) or 0}; lost-sample gaps bridged: gyro {rt.gyro.bridged}, odometry '
             f'{rt.odometry.bridged}; warm starts: {dict(rt.warm_starts) or 0}; unpaired '
             f'neighbour values: {rt.unpaired}; waited for: '
             f'{dict(rt.waits) or 0}; left out: {dict(+rt.missing) or 0}; carried: {rt.carried}; '
+            f'inputs of clocks ahead of ours: {dict(rt.ahead) or 0}; '
             f'steps without an awaited input: {dict(rt.incomplete) or 0}')

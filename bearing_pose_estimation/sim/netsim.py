@@ -16,6 +16,8 @@ check, rejection and time rule is the runtimes'. Faults:
   no input or output; it comes back as it was (``restart=False``: paused, input sent meanwhile
   is lost) or fresh from its initial estimate (``restart=True``). From 0: a late joiner;
 - :class:`ClockJump`: the simulator restarts: clock, truth and noise back to t = 0;
+- :class:`Clocks`: every robot's clock is off by a fixed offset or drifts; it stamps what it
+  measures and sends, and steps, on its own clock;
 - :class:`Garbage`: a fraction of every input (gyro sample, point sensor message, neighbour
   message, leader's known pose) comes with a corrupted copy, or is replaced by it
   (``replace=True``): NaN/inf, zero-length or non-unit vectors, unknown ids, stale, late or
@@ -37,6 +39,7 @@ from functools import partial
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core import so3
 from ..core.errors import ScenarioError
 from ..estimators.base import POINT_SENSORS, Channel, Sensor
 from ..metrics.results import PoseErrors, Recording, pose_errors
@@ -75,6 +78,31 @@ class ClockJump:
 
 
 @dataclass(frozen=True)
+class Clocks:
+    """Each robot's own clock against the simulator's (true) time ``t``: ``local = s_i
+    (offset + drift t) + t``, the sign ``s_i`` alternating over the agents in the scenario's
+    order (+ first) or, with a ``seed``, drawn per agent. A robot stamps what it measures (gyro,
+    point sensors, odometry, a leader's known pose) and what it sends on its clock, and its
+    estimator starts and steps on it; the runtime is not told, as on a real robot. Errors are
+    measured against the truth at the true time of each estimate's local state time."""
+
+    offset: float = 0.0      # [s]
+    drift: float = 0.0       # [s/s]: 1e-4 is 100 ppm
+    seed: int | None = None  # None: alternating signs
+
+    def __bool__(self) -> bool:
+        return bool(self.offset or self.drift)
+
+    def of(self, names: Sequence[str]) -> dict[str, tuple[float, float]]:
+        """Each agent's ``(offset [s], rate)``: ``local = offset + rate · t``."""
+        n = len(names)
+        signs = (np.where(np.arange(n) % 2 == 0, 1.0, -1.0) if self.seed is None
+                 else np.random.default_rng(self.seed).choice([-1.0, 1.0], n))
+        return {name: (float(s * self.offset), float(1.0 + s * self.drift))
+                for name, s in zip(names, signs)}
+
+
+@dataclass(frozen=True)
 class Garbage:
     fraction: float = 0.0  # probability that an input gets a corrupted copy
     seed: int = 0
@@ -91,6 +119,7 @@ class FaultCase:
     outages: tuple[Outage, ...] = ()
     clock_jump: ClockJump | None = None
     garbage: Garbage = Garbage()
+    clocks: Clocks = Clocks()
 
     @property
     def window(self) -> tuple[float, float] | None:
@@ -136,7 +165,19 @@ def fault_cases(at: float = 20.0, length: float = 5.0, late_join: float = 10.0,
         FaultCase('garbage_replacing', f'the same garbage replacing {100 * garbage:g} % of the '
                   'inputs (the good data is lost)',
                   garbage=Garbage(fraction=garbage, seed=1, replace=True)),
+        *clock_cases(),
     ]
+
+
+def clock_cases(offsets: Sequence[float] = (0.005, 0.05), drift: float = 1e-4
+                ) -> list[FaultCase]:
+    """The clock rows (:class:`Clocks`): every robot's clock off by ``±offset`` [s], signs
+    alternating over the agents (neighbours then often disagree by twice as much), and
+    drifting by ``±drift`` [s/s] from agreeing at t = 0 (0: no such row)."""
+    rows = [FaultCase(f'clock_{1000 * o:g}ms', f'clocks off by ±{1000 * o:g} ms (alternating '
+                      'over the agents)', clocks=Clocks(offset=o)) for o in offsets]
+    return rows + [FaultCase('clock_drift', f'clocks drifting by ±{1e6 * drift:g} ppm from '
+                             'agreeing at t = 0', clocks=Clocks(drift=drift))] * bool(drift)
 
 
 class _Corruptor:
@@ -281,13 +322,17 @@ class NetRun:
     non_finite_steps: int      # steps the estimators discarded as non-finite
     carried: int = 0           # link methods: late or lost neighbour values carried forward
     warm_starts: Counter[str] = field(default_factory=Counter)   # by outcome (AgentRuntime)
+    # Per listener, its neighbours' inputs stamped more than Limits.max_clock_lead ahead of
+    # its clock (listeners with none left out).
+    ahead: dict[str, dict[str, int]] = field(default_factory=dict)
 
 
 class _Network:
     """The fleet, its world and links, with one run's faults; :meth:`tick`: one world step."""
 
     def __init__(self, scenario: Scenario, links: LinkFaults, outages: tuple[Outage, ...],
-                 garbage: Garbage, limits: Limits, batched: bool = True) -> None:
+                 garbage: Garbage, limits: Limits, batched: bool = True,
+                 clocks: Clocks = Clocks()) -> None:
         self.scenario, self.outages, self.limits = scenario, outages, limits
         self.batched = batched
         if scenario.formation is not None and scenario.formation.mode == 'paper':
@@ -303,9 +348,10 @@ class _Network:
         self.channels = {c.name: c for c in self.method.sends}
         self.bad = _Corruptor(garbage, self.channels)
         self.names = [a.name for a in scenario.agents]
+        self.clocks = clocks.of(self.names) if clocks else None
         # Fault-free: paired as in lockstep; with faults, as robots do (nothing waits).
-        self.exchange = (exchange_of(scenario) if not (links or outages or garbage.fraction)
-                         else None)
+        self.exchange = (exchange_of(scenario)
+                         if not (links or outages or garbage.fraction or clocks) else None)
         self.agents: dict[str, AgentRuntime] = {n: self._runtime(n) for n in self.names}
         self.subs = {name: subscriptions(self.method, spec) for name, spec in self.specs.items()}
         # Who reads what: (sender, topic) -> readers, from the one table.
@@ -329,9 +375,43 @@ class _Network:
         # estimator waiting for a lost gyro sample is a step behind the world, and its error
         # is measured against the truth at its own state time, as the monitor pairs stamps.
         self.truth: dict[int, tuple[Array, Array]] = {}
+        # With clocks: the truth at every internal step of the last second (by world tick),
+        # for the true times of the estimators' local state times.
+        self.tick_truth: dict[int, tuple[Array, Array]] = {}
 
     def _runtime(self, name: str) -> AgentRuntime:
-        return runtime_for(self.scenario, self.specs[name], self.limits, self.exchange)
+        rt = runtime_for(self.scenario, self.specs[name], self.limits, self.exchange,
+                         t0=self.local(name, 0.0))
+        if self.clocks is not None:   # its clock's reading of the fleet's start: not late
+            rt.cold_since = None      # (from its initial estimate, as the fault-free run's)
+        return rt
+
+    def local(self, name: str, t: float) -> float:
+        """``name``'s clock at the simulator's time ``t``."""
+        if self.clocks is None:
+            return t
+        offset, rate = self.clocks[name]
+        return offset + rate * t
+
+    def true_time(self, name: str, local: float) -> float:
+        """The simulator's time at which ``name``'s clock reads ``local``."""
+        if self.clocks is None:
+            return local
+        offset, rate = self.clocks[name]
+        return (local - offset) / rate
+
+    def truth_at(self, i: int, t: float) -> tuple[Array, Array] | None:
+        """Agent ``i``'s true pose at the simulator's time ``t`` (within the last second),
+        interpolated between internal steps (geodesic for the attitude)."""
+        x = t / self.world.dt
+        m = int(np.floor(x + 1e-9))
+        w, a, b = x - m, self.tick_truth.get(m), self.tick_truth.get(m + 1)
+        if a is None:
+            return None
+        if w < 1e-9 or b is None:
+            return a[0][i], a[1][i]
+        R = a[0][i] @ so3.exp(w * so3.log(a[0][i].T @ b[0][i]))
+        return R, (1.0 - w) * a[1][i] + w * b[1][i]
 
     def offline(self, name: str, now: float) -> bool:
         """No neighbour messages in or out (any outage)."""
@@ -353,8 +433,9 @@ class _Network:
         for name, w in zip(self.names, world.imu()):
             if self.stopped(name, now):
                 continue
-            for (stamp, rate), bad in self.bad.inputs((world.t, w), self.bad.gyro(world.t, w)):
-                self.tally.count([self.agents[name].add_gyro(stamp, rate, now=world.t)], bad)
+            t = self.local(name, world.t)
+            for (stamp, rate), bad in self.bad.inputs((t, w), self.bad.gyro(t, w)):
+                self.tally.count([self.agents[name].add_gyro(stamp, rate, now=t)], bad)
 
     def sense(self, now: float) -> None:
         """Odometry (moving fleets), the point sensors and the leaders' known pose, when due:
@@ -364,9 +445,9 @@ class _Network:
         if every is not None and world.due(every) and world.tick > 0:
             for i, (name, v, w) in enumerate(zip(self.names, *world.odometry())):
                 if not self.stopped(name, now):
-                    self.tally.count([self.agents[name].add_odometry(world.t, v, w,
-                                                                     now=world.t)], 0)
-                    self.send(name, ODOM_TOPIC, now, ('odometry', i + 1, world.t, v, w))
+                    t = self.local(name, world.t)
+                    self.tally.count([self.agents[name].add_odometry(t, v, w, now=t)], 0)
+                    self.send(name, ODOM_TOPIC, now, ('odometry', i + 1, t, v, w))
         for sensor in self.point_sensors:
             every = (world.bearing_every if sensor is Sensor.BEARINGS
                      else world.sensor_every.get(sensor.value))
@@ -378,7 +459,7 @@ class _Network:
                     continue
                 j, v = (world.bearings(i) if sensor is Sensor.BEARINGS
                         else world.sensed(sensor.value, i))
-                good = (world.t, j + 1, v)
+                good = (self.local(name, world.t), j + 1, v)
                 agent = self.agents[name]
                 for args, bad in self.bad.inputs(good, self.bad.bearings(i + 1, *good,
                                                                          kinds=kinds)):
@@ -389,9 +470,9 @@ class _Network:
                 if self.stopped(name, now):
                     continue
                 i = scenario.index[name]
+                t = self.local(name, world.t)
                 for (R,), bad in self.bad.inputs((world.R[i],), self.bad.known_pose(world.R[i])):
-                    self.tally.count([self.agents[name].add_known_pose(world.t, R, world.p[i])],
-                                     bad)
+                    self.tally.count([self.agents[name].add_known_pose(t, R, world.p[i])], bad)
 
     def send(self, name: str, topic: str, now: float, msg: tuple) -> None:
         """``msg`` on ``name``'s ``topic`` to every reader, through the link faults."""
@@ -403,15 +484,15 @@ class _Network:
     def receive(self, to: str, msg: tuple, now: float) -> None:
         if self.offline(to, now) or self.stopped(to, now):
             return
-        agent = self.agents[to]
+        agent, clock = self.agents[to], self.local(to, self.world.t)
         if msg[0] == 'odometry':
-            self.tally.count([agent.add_peer_odometry(*msg[1:])], 0)
+            self.tally.count([agent.add_peer_odometry(*msg[1:], now=clock)], 0)
         elif msg[0] == 'points':
-            self.tally.count([agent.add_peer_points(*msg[1:])], 0)
+            self.tally.count([agent.add_peer_points(*msg[1:], now=clock)], 0)
         else:
             corrupt = self.bad.neighbour(self.scenario.agent_id(to), msg[1:])
             for args, bad in self.bad.inputs(msg[1:], corrupt):
-                self.tally.count([agent.add_message(*args)], bad)
+                self.tally.count([agent.add_message(*args, now=clock)], bad)
 
     def publish(self, name: str, now: float, which: Callable[[str], bool]) -> None:
         """``name``'s round-1 topics that carry a channel ``which`` picks, with their
@@ -488,6 +569,9 @@ class _Network:
             self.feed_gyro(now)
         self.sense(now)
         self.link.release(now)
+        if self.clocks is not None:
+            self.tick_truth[world.tick] = (world.R.copy(), world.p.copy())
+            self.tick_truth.pop(world.tick - int(round(1.0 / world.dt)), None)
         if world.tick % self.per_step == 0:
             k = world.tick // self.per_step
             self.truth[k] = (world.R.copy(), world.p.copy())
@@ -504,6 +588,11 @@ class _Network:
         truth at its estimator's state time (now, unless it waits for gyro data)."""
         R, p = self.world.R.copy(), self.world.p.copy()
         for i, name in enumerate(self.names):
+            if self.clocks is not None:
+                pose = self.truth_at(i, self.true_time(name, self.agents[name].t))
+                if pose is not None:
+                    R[i], p[i] = pose
+                continue
             k = int(round(self.agents[name].t / self.scenario.step))
             if k in self.truth:
                 R[i], p[i] = self.truth[k][0][i], self.truth[k][1][i]
@@ -516,12 +605,13 @@ class _Network:
 def simulate_network(scenario: Scenario, duration: float, record_every: float = 0.1,
                      links: LinkFaults = LinkFaults(), outages: tuple[Outage, ...] = (),
                      clock_jump: ClockJump | None = None, garbage: Garbage = Garbage(),
-                     limits: Limits = Limits(), batched: bool = True) -> NetRun:
+                     limits: Limits = Limits(), batched: bool = True,
+                     clocks: Clocks = Clocks()) -> NetRun:
     """Run the fleet for ``duration`` s of run time with the given faults; record the followers'
     errors every ``record_every`` (run time, monotonic across a clock jump). ``batched``: one
     instant's steps in one call (:func:`runtime.together.advance_together`, as an
     ``estimators`` process): bit for bit the same (``test_runtime.py``), 20-30 % faster."""
-    net = _Network(scenario, links, outages, garbage, limits, batched)
+    net = _Network(scenario, links, outages, garbage, limits, batched, clocks)
     dt = net.world.dt
     per_record = int(round(record_every / dt))
     restart_at: dict[int, list[str]] = {}
@@ -540,6 +630,7 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
         if tick == jump_tick:  # the simulator restarts: clock, truth and noise back to t = 0
             net.world.reset()  # (instead of a step: world and run ticks stay in phase)
             net.truth.clear()
+            net.tick_truth.clear()
         else:
             net.tick(tick * dt)
         if tick % per_record == 0:
@@ -549,7 +640,8 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
     return NetRun(rec, net.tally, non_finite_estimates=net.non_finite,
                   non_finite_steps=sum(ag.non_finite_steps for ag in net.agents.values()),
                   carried=sum(ag.carried for ag in net.agents.values()),
-                  warm_starts=sum((ag.warm_starts for ag in net.agents.values()), Counter()))
+                  warm_starts=sum((ag.warm_starts for ag in net.agents.values()), Counter()),
+                  ahead={n: dict(ag.ahead) for n, ag in net.agents.items() if ag.ahead})
 
 
 def run_network(scenario: Scenario, duration: float, record_every: float = 0.1,
@@ -565,7 +657,7 @@ def run_case(scenario: Scenario, case: FaultCase, duration: float,
     """One row of the fault matrix."""
     return simulate_network(scenario, duration, record_every, links=case.links,
                             outages=case.outages, clock_jump=case.clock_jump,
-                            garbage=case.garbage)
+                            garbage=case.garbage, clocks=case.clocks)
 
 
 # How close to the fault-free run at the same instant counts as caught up (catch_up_time).
