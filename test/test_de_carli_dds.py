@@ -182,20 +182,33 @@ def test_diagnostics_report_each_pair_s_excitation(run):
 
 
 def test_robots_sharing_a_process_step_together_to_the_same_records(run, tmp_path):
-    """`--agents-per-process 4`: each `estimators` process runs its robots' steps in one call
-    of the method's step (ros/step_batch.py), and every record equals the one-process-per-robot
-    fleet's (the fixed exchange makes both independent of when messages arrive)."""
-    from bearing_pose_estimation.cli.main import main
-
+    """Four robots per `estimators` process, as `--agents-per-process 4` plans them: each
+    process runs its robots' steps in one call of the method's step (ros/step_batch.py), and
+    every record equals the one-process-per-robot fleet's (the fixed exchange makes both
+    independent of when messages arrive; patient, as the fixture's: a loaded machine can stall
+    a process past the default neighbour_wait)."""
     scenario_file, out, _ = run
-    shared = tmp_path / 'shared'
-    assert main(['run', str(scenario_file), '--duration', str(DURATION), '--out', str(shared),
-                 '--agents-per-process', '4', '--domain-id', str(DOMAIN), '--no-plots']) == 0
-    alone, together = (read_metrics_csv(d / 'metrics.csv') for d in (out, shared))
+    scenario = load_scenario(scenario_file)
+    cfg = RunConfig(scenario_file=scenario_file, out_dir=tmp_path / 'shared', duration=DURATION,
+                    domain_id=DOMAIN, plots=False)
+    cfg.logs_dir.mkdir(parents=True)
+    params = with_parameters(write_params(scenario, cfg), list(scenario.index), **PATIENT)
+    specs = plan_processes(scenario, params, cfg.logs_dir, find_executable,
+                           agents_per_process=4)
+    shm = shm_files()
+    with launch.ProcessGroup(env=dds_env(DOMAIN, tmp_path / 'ros')) as g:
+        for spec in specs:
+            g.start(spec)
+        failure = g.wait_for('monitor', 300.0, watch=[s.name for s in specs])
+        assert failure is None, failure
+        g.shutdown()
+        assert g.unclean() == {}
+    assert_no_shm_left(g, shm)
+    alone, together = (read_metrics_csv(d / 'metrics.csv') for d in (out, cfg.out_dir))
     np.testing.assert_array_equal(together.t, alone.t)
     np.testing.assert_allclose(together.pos_err, alone.pos_err, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(together.att_err, alone.att_err, rtol=1e-9, atol=1e-15)
     for log in ('estimators_0.log', 'estimators_1.log'):
-        text = (shared / 'logs' / log).read_text()
+        text = (cfg.logs_dir / log).read_text()
         per_round = float(text.split(' agents per round)')[0].rsplit('(', 1)[1])
         assert per_round > 1.5, (log, text[-300:])
