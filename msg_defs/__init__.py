@@ -1,9 +1,6 @@
-"""Wire format: topic names, message types, QoS, frame ids and the codecs, defined here only
-(msg_defs/README.md has the table). Standard common_interfaces messages only, so any ROS tool
-reads them and a user's IMU driver or detector can feed an estimator by remapping one topic.
-Topic names are relative to each agent's namespace ``/<agent>``. One codec per message type
-(:mod:`msg_defs.cdr`); the estimators' channels travel by their kind (:func:`encode_channels`).
-Publishers and raw subscriptions handle the bytes; :func:`message` makes an object of them.
+"""Wire format: topic names (relative to ``/<agent>``), message types, QoS, frame ids and the
+codecs, defined here only (msg_defs/README.md has the table and why). One codec per message
+type (:mod:`msg_defs.cdr`); channels travel by their kind (:func:`encode_channels`).
 """
 from __future__ import annotations
 
@@ -107,9 +104,8 @@ def _qos(depth: int, reliability: ReliabilityPolicy = ReliabilityPolicy.RELIABLE
 SENSOR_QOS = _qos(200, ReliabilityPolicy.BEST_EFFORT)
 # Estimates that other agents depend on: reliable.
 ESTIMATE_QOS = _qos(20)
-# The estimate writer keeps its last 20 samples for readers that match late (transient local,
-# which a recorder's reader asks for too): a recorder discovered after t = 0 still receives the
-# t = 0 estimate. Volatile readers (neighbours, RViz, ESTIMATE_QOS) match it unchanged.
+# The estimate writer keeps its last 20 samples (transient local) for readers that match late: a
+# recorder discovered after t = 0 still gets the t = 0 estimate. Volatile readers match it too.
 ESTIMATE_PUB_QOS = ESTIMATE_RECORD_QOS = _qos(20, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # A recorder's other readers: reliable and volatile match every writer; deep for bursts.
 RECORD_QOS = _qos(1000)

@@ -1,12 +1,8 @@
 """The codecs of the package's messages: values to a message's serialised bytes and back, with
 numpy on the CDR layout (issue 15: no rclpy message object is built, BENCHMARKS.md "Raw CDR"); a
-decoder also takes an rclpy message object. The bytes are
-``rclpy.serialization.serialize_message``'s (rmw_fastrtps, Jazzy): plain CDR (XCDR1), little
-endian, after the encapsulation header ``00 01 00 00``; every value aligned to its own size from
-the first byte after it, padding zero (rmw_fastrtps leaves it uninitialised: the only difference);
-a string is a uint32 length counting its NUL, its UTF-8 bytes and the NUL. Each decoder raises
-:class:`WireError`, never another error, on values it rejects and on malformed bytes
-(``test/test_cdr.py`` checks every codec against rclpy's own serialisation)."""
+decoder also takes an rclpy message object. The bytes are ``serialize_message``'s (layout:
+msg_defs/README.md). Each decoder raises :class:`WireError`, never another error, on values it
+rejects and on malformed bytes (``test/test_cdr.py`` checks every codec against rclpy's)."""
 from __future__ import annotations
 
 import math
@@ -395,10 +391,8 @@ def _tagged_dtype(fields: tuple[str, ...]) -> np.dtype:
     return np.dtype([(name, _FORMATS[datatype]) for name, datatype in _tagged(fields).items()])
 
 
-# The PointFields of the clouds seen (their bytes, count included, and {name: (offset,
-# datatype, count)}) and the points' dtypes (those bytes, point_step, the wanted fields ->
-# dtype): a publisher sends the same fields every time, so they are parsed and checked once.
-# A tuple, replaced whole, so that another thread's decoder may iterate over it.
+# The PointFields and points' dtypes of the clouds seen, keyed by their bytes: a publisher sends
+# the same fields every time, so they are parsed once. A tuple, replaced whole (thread-safe).
 _SEEN_FIELDS: tuple[tuple[bytes, dict[str, tuple[int, int, int]]], ...] = ()
 _SEEN_DTYPES: dict[tuple[bytes, int, tuple[tuple[str, int], ...]], np.dtype] = {}
 

@@ -1,9 +1,7 @@
 """What RViz and TF users see of a fleet: the estimate as a TF transform, and the fleet as one
-MarkerArray (RViz cannot draw the FLOAT64 point clouds the sensors use), by namespace, ids stable
-so each replaces the last: ``estimate`` (a blue arrow along the estimated body x axis), ``label``,
-``truth`` (green, translucent, in the world frame), ``edges`` (the sensing graph between the
-estimated positions) and ``bearings`` (each measured ray from p̂_i along R̂_i b_ij, as long as the
-estimated distance to j, else 1 m)."""
+MarkerArray (RViz cannot draw FLOAT64 point clouds), ids stable so each replaces the last:
+``estimate``, ``label``, ``truth``, ``edges`` and ``bearings`` (each measured ray from p̂_i along
+R̂_i b_ij, as long as the estimated distance to j, else 1 m)."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence

@@ -1,10 +1,7 @@
 """``bearing-pose run``: start the processes of a run (:mod:`plan.processes`), wait for the
-monitor, and stop everything cleanly. No rclpy: usable and testable without a DDS stack.
-A robot's process that ends mid-run does not end the run: it is reported with the command that
-starts it again (:func:`restart_script`), and a process so started is stopped at the end.
-
-:class:`ProcessGroup` owns child processes, watches them, and stops them in reverse start order
-(SIGINT, then SIGTERM, then SIGKILL as a last resort) so that no process is left behind.
+monitor, and stop everything cleanly (:class:`ProcessGroup`). No rclpy. A robot's process that
+ends mid-run does not end the run: it is reported with the command that starts it again
+(:func:`restart_script`), and a process so started is stopped at the end.
 """
 from __future__ import annotations
 
@@ -33,9 +30,8 @@ from ..scenario.model import Scenario
 LOG_TAIL_LINES = 20
 TIMEOUT_TAIL_LINES = 8    # of every process's log, after a run that timed out
 POLL_S = 0.05
-# In the environment of every process of a run: its output directory. A process started
-# again by hand (its restart script) also carries its name, so that the run finds and stops
-# it at the end like its own children.
+# In the environment of every process of a run: its output directory, so that the run also
+# finds and stops at the end a process started again by hand (its restart script).
 RUN_MARKER, PROCESS_MARKER = 'BEARING_POSE_RUN', 'BEARING_POSE_PROCESS'
 # The processes a run goes on without (robots, and the RViz markers); without the simulator
 # (the clock and the truth) or the monitor (the results) it cannot.
@@ -408,9 +404,8 @@ class Death:
 
 
 def restart_command(spec: ProcessSpec, env: Mapping[str, str], run_dir: Path) -> str:
-    """``spec``'s command line for a shell, with the DDS variables of ``env`` (and those that
-    differ from ours, and PYTHONPATH: which code runs) and the run's markers
-    (:data:`RUN_MARKER`): it works from any shell."""
+    """``spec``'s command line for any shell, with the DDS variables of ``env``, those that differ
+    from ours, PYTHONPATH and the run's markers (:data:`RUN_MARKER`)."""
     changed = {k: v for k, v in env.items()
                if k in (*DDS_VARIABLES, 'PYTHONPATH') or os.environ.get(k) != v}
     changed |= {RUN_MARKER: str(run_dir), PROCESS_MARKER: spec.name}
@@ -492,9 +487,8 @@ class RunResult:
 
 
 def launch_run(scenario: Scenario, cfg: RunConfig, *, bin_dir: Path | None = None) -> RunResult:
-    """Write the parameter files, start every process, wait for the monitor, stop the rest.
-    Ctrl-C stops everything and propagates. LaunchError: too many processes
-    (:func:`fit_agents_per_process`), a missing executable, a failed start."""
+    """Write the parameter files, start every process, wait for the monitor, stop the rest
+    (Ctrl-C: everything, and propagates). LaunchError: too many processes, a failed start."""
     fit_agents_per_process(len(scenario.agents), cfg.agents_per_process, cfg.rviz,
                            cfg.discovery_server is not None)
     needed = ('estimators' if cfg.agents_per_process > 1 else 'estimator', 'simulator', 'monitor',

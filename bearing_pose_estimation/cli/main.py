@@ -2,8 +2,7 @@
 and noise studies, and run scenarios over DDS. No file is overwritten without ``--force``.
 
 Exit codes: 0 success; 1 invalid scenario, failed check or refused overwrite; 2 bad command line;
-3 a run over DDS finished, but a robot's process ended during it (``run`` says which and how to
-start it again; its summary.json lists them under ``deaths``).
+3 a run over DDS finished, but a robot's process ended during it (summary.json: ``deaths``).
 """
 from __future__ import annotations
 

@@ -4,12 +4,10 @@ the current body frame with the gyro:
 
     β̇°_k = Π(β_k) (β_k - ΔRᵀ β_{k-1}) / Δt,      ΔR = R_{k-1}ᵀ R_k (the body's rotation)
 
-``β̇°`` is the *de-rotated* rate (seen from a frame that does not turn with the body, in the
-body frame at t_k): what (11) uses, as ``β̇ + ω × β``. A raw difference has noise about ``σ √2 /
-Δt``; a low-pass filter of time constant ``tau`` removes some, with a lag of about ``tau`` that
-costs more (the paper's case 1 at 30 Hz, 1 mrad of bearing noise: the free robots' attitude
-error over the last 5 of 20 s is 0.14 rad raw, 0.46 rad at ``tau = 0.1`` s, 1.2 rad at 0.3 s,
-and at 1 s the positions diverge). Hence ``tau = 0`` by default."""
+``β̇°`` is the *de-rotated* rate, what (11) uses as ``β̇ + ω × β``. A raw difference has noise
+about ``σ √2 / Δt``; a low-pass filter of time constant ``tau`` costs more by its lag (case 1,
+30 Hz, 1 mrad noise: free robots' attitude error 0.14 rad raw, 0.46 rad at ``tau = 0.1`` s, 1.2
+rad at 0.3 s, positions diverge at 1 s). Hence ``tau = 0`` by default."""
 from __future__ import annotations
 
 import numpy as np

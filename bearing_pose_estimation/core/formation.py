@@ -23,9 +23,8 @@ Index = NDArray[np.intp]
 
 def body_velocity(p: Array, psi_used: Array, psi_true: Array, p_star: Array, tail: Index,
                   head: Index, k_c: float, nu_max: float, moving: NDArray[np.bool_]) -> Array:
-    """(30)-(31): the body-frame velocity ``(N, 3)`` [m/s] of every robot from the true ``p``
-    (measured ``ᵃp_ab = R_aᵀ (p_b - p_a)`` with ``psi_true``) and the yaws the controller uses,
-    ``psi_used``; 0 for the robots not ``moving`` (no formation position: they hover)."""
+    """(30)-(31): every robot's body-frame velocity ``(N, 3)`` [m/s] from the true ``p`` and
+    ``psi_true`` and the controller's yaws ``psi_used``; 0 for robots not ``moving`` (hover)."""
     measured = np.einsum('kba,kb->ka', rot_z(psi_true[tail]), p[head] - p[tail])
     r = p_star[tail] - p_star[head] + np.einsum('kab,kb->ka', rot_z(psi_used[tail]), measured)
     total = np.zeros_like(p)
@@ -38,9 +37,8 @@ def body_velocity(p: Array, psi_used: Array, psi_true: Array, p_star: Array, tai
 
 
 def formation_error(p: Array, p_star: Array) -> Array:
-    """Fig. 2(d): each robot's distance ``(N,)`` [m] from the desired formation ``p*`` moved
-    by the yaw rotation and translation that fit it best to ``p`` (2-D Procrustes in xy, the
-    mean in z): the formation is defined up to them, ``p*`` living in the estimated frame."""
+    """Fig. 2(d): each robot's distance ``(N,)`` [m] from the formation ``p*`` (defined up to yaw
+    and translation) best fit to ``p`` (2-D Procrustes in xy, the mean in z)."""
     c, c_star = p.mean(axis=0), p_star.mean(axis=0)
     q, q_star = p - c, p_star - c_star
     w, w_star = q[:, 0] + 1j * q[:, 1], q_star[:, 0] + 1j * q_star[:, 1]

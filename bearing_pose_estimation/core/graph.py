@@ -72,10 +72,9 @@ def widest_angles(b: NDArray[np.float64]) -> NDArray[np.float64]:
 def close_approaches(times: NDArray[np.float64], positions: NDArray[np.float64],
                      radius: float) -> tuple[NDArray[np.intp], NDArray[np.intp],
                                              NDArray[np.float64], NDArray[np.float64]]:
-    """``(i, j, distance, time)`` of the closest approach (the earliest of equal ones) of every
-    pair ``i < j`` closer than ``radius`` [m], sorted; agents move on straight lines between the
-    samples ``positions`` ``(K, N, 3)``. A KD-tree of each segment's start finds the pairs within
-    ``radius`` plus twice the farthest move over it; their minimum on it is then exact."""
+    """``(i, j, distance, time)`` of the (earliest) closest approach of every pair ``i < j`` closer
+    than ``radius`` [m], sorted, on straight lines between ``positions`` ``(K, N, 3)``; a KD-tree
+    per segment finds candidates (``radius`` plus twice the farthest move), then exact minima."""
     k_samples, n = positions.shape[:2]
     empty_i, empty_f = np.zeros(0, dtype=np.intp), np.zeros(0)
     if n < 2 or k_samples == 0:

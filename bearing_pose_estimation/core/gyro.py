@@ -23,9 +23,8 @@ GAP_FACTOR = 1.5
 
 
 class IntervalBuffer:
-    """Interval-average samples (vectors) of one agent over a sliding window: sample k holds
-    over ``(t[k], t[k+1]]``, the first from ``start``; samples older than ``horizon`` [s] are
-    dropped."""
+    """Interval-average samples of one agent: sample k holds over ``(t[k], t[k+1]]``, the first
+    from ``start``; samples older than ``horizon`` [s] are dropped."""
 
     def __init__(self, start: float, horizon: float = 2.0) -> None:
         self.horizon = horizon

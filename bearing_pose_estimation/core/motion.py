@@ -59,9 +59,8 @@ ZERO = VectorProfile()
 
 @dataclass(frozen=True)
 class LinearVelocity:
-    """The velocity of one agent [m/s] in the world frame (``dp/dt = v``), the body frame
-    (``dp/dt = R v``), or ``anchor_estimate``: wanted in the anchor's frame, applied through
-    its own attitude estimate, ``u = Q̂ᵀ v`` (Presenza et al., Sec. V, case 2)."""
+    """An agent's velocity [m/s] in the world frame (``dp/dt = v``), the body frame (``dp/dt = R
+    v``), or ``anchor_estimate``: ``u = Q̂ᵀ v`` (Presenza et al., Sec. V, case 2)."""
 
     frame: Literal['world', 'body', 'anchor_estimate'] = 'world'
     value: VectorProfile = ZERO

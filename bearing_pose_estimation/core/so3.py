@@ -180,9 +180,8 @@ def log(R: ArrayLike) -> Array:
 
 
 def log_small(R: ArrayLike) -> Array:
-    """:func:`log` for rotations of small angle (a step's increment): ``θ/(2 sin θ)
-    vee(R - Rᵀ)`` in closed form, ten times cheaper than the quaternion route; rotations beyond
-    3 rad (where that form loses digits) go through :func:`log`."""
+    """:func:`log` for a step's small rotation: ``θ/(2 sin θ) vee(R - Rᵀ)``, ten times cheaper;
+    beyond 3 rad (where that form loses digits) through :func:`log`."""
     R = np.asarray(R, dtype=float)
     v = 0.5 * np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
                         R[..., 1, 0] - R[..., 0, 1]], axis=-1)
@@ -200,9 +199,8 @@ def log_small(R: ArrayLike) -> Array:
 
 
 def to_quat(R: Array) -> Array:
-    """One rotation matrix → unit quaternion ``(x, y, z, w)`` with ``w >= 0`` (REP-103 order):
-    Shepperd's method (branch on the largest diagonal term: no precision lost), scalar code
-    ~20x faster than scipy for the one matrix per message the nodes convert."""
+    """One rotation matrix → unit quaternion ``(x, y, z, w)``, ``w >= 0`` (REP-103 order), by
+    Shepperd's method (no precision lost); scalar code ~20x faster than scipy for one matrix."""
     tr = R[0, 0] + R[1, 1] + R[2, 2]
     if tr > 0.0:
         s = 2.0 * math.sqrt(1.0 + tr)

@@ -1,6 +1,5 @@
-"""A pose from the bearings to neighbours whose poses are estimated: the package's warm start
-for an agent with no trustworthy estimate (none of the papers has one; derivation:
-docs/warm_start.md).
+"""A pose from the bearings to neighbours whose poses are estimated: the package's warm start (none
+of the papers has one; derivation: docs/warm_start.md).
 
 Agent i measures ``b_j`` (unit, its body frame) to each neighbour j, and hears ``d_j``, the same
 bearing in the world frame as j sees it (``-R̂_j b^j_ji``), and ``p̂_j``. Then
@@ -10,9 +9,8 @@ bearing in the world frame as j sees it (``-R̂_j b^j_ji``), and ``p̂_j``. Then
 - the position is the point closest to the lines through each ``p̂_j`` along ``d_j``:
   ``(Σ w_j P_j) p = Σ w_j P_j p̂_j`` with ``P_j = I − d_j d_jᵀ``.
 
-Both need two bearings at least :data:`MIN_SPREAD_RAD` apart. Each returns its residuals, the
-angles [rad] between what it fits and what was measured, for the caller to judge against the
-noise.
+Both need two bearings at least :data:`MIN_SPREAD_RAD` apart. Each returns its residual angles
+[rad], for the caller to judge against the noise.
 """
 from __future__ import annotations
 
@@ -50,10 +48,9 @@ def wahba(body: Array, world: Array, w: Array) -> tuple[Array, Array] | None:
 
 
 def triangulate(points: Array, d: Array, w: Array) -> tuple[Array, Array] | None:
-    """``p`` ``(3,)`` closest (weighted least squares) to the lines through ``points`` ``(E,
-    3)`` along the unit directions ``d`` (from ``p`` to each point), and the angles ``(E,)``
-    between ``d`` and the direction from ``p`` to each point (π for a point behind); None if
-    they do not determine it."""
+    """``p`` ``(3,)`` closest (weighted least squares) to the lines through ``points`` ``(E, 3)``
+    along the unit directions ``d`` (from ``p`` to each point), and the angles ``(E,)`` between
+    ``d`` and ``p`` → point (π: behind); None if undetermined."""
     if spread(d) < MIN_SPREAD_RAD:
         return None
     P = np.eye(3) - np.einsum('ea,eb->eab', d, d)

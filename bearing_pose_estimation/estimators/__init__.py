@@ -1,8 +1,6 @@
-"""The estimators and their registry, keyed by the scenario's ``method:``.
-
-Adding a method is one module here and one line in :data:`_BUILT_IN`; nothing outside this
-folder names a method. One outside the package is named by its import path, ``method:
-my_module:MyMethod`` (on every process's Python path), and :func:`get` imports it.
+"""The estimators and their registry, keyed by the scenario's ``method:``. Adding a method is one
+module here and one line in :data:`_BUILT_IN`; one outside the package is named by its import
+path, ``method: my_module:MyMethod``, and :func:`get` imports it.
 """
 from __future__ import annotations
 

@@ -82,12 +82,9 @@ class Channel:
       ``owner_only``: only the owner of the pair's shared state sends it.
     - ``sensor``: j's own measurement of i, on j's sensor topic, paired like a measurement.
     - ``pairing`` with the step at t: ``'instant'``, the sender's newest instant at or before t
-      at which it sent every required channel (a simulation waits for it, a robot takes what
-      is here); ``'exact'``, the value of t itself: once a later one came it is lost, and the
-      sender's newest earlier one is carried to t (:meth:`Estimator.carry`) or the edge goes
-      without it.
-    - ``optional`` (a covariance): never waited for; the step's instant's, else the newest,
-      else :meth:`Estimator.missing`.
+      with every required channel; ``'exact'``, the value of t itself, else the newest earlier
+      one carried to t (:meth:`Estimator.carry`) or the edge goes without.
+    - ``optional`` (a covariance): never waited for (else :meth:`Estimator.missing`).
     - ``frame``: ``'world'``, ``'body'`` (the sender's) or ``'estimate'``; ``unit``: unit
       vectors (checked on reception); ``bound``: the largest component a receiver accepts;
       ``psd_blocks``: leading packed symmetric 3x3 blocks (xx, yy, zz, xy, xz, yz) that must
@@ -123,9 +120,8 @@ class Channel:
 # ----------------------------------------------------------------------------- gains
 def gain(default: float, help: str, minimum: float = 0.0, zero_allowed: bool = False,
          model: bool = False) -> Any:
-    """A field of a method's gains dataclass: ``default``, a one-line ``help`` (the node's
-    parameter description), the exclusive lower bound ``minimum`` (``zero_allowed``: >= 0, for
-    a term that 0 switches off); ``model``: of the covariance's model, left out of tables."""
+    """A field of a method's gains: ``default``, a one-line ``help`` (the parameter description),
+    exclusive lower bound ``minimum`` (``zero_allowed``: >= 0); ``model``: the covariance's."""
     return field(default=default, metadata={'help': help, 'minimum': minimum,
                                             'zero_allowed': zero_allowed, 'model': model})
 
@@ -176,10 +172,9 @@ SPARSE_SUM_EDGES = 64
 
 @dataclass(frozen=True, eq=False)
 class Edges:
-    """Directed sensing edges ``i → j`` (agent i measures j), fixed for a step: ``agent[e]`` the
-    state row of the agent that owns edge ``e`` (0 in a node), ``k[e]`` ``k_ij``, ``flags``
-    (:func:`edge_table`). Compared by identity, so a method may cache what it derives from a
-    fleet's edges (as :meth:`sum_by_agent` its incidence matrix)."""
+    """Directed sensing edges ``i → j``, fixed for a step: ``agent[e]`` the state row owning edge
+    ``e`` (0 in a node), ``k[e]`` ``k_ij``, ``flags``. Compared by identity, so a method may cache
+    what it derives (as :meth:`sum_by_agent` its incidence matrix)."""
 
     agent: Index
     k: Array
@@ -318,12 +313,10 @@ class StepInputs:
 
     - ``agent[key]`` ``(N, ...)``: the agent keys above (:data:`DISPLACEMENT` where odometry
       runs, the anchor's for methods with one).
-    - ``edge[key]`` ``(E, ...)``: each own point sensor's measurement of the other end j, by
-      its name (``'bearings'``: ``b^i_ij``, in the body frame at t); each channel j sent, by its
-      name (per-agent ones repeated on every edge from j); j's motion with ``peer_odometry``;
-      :data:`P_OWN` (a moving fleet: ``p̂_i`` moved back to the stamp of j's values by the own
-      odometry, so the pairing is exact at the true poses while the corrections are not
-      delayed) and :data:`HELD` (a node holds samples slower than its steps, and their noise).
+    - ``edge[key]`` ``(E, ...)``: each own point sensor's measurement of j by its name
+      (``'bearings'``: ``b^i_ij``, body frame at t); each channel j sent (per-agent ones repeated
+      on every edge from j); j's motion with ``peer_odometry``; :data:`P_OWN` (``p̂_i`` moved back
+      to the stamp of j's values: exact pairing, undelayed corrections) and :data:`HELD`.
     - ``mask[key]`` ``(E,)``: which edges have ``edge[key]`` (no mask: all; off: zeros or the
       method's stand-in)."""
 
@@ -630,11 +623,9 @@ class Estimator(ABC, Generic[G, S]):
 @dataclass(frozen=True)
 class EdgeTable:
     """A fleet's edges for one method (:func:`edge_table`), grouped by agent: edge ``e`` joins
-    ``agent[e]`` to ``other[e]`` with gain ``k[e]``; ``flags`` ``(E,)``: ``senses`` (the agent
-    measures the other), ``sensed_by``, and for communication links ``owns`` (the agent keeps
-    the pair's shared state, §8 of the De Carli notes: the sensing agent of a one-way pair, the
-    lower index of a two-way one), ``ranges``, ``ranged_by`` (the anchor's relative positions);
-    ``reverse``: the index of the edge ``other → agent`` (-1: none)."""
+    ``agent[e]`` to ``other[e]`` with gain ``k[e]``; ``flags`` ``(E,)``: ``senses``,
+    ``sensed_by``, ``owns`` (the pair's shared state, §8 of the De Carli notes), ``ranges``,
+    ``ranged_by``; ``reverse``: the index of the edge ``other → agent`` (-1: none)."""
 
     agent: Index
     other: Index
@@ -652,11 +643,9 @@ class EdgeTable:
 
 def edge_table(method: type[Estimator], n: int, tail: Index, head: Index, k: Array,
                anchor: int | None = None, ranged: Sequence[int] = ()) -> EdgeTable:
-    """The edges of ``method`` on a fleet of ``n`` agents whose sensing edges are ``tail →
-    head`` (agent ``tail[e]`` measures ``head[e]``, its neighbour; gain ``k[e]``), grouped by
-    agent in that order: one per sensing edge for ``links = 'sensing'``, one per communication
-    neighbour, ids ascending, for ``links = 'communication'`` (the anchor's ranged robots
-    linked to it too)."""
+    """The edges of ``method`` on ``n`` agents with sensing edges ``tail[e] → head[e]`` (gain
+    ``k[e]``), grouped by agent: one per sensing edge (``links = 'sensing'``), or one per
+    communication neighbour, ids ascending (the anchor's ranged robots included)."""
     tail, head = np.asarray(tail, dtype=np.intp), np.asarray(head, dtype=np.intp)
     edges = list(zip(tail.tolist(), head.tolist()))
     sensed = set(edges)

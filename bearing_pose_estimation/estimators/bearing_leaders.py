@@ -36,10 +36,9 @@ COLLINEAR_ERROR_RAD = 1e-6
 COLLINEAR_WARN_DEG = 5.0
 # Eigenvalues closer than this (relative to the largest) count as repeated.
 EIGEN_GAP_REL = 1e-6
-# A warm start is accepted when every residual angle is within this many per-component
-# standard deviations of the noise it explains: both bearings' and the neighbour's estimate's
-# (its covariance), at least WARM_FLOOR_RAD (a noise-free simulation's neighbours are exact only
-# to rounding). A true residual exceeds 4 sigma with probability exp(-8) = 3e-4 (Rayleigh).
+# A warm start is accepted when every residual angle is within this many per-component std of
+# the noise it explains (bearings and the neighbour's covariance; at least WARM_FLOOR_RAD). A
+# true residual exceeds 4 sigma with probability exp(-8) = 3e-4 (Rayleigh).
 WARM_SIGMAS = 4.0
 WARM_FLOOR_RAD = 1e-3
 # check_motion works on (samples × followers) blocks of about this many bearing sets.
@@ -243,11 +242,10 @@ class BearingLeaderEstimator(Estimator[GL, S]):
 
     # ------------------------------------------------------------------ along the motion
     def check_motion(self, fleet: Fleet, times: Array, positions: Array) -> list[Finding]:
-        """Assumption 2d's geometry and the lemma's spectrum at every sample of a moving fleet:
-        per follower at most one finding for its bearings becoming (nearly) collinear, with the
-        first time and the narrowest angle, and one for its spectrum (evaluated every
-        :data:`SPECTRUM_STEP_DEG` of bearing turn), with the first time and the worst sample.
-        Only an onset after t = 0 (else :meth:`check`'s); collocated samples are skipped."""
+        """Assumption 2d's geometry and the lemma's spectrum along a moving fleet: per follower at
+        most one finding for (nearly) collinear bearings and one for its spectrum (every
+        :data:`SPECTRUM_STEP_DEG` of bearing turn), each with its first time and worst sample;
+        only an onset after t = 0 (else :meth:`check`'s); collocated samples are skipped."""
         by_size: dict[int, list[int]] = {}
         for i in fleet.followers:
             if len(fleet.neighbours[i]) >= 2:

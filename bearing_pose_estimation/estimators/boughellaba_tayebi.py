@@ -3,14 +3,10 @@
 ``method: boughellaba_tayebi`` (the default), in the setting of :mod:`.bearing_leaders`.
 Notation: ``[x]x`` is the skew matrix of ``x``; ``P_x = I - x xᵀ/‖x‖²``; ``R̃_i = R_i R̂_iᵀ``.
 
-Continuous time, equations of the paper (the position observer in its v2 form: the projector
-uses the estimated world bearing ``R̂_i b^i_ij``, since ``R̂_i P_{b^i_ij} R̂_iᵀ = P_{R̂_i b^i_ij}``;
-v1's form with the unknown world bearing ``b_ij`` does not converge, its position error stays
-near 2.4 on the paper's scenario)::
-
-    σ_i     = Σ_j k_ij (R̂_j b^j_ij) × (R̂_i b^i_ij)                       (innovation)
-    dR̂_i/dt = R̂_i [ω_i]x - k_R [σ_i]x R̂_i                                (3)
-    dp̂_i/dt = -k_R [σ_i]x p̂_i - k_p Σ_j P_{R̂_i b^i_ij} (p̂_i - p̂_j)      (23)
+Equations (3), (23) and their step: README, "The estimator, and how it is discretised". The
+position observer is the paper's v2 form, with the estimated world bearing ``R̂_i b^i_ij`` in
+the projector (``R̂_i P_{b^i_ij} R̂_iᵀ = P_{R̂_i b^i_ij}``); v1's, with the unknown world bearing
+``b_ij``, does not converge (position error near 2.4 on the paper's scenario).
 
 The term ``-k_R [σ_i]x p̂_i`` cancels the attitude correction in ``d(R̃_i p̂_i)/dt``; the
 position error is ``p̃_i = p_i - R̃_i p̂_i`` (v1 writes ``R̂_i``: a typo), while ``p̂_i`` itself
@@ -19,20 +15,10 @@ of ``M_i = Σ_j k_ij b_ij b_ijᵀ`` (a warning: the paper's own agent 8 has {0, 
 converges); the paper's (13) is off by ½ (``psi(R̃)ᵀ psi(M R̃) = ½ psi(R̃)ᵀ Q psi(R̃)``, ``Q =
 tr(M) I - M``).
 
-Discretisation over a step ``h`` (``ΔR`` the gyro increment ``R(t)ᵀ R(t+h)``)::
-
-    Q    = exp(-h k_R [σ_i]x)
-    R̂_i ← Q R̂_i ΔR_i
-    p̂_i ← Q (p̂_i - h k_p Σ_j P_{R̂_i b^i_ij} (p̂_i - p̂_j))
-
-One ``Q`` for both corrections (the same left rotation) keeps R̂ on SO(3), and the errors obey
-``R̃⁺ = R̃ exp(h k_R [σ]x)`` and forward Euler of (24): the true pose is an exact fixed point
-(README, "The estimator, and how it is discretised").
-
 Moving agents (an extension: the paper's positions are static): the odometry's body velocity
 ``v_i`` is fed forward with ``k_v`` (1, the default; 0: the paper's observer), ``+ k_v R̂_i v_i``
-in (23'), discretised with the displacement ``δ_i = R_i(t)ᵀ (p_i(t+h) - p_i(t))`` integrated
-from the odometry samples::
+in (23'), discretised with the odometry's displacement ``δ_i = R_i(t)ᵀ (p_i(t+h) - p_i(t))`` and
+``Q = exp(-h k_R [σ_i]x)``::
 
     p̂_i ← Q (p̂_i + k_v R̂_i δ_i - h k_p Σ_j P_{R̂_i b^i_ij} (p̂_i - p̂_j))
 

@@ -16,10 +16,9 @@ So ``x_i⁺ = F_i x_i + Σ_j G_ij x_j + noise``, and each agent propagates
 
     P_i⁺ = F_i P_i F_iᵀ + W_i + c_i Σ_j G_ij P_j G_ijᵀ
 
-from its own geometry and noise model (``W_i``; ``N_g`` the gyro's angle random walk
-[rad/√s]) and the ``P_j`` its neighbours send. Over the whole fleet with the cross-covariances
-``E[x_i x_jᵀ]`` and without ``c_i`` the recursion is exact to first order; an agent has neither
-those nor its neighbours' dynamics, so ``c_i`` stands for them:
+from its own geometry and noise model (``W_i``; ``N_g`` the gyro's angle random walk [rad/√s])
+and the ``P_j`` its neighbours send. With the fleet's cross-covariances and no ``c_i`` this is
+exact to first order; an agent has neither those nor its neighbours' dynamics, so ``c_i``:
 
 - a neighbour's error is slow (correlated over ~1/a): over agent i's window, white noise of
   density ``2 P_j / (a_i + a_j)``, with ``a_j`` taken as i's slowest rate and ``a_i`` as its
@@ -52,10 +51,9 @@ Jacobians = tuple[Array, Array, Array, Array, Array]
 
 @dataclass(frozen=True, kw_only=True)
 class PoseCovarianceModel:
-    """The gains every method's covariance reads (a keyword-only base of the methods' gains,
-    whose own stay first): the motion sensors' noise, by default a simulation's ``noise:`` and
-    ``sensors:`` (else 0), and the prior. De Carli et al.'s excitation monitor reads the
-    odometry's too (what its noise alone looks like)."""
+    """The gains every method's covariance reads (a keyword-only base of the methods' gains): the
+    motion sensors' noise, by default a simulation's ``noise:`` and ``sensors:`` (else 0), and
+    the prior. De Carli et al.'s excitation monitor reads the odometry's too."""
 
     gyro_noise_density: float = gain(0.0, 'gyro angle random walk [rad/sqrt(s)] (gyro std / '
                                      'sqrt(IMU rate)), for the covariance', zero_allowed=True,
@@ -86,9 +84,8 @@ def initial_covariance(n: int, position_std: float, attitude_std: float, dof: in
 
 def _edge_terms(edges: Edges, y: Array,
                 dist: Array) -> tuple[Array, Array, Array, Array, Array, Array]:
-    """Per edge ``k_ij``, ``P_b`` and ``B = [b]x`` ``(E, 3, 3)``, and per agent ``M_i = Σ_j P_b``
-    ((23) sums its projectors unweighted), ``Q_i = Σ_j k_ij P_b`` (σ_i weighs with k_ij) and
-    ``A_i = Σ_j d_ij [b]x``, the sums in one sparse product (~30 µs whatever its width)."""
+    """Per edge ``k_ij``, ``P_b``, ``B = [b]x`` ``(E, 3, 3)``; per agent ``M_i = Σ_j P_b`` (23),
+    ``Q_i = Σ_j k_ij P_b`` (σ_i) and ``A_i = Σ_j d_ij [b]x``, in one sparse product (~30 µs)."""
     k = edges.k[:, None, None]
     P_b = EYE3 - np.einsum('ea,eb->eab', y, y)
     B = so3.hat(y)
@@ -133,12 +130,10 @@ def propagate(P: Array, h: float, edges: Edges, y: Array, P_nbr: Array, bearing_
               moved: Array | None = None, odometry_noise_density: float = 0.0,
               held: Array | None = None) -> Array:
     """``P_i⁺ = F P Fᵀ + W + c_i Σ_j G P_j Gᵀ`` of every agent (module docstring) from ``P``
-    ``(N, d, d)``, the neighbours' ``P_nbr`` ``(E, 6, 6)`` and the method's ``jacobians``
-    (``rates``: its own error's decay rates [1/s]). Moving agents: ``moved`` ``(N, 3)``, the
-    fed-forward ``k_v R̂_i δ_i`` [m], whose error ``φ_i × R_i δ_i`` adds ``−[R̂ δ]x`` to
-    ``∂e⁺/∂φ``, and the odometry noise ``h N_v² I``. ``held`` ``(E, 2)``: the steps each own and
-    neighbour's bearing serve (:data:`base.HELD`): a noise held over m steps counts m times (m
-    equal draws add up to m² σ², m fresh ones to m σ²)."""
+    ``(N, d, d)``, the neighbours' ``P_nbr`` ``(E, 6, 6)`` and the method's ``jacobians``. Moving
+    agents: ``moved`` ``(N, 3)``, the fed-forward ``k_v R̂_i δ_i`` [m] (adds ``−[R̂ δ]x`` to
+    ``∂e⁺/∂φ``), and the odometry noise ``h N_v² I``. ``held`` ``(E, 2)``: the steps each bearing
+    serves (:data:`base.HELD`): m equal draws add up to m² σ², m fresh ones to m σ²."""
     F, G, own, theirs, rates = jacobians
     if moved is not None:
         F = F.copy()

@@ -2,10 +2,9 @@
 positions and their own odometry, with no anchor (``method: de_carli``).
 
 Equations, corrections and discretisation: ``../shared/estimators/de-carli-2024.md`` (§n),
-the paper's numbers in parentheses; ``test/de_carli_reference.py`` holds the same three stages
-over a whole fleet in the pairs' ``a < b`` orientation, the reference the stage tests check.
-Here they run per robot and per communication link, so that one step serves the batch
-simulator (all robots) and a node (one robot) alike.
+the paper's numbers in parentheses; ``test/de_carli_reference.py`` is the whole-fleet reference
+the stage tests check. Here the stages run per robot and per link, so one step serves the batch
+simulator and a node alike.
 
 Robots have yaw-only body frames ``R_i = R_z(ψ_i)`` (roll and pitch compensated), horizontal
 vectors are complex numbers, ``ẑ_i ≈ e^{ι(ψ_i + a)}`` is the (unnormalised) yaw estimate and
@@ -28,8 +27,8 @@ for a two-way pair, ``ʲp̂_ji`` too (fed by j's measurement). Channels:
   :mod:`.de_carli_covariance`, on its ``pose``. Each end of a pair propagates the pair's own
   covariance from what it has already, so none travels.
 
-The other end's odometry over the step (``δ_j``, ``Δψ_j``; :data:`base.PEER_DISPLACEMENT`) feeds the
-owner's prediction of ``ⁱp̂_ij``.
+The other end's odometry over the step (``δ_j``, ``Δψ_j``; :data:`base.PEER_DISPLACEMENT`)
+feeds the owner's prediction of ``ⁱp̂_ij``.
 
 One step ``h`` (the estimator frequency, the relative-yaw observer's 200 Hz), everything on the
 right from the step's start ``t`` (the state and what the neighbours sent at t):
@@ -57,27 +56,19 @@ right from the step's start ``t`` (the state and what the neighbours sent at t):
    (vertical parts: ``p̂_z ← p̂_z - δ_iz + δ_jz - h k_pe e_z``).
 4. Dead reckoning and the yaw's rotation: ``p̂_i ← p̂_i + R̂_i δ_i``, ``ẑ_i ← e^{ιΔψ_i} ẑ_i``.
 
-Initial values (§8, §9): ``ẑ_i(0) = e^{ιψ̂_i(0)}``; each ``P̂`` is its first measurement and each
-pair starts at ``unit(conj(ẑ_i) ẑ_j)`` from the first ``ẑ_j`` received (at t = 0 the rule of
-the paper's scenario).
+Initial values (§8, §9): ``ẑ_i(0) = e^{ιψ̂_i(0)}``; each ``P̂`` is its first measurement;
+each pair starts at ``unit(conj(ẑ_i) ẑ_j)`` from the first ``ẑ_j`` received.
 
 Persistent excitation (Theorem 1, §5): only the sensed robots' horizontal motion excites a
-pair. Both ends sum it from the odometry they both have (``|δ_xy|²/h`` per step: own and
-received), since the start (``excitation``, ``∫|v_xy|² dt``) and over an exponential window
-of :data:`EXCITATION_WINDOW_S` (``excitation_recent``). A pair joins the consensus as soon as
-its window's excitation is measurable, and stays in (``excited``): above ``pe_threshold`` plus
-:data:`NOISE_MARGIN` times what the odometry's noise alone puts in the window
-(:meth:`DeCarli.excitation_threshold`). Why (BENCHMARKS.md, "The excitation monitor"): the
-consensus follows stage 1 at ``k_z λ₂ = 80 s⁻¹``, so a pair whose relative yaw is converging
-costs it nothing, and waiting for a fixed amount of motion only delays the positions; the pair
-to keep out is one whose relative yaw never leaves its initial value, because its sensed
-robots do not move. A hovering robot's odometry is its noise, and a threshold on the integral
-since the start is crossed by that noise alone (0.05 m²/s after 63 s of
-``config/de_carli_noisy.yaml``'s odometry noise); a window's never is.
+pair. Both ends sum it from the odometry they both have (``|δ_xy|²/h`` per step) since the start
+(``excitation``, ``∫|v_xy|² dt``) and over an exponential window of :data:`EXCITATION_WINDOW_S`
+(``excitation_recent``). A pair joins the consensus, and stays in (``excited``), once its
+window is above ``pe_threshold`` plus :data:`NOISE_MARGIN` times the odometry noise's share
+(:meth:`DeCarli.excitation_threshold`): a hovering robot's noise alone crosses a threshold on
+the integral since the start, never a window's (BENCHMARKS.md, "The excitation monitor").
 
 Everything converges only up to one common yaw and translation
-(``EstimateFrame.COMMON_YAW_TRANSLATION``): the estimates live in an estimation frame whose
-relation to the world no stage determines.
+(``EstimateFrame.COMMON_YAW_TRANSLATION``).
 """
 from __future__ import annotations
 
@@ -117,35 +108,29 @@ RELYAW = Channel('relyaw', per='edge', frame='body', shape=(2,), owner_only=True
 
 # |ẑ| below this has no usable angle (Remark 3): its unit value is taken as 1.
 MIN_MODULUS = 1e-12
-# Persistent excitation (Theorem 1, §5), the module docstring: the window [s] over which a
-# pair's excitation must be measurable, and the default floor it must exceed besides the
-# noise's, EXCITATION_M2_S [m²/s]: 1 mm/s held over the window, far above rounding (a hovering
-# robot's simulated odometry is exactly 0) and far below what a real odometry's noise lets one
-# see (the noise term: 0.028 m/s with config/de_carli_noisy.yaml's odometry).
+# Persistent excitation (module docstring): the window [s], and the default floor besides the
+# noise's, EXCITATION_M2_S [m²/s]: 1 mm/s held over the window, far above rounding and far below
+# what a real odometry's noise lets one see (0.028 m/s with config/de_carli_noisy.yaml).
 EXCITATION_WINDOW_S = 1.0
 EXCITATION_M2_S = 1e-6
-# The window's excitation must exceed this many times the noise's mean in it: the sensed robots'
-# mean square speed at least the odometry noise's (2σ² for a 2-D velocity with σ per component).
-# The noise's own share never gets there: its standard deviation in the window is
-# sqrt(h / (2 c τ)) times its mean (c sensed robots), 1/20 of it at 200 Hz, 1/10 at 50 Hz.
+# The window's excitation must exceed this many times the noise's mean in it (2σ² for a 2-D
+# velocity). The noise alone never gets there: its std in the window is sqrt(h / (2 c τ)) times
+# its mean (c sensed robots), 1/20 of it at 200 Hz, 1/10 at 50 Hz.
 NOISE_MARGIN = 2.0
-# The diagnostics' stage of a robot: the first stage whose residual is above its threshold
-# (the relative-position error of its pairs [m], the consensus disagreement of its yaw, the
-# position residual of (21) [m]), or 'converged'.
+# The diagnostics' stage of a robot: the first stage whose residual [m, rad, m] is above its
+# threshold, or 'converged'.
 RELATIVE_DONE_M = 1e-3
 YAW_DONE = 1e-3
 POSITION_DONE_M = 1e-2
-# The position residual before the first correction: not known, not converged (finite: a
-# state holds finite values only).
+# The position residual before the first correction: unknown, finite (a state holds no inf).
 UNKNOWN_RESIDUAL = 1e300
 # Stage 3's Euler correction diverges when h₃ k_p λ_max(L̄) reaches this (§7).
 EULER_LIMIT = 2.0
 
 
 def usable(inputs: StepInputs) -> tuple[Mask, Mask, Mask, Mask]:
-    """``(y_ok, m_ok, present, fresh)`` ``(E,)``: the robot senses j and its measurement is
-    here; j senses it and j's is here; j's odometry over the step is here; j's channels of
-    this instant are here (or were carried to it)."""
+    """``(y_ok, m_ok, present, fresh)`` ``(E,)``: here are the own measurement of j, j's of the
+    robot, j's odometry over the step, and j's channels of this instant (or carried to it)."""
     edges = inputs.edges
     return (edges.flag('senses') & inputs.here('relative_positions'),
             edges.flag('sensed_by') & inputs.here('meas'), inputs.here(PEER_ODOMETRY),
@@ -311,8 +296,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
 
     def excitation_threshold(self, sensed: Array | float, h: float) -> Array:
         """What a pair's window must reach to be excited (module docstring), ``sensed`` the
-        number of robots its edges sense: ``pe_threshold`` plus :data:`NOISE_MARGIN` times the
-        noise's share."""
+        number of robots its edges sense."""
         return self.gains.pe_threshold + NOISE_MARGIN * self.window_noise(h) * np.asarray(
             sensed, dtype=float)
 
@@ -341,10 +325,9 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         return {'z_hat': yaw or position, 'relyaw': yaw, 'p_hat': position}.get(channel, True)
 
     def carry(self, values: Mapping[str, Array], motion: Motion) -> dict[str, Array] | None:
-        """j's values of ``t_s`` at t (§8, timing pitfalls): ``ẑ_j`` turned by j's yaw
-        increment, ``p̂_j`` dead-reckoned with ``R̂_j(t_s) δ_j``, the owner's relative yaw
-        turned by ``Δψ_i - Δψ_j``; exact when no correction happens over ``[t_s, t]``. None
-        without j's odometry and the own gyro over that span."""
+        """j's values of ``t_s`` at t (§8): ``ẑ_j`` turned by j's yaw increment, ``p̂_j``
+        dead-reckoned with ``R̂_j(t_s) δ_j``, the relative yaw turned by ``Δψ_i - Δψ_j`` (exact
+        without corrections meanwhile); None without j's odometry and the own gyro."""
         own_delta_R, other_delta_R = motion.own_delta_R, motion.peer_delta_R
         other_displacement = motion.peer_displacement
         if own_delta_R is None or other_delta_R is None or other_displacement is None:
@@ -387,8 +370,8 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         senses, sensed_by, owns = edges.flag('senses'), edges.flag('sensed_by'), edges.flag('owns')
         y_ok, m_ok, present, fresh = usable(inputs)
 
-        # An edge whose other end's odometry is missing sits the step out; its relative
-        # estimates restart from the next measurements (their prediction needs δ_j).
+        # Without the other end's odometry (δ_j) an edge sits the step out; its relative
+        # estimates restart from the next measurements.
         gone = ~present
         out.ready_out[ag[gone], sl[gone]] = False
         out.ready_in[ag[gone], sl[gone]] = False
@@ -519,12 +502,10 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
     def pair_maps(self, x: DeCarliState, h: float, inputs: StepInputs,
                   owned: NDArray[np.bool_], z_owned: Complex
                   ) -> tuple[Index, Complex, tuple[Array, Array], NDArray[np.bool_]]:
-        """The pairs' linearised stage 1 (de_carli_covariance.py), in the owner's orientation:
-        the owner's on the pairs it runs (``owned``; ``z_owned`` their unit relative yaws at
-        the step's start), the other robot's replica from the same odometry and
-        measurements (from the owner's ``relyaw``), so that both ends hold the same
-        covariance. Returns the links ``(K,)``, the relative yaw each link linearises at
-        ``(E,)`` (0 where none), :func:`.de_carli_covariance.pair_maps` and two-way flags."""
+        """The pairs' linearised stage 1 (de_carli_covariance.py), in the owner's orientation, on
+        ``owned`` pairs (``z_owned``: their unit relative yaws) and, from the owner's ``relyaw``,
+        the other end's replica: both ends hold the same covariance. Returns the links ``(K,)``,
+        edges' relative yaws ``(E,)``, :func:`.de_carli_covariance.pair_maps`, two-way flags."""
         edges, rec = inputs.edges, inputs.edge
         assert edges.slot is not None
         ag, sl = edges.agent, edges.slot
@@ -628,10 +609,8 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         return report
 
     def check_motion(self, fleet: Fleet, times: Array, positions: Array) -> list[Finding]:
-        """Warn for every pair whose sensed robots' horizontal motion along the sampled truth
-        never makes its window's excitation measurable: its true excitation plus the noise's
-        mean never reaches :meth:`excitation_threshold` (the paper's mode is checked with the
-        exogenous motion: the truth cannot depend on estimates here)."""
+        """Warn for every pair whose window's excitation (true, plus the noise's mean) never
+        reaches :meth:`excitation_threshold` along the sampled truth (the exogenous motion)."""
         names = list(fleet.names)
         dt = np.diff(times)
         energy = (np.sum(np.diff(positions[:, :, :2], axis=0) ** 2, axis=2)
@@ -643,8 +622,7 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         found = []
         for a, b, sensed in pairs_and_sensed(fleet):
             peak = float(window[:, list(sensed)].sum(axis=1).max(initial=0.0))
-            # The true motion the window needs, the noise's mean adding to it; with
-            # pe_threshold 0 the pair is in anyway, its relative yaw as stuck.
+            # The true motion the window needs, plus the noise's mean (pe_threshold 0: in anyway).
             needed = (max(self.gains.pe_threshold, EXCITATION_M2_S) + (NOISE_MARGIN - 1.0)
                       * self.window_noise(fleet.step) * len(sensed))
             if peak < needed:

@@ -33,10 +33,9 @@ over the excited pairs of stage 2. As in covariance.py, the neighbours' errors `
 and the pairs' ``ε_ij`` enter as slow inputs: white noise of ``1/ρ`` times their covariance per
 tick of their stage, ``ρ`` its own decay per tick (``h₃ k_p Σ c_ij`` for the position, ``c Σ
 |ẑ_j| / (|ẑ_i| + c Σ |ẑ_j|)`` for the yaw: ``2/(ρ_i + ρ_j)`` with ``ρ_j = ρ_i``). So does the
-robot's own yaw in its position (it follows the pairs' slow relative yaws, not the fast
-consensus linearised here). No covariance intersection: a consensus's neighbours share no
-ancestors. NEES on config/de_carli_noisy.yaml: README, "The covariance" (the neighbours' yaws as
-very slow inputs and the own yaw through the correlation gave 3.83 and 1.9-7.7 per robot).
+robot's own yaw in its position (it follows the pairs' slow relative yaws). No covariance
+intersection: a consensus's neighbours share no ancestors. NEES: README, "The covariance" (the
+neighbours' yaws as very slow inputs, the own yaw through the correlation: 3.83, 1.9-7.7).
 """
 from __future__ import annotations
 

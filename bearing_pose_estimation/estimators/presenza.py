@@ -9,10 +9,9 @@ O_i`` (directed) and their rates ``β̇_ij``; the anchor ``a`` also measures the
 **free robots'** positions come from the angles the sensing robots measure of them, their
 attitudes from the velocity the sensing robots reconstruct from bearing rates (11).
 
-One link per communication neighbour; two rounds of messages per step (§10, the channels
-below): ``q̂_j`` and the anchor's ranged ``q_i``, then what each sensing robot j forms for each
-``i ∈ O_j`` (:meth:`Presenza.reply`), e.g. ``n_ji = Π(𝔟̂_ji) υ̂_j + ‖q̂_i - q̂_j‖ (Q̂_j (β̇_ji +
-ω_j × β_ji) - ω_a × 𝔟̂_ji)`` (11, with the estimated distance, §4.2); and the anchor's odometry.
+One link per communication neighbour; two rounds of messages per step (§10): ``q̂_j`` and the
+anchor's ranged ``q_i``, then what each sensing robot j forms for each ``i ∈ O_j``
+(:meth:`Presenza.reply`; e.g. ``n_ji`` of (11) with the estimated distance, §4.2).
 
 One step ``h``, everything on the right at the step's start:
 
@@ -39,9 +38,8 @@ One step ``h``, everything on the right at the step's start:
   As ``h → 0`` this is (16)-(19). Velocities inside the terms (``u_i``, ``ω_i``, ``u_a``,
   ``ω_a``) are the step averages ``δ/h``, ``log(ΔR)/h``.
 
-The covariance of ``(q̃_i, φ_i)`` is propagated with the step (:mod:`.presenza_covariance`).
-The anchor runs as a sensing robot (its estimate leaves ``(I, 0)`` and returns, as in the paper)
-or, pinned, holds ``(I, 0)`` with a zero covariance.
+Covariance: :mod:`.presenza_covariance`. The anchor runs as a sensing robot (its estimate
+leaves ``(I, 0)`` and returns, as in the paper) or, pinned, holds ``(I, 0)``.
 """
 from __future__ import annotations
 
@@ -167,9 +165,8 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
     partial_edges: ClassVar[bool] = True
     partner_sensor: ClassVar[Sensor | None] = Sensor.RELATIVE_POSITIONS
     reference_scenario: ClassVar[str] = 'presenza_case1.yaml'
-    # The free robots dead-reckon with the velocity reconstructed from the bearing rates at the
-    # step's start (18) and every robot's terms use step-average velocities: first order in h
-    # under motion (~1e-5 after 300 steps of 1 ms in the contract's moving fleet).
+    # Free robots dead-reckon with the step-start velocity (18), terms use step averages: first
+    # order in h under motion (~1e-5 after 300 steps of 1 ms in the contract's moving fleet).
     moving_fixed_point_atol: ClassVar[float] = 1e-4
 
     # --- state and messages
@@ -198,9 +195,8 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
                 'pose_cov': x.P.copy()}
 
     def carry(self, values: Mapping[str, Array], motion: Motion) -> dict[str, Array] | None:
-        """Values formed at ``t_s`` seen in the anchor frame at t, moved by ``ΔR_a``, ``δ_a``: a
-        position ``ΔR_aᵀ (q - δ_a)`` (the sender still), a vector ``ΔR_aᵀ v``, a block ``ΔR_aᵀ D
-        ΔR_a``: a late value in the right frame."""
+        """Values formed at ``t_s`` in the anchor frame at t (moved by ``ΔR_a``, ``δ_a``): a
+        position ``ΔR_aᵀ (q - δ_a)`` (the sender still), a vector ``ΔR_aᵀ v``, ``ΔR_aᵀ D ΔR_a``."""
         delta_R_a, delta_a = motion.anchor_delta_R, motion.anchor_displacement
         if delta_R_a is None or delta_a is None:
             return None

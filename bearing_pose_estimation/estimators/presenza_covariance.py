@@ -30,13 +30,11 @@ other without bound). The robots that see i send, in round 2, what only they kno
   errors (``χ_jik (g_jᵀ q̃_j + χ_jkiᵀ q̃_k)``);
 - for a free listener, the covariance of their velocity term ``dn'_ji = dn_ji + dP̂ υ_i``
   (white: bearing, bearing-rate, odometry and gyro noise; slow: their ``(q̃_j, φ_j)``) and the
-  bearing rate ``ṙ_ji``. The range rate's part ``δ𝔟 ḋ`` is left out (the sensing robot does
-  not know ``ḋ``; with the paper's motions it is about a tenth of the attitude's part).
+  bearing rate ``ṙ_ji`` (:func:`velocity_maps`; the range rate's part, about a tenth, is out).
 
-Variances are capped (:data:`MAX_POSITION_STD`: the robot is lost). Not modelled: held samples
-(the node's bearings are at the step rate in every scenario here), a free robot holding ``γ̂``
-while ``λ_min(P̂_i)`` is small, and bearing rates differenced from noisy bearings, which are
-correlated in time (``bearing_rate_std`` then defaults to their per-sample std ``σ √2 f``)."""
+Variances are capped (:data:`MAX_POSITION_STD`: the robot is lost). Not modelled: held samples,
+a free robot holding ``γ̂``, and the time correlation of bearing rates differenced from noisy
+bearings (``bearing_rate_std`` then defaults to their per-sample std ``σ √2 f``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -166,10 +164,9 @@ def sender_terms(n_edges: int, angles: AngleTerms, bearings: Array, P_own: Array
                  bearing_var: float, rate_var: float, odometry_density2: float,
                  gyro_density2: float, h: float) -> Array:
     """:data:`TERM_COV` ``(E, 27)`` of a sensing robot j to each robot i it sees, from j's
-    ``angles``, body bearings ``β_ji`` ``(E, 3)`` and ``P_own`` ``(N, 6, 6)``, each listener's
-    ``pose_cov`` ``P_other`` ``(E, 6, 6)``, the free listeners' ``velocity`` terms (None: no
-    bearing rates), the variances per component [rad²], [1/s²] and the squared noise densities
-    of odometry [m²/s] and gyro [rad²/s]."""
+    ``angles``, bearings ``β_ji`` ``(E, 3)``, ``P_own`` ``(N, 6, 6)``, listeners' ``P_other``
+    ``(E, 6, 6)``, free listeners' ``velocity`` terms (None: no bearing rates), the variances
+    [rad²], [1/s²] and squared noise densities of odometry [m²/s] and gyro [rad²/s]."""
     out = np.zeros((n_edges, TERM_SIZE))
     e1, e2, chi_jk, chi_kj, g_own, _ = angles
     if len(e1):
@@ -209,9 +206,8 @@ def sender_terms(n_edges: int, angles: AngleTerms, bearings: Array, P_own: Array
 
 
 class OwnLinearisation(NamedTuple):
-    """A robot's linearised step (module docstring) before ``ΔR_aᵀ``: ``F`` ``(N, 6, 6)``, the
-    gains ``G_q``, ``G_Q`` ``(N, 3, 3)``, the slow inputs' scaling ``T = √c A^{-1/2}`` ``(N, 6,
-    6)`` and, for free robots, the map of ``Σ_j dn'_ji`` ``(N, 6, 3)``."""
+    """A robot's linearised step before ``ΔR_aᵀ``: ``F`` ``(N, 6, 6)``, ``G_q``, ``G_Q`` ``(N, 3,
+    3)``, ``T = √c A^{-1/2}`` ``(N, 6, 6)``, free robots' map of ``Σ_j dn'_ji`` ``(N, 6, 3)``."""
 
     F: Array
     G_q: Array

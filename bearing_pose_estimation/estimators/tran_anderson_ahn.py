@@ -8,10 +8,10 @@ observer, in the setting of Boughellaba & Tayebi (:mod:`.bearing_leaders`).
     dΩ̃_i/dt = -k_ω Ω̃_i + Σ_j k_ij (R̂_iᵀ d_ij) × b^i_ij  (+ k_c (R̂_iᵀ c) × c^i, two neighbours)
     dp̂_i/dt = -k_p R̂_i Σ_j P_{b^i_ij} R̂_iᵀ (p̂_i - p̂_j) = -k_p Σ_j P_{y_ij} (p̂_i - p̂_j)
 
-A follower with exactly two neighbours j, k adds the direction ``c^i = (b^i_ij × b^i_ik)/‖·‖``
-(world ``c = (d_ij × d_ik)/‖·‖``). (9) needs ``K_i = Σ_j k_ij b_ij b_ijᵀ`` (+ ``k_c c cᵀ``)
-positive definite, Lemma 2 distinct eigenvalues. The paper gives no gains; ``k_ω ∈ [1, 3]``,
-``k_ij ≈ 1-2``, ``k_p = 1`` converge on its cube scenario.
+A follower with two neighbours j, k adds the direction ``c^i = (b^i_ij × b^i_ik)/‖·‖`` (world
+``c = (d_ij × d_ik)/‖·‖``). (9) needs ``K_i = Σ_j k_ij b_ij b_ijᵀ`` (+ ``k_c c cᵀ``) positive
+definite, Lemma 2 distinct eigenvalues. The paper gives no gains; ``k_ω ∈ [1, 3]``, ``k_ij ≈
+1-2``, ``k_p = 1`` converge on its cube scenario.
 
 Discretisation over a step ``h`` (``ΔR`` the gyro increment)::
 

@@ -1,7 +1,6 @@
 """Pose errors, measured as each method's estimate frame requires, and the recording of a run:
-the one place (batch simulator, netsim, DDS monitor) that turns estimates into errors.
-
-Estimates are first mapped to the world frame (:func:`to_world`). ``COMMON_YAW_TRANSLATION``
+the one place (batch simulator, netsim, DDS monitor) that turns estimates into errors. Estimates
+are first mapped to the world frame (:func:`to_world`). ``COMMON_YAW_TRANSLATION``
 (``p̂_i ≈ R_z(a) p_i + t``) is aligned exactly in closed form: ``a*``, the circular mean of the
 yaw offsets ``ψ̂_i - ψ_i``, minimises ``Σ_i |e^{ιψ̂_i} - e^{ι(ψ_i + a)}|²``, and ``t* = mean_i
 (p̂_i - R_z(a*) p_i)``; one ``a*`` for attitudes and positions, so a yaw/position inconsistency
@@ -83,9 +82,8 @@ class Trajectories:
 
 @dataclass
 class Recording:
-    """Errors of every estimating agent (``followers``) at the recorded times, ``(K, F)`` as in
-    :class:`PoseErrors`; moving fleets' :class:`Trajectories`; ``extra`` columns ``(K,)`` by name
-    (De Carli et al.: ``rel_yaw_err_<a>_<b>``, ``formation_err_<agent>_m``)."""
+    """Errors of every estimating agent (``followers``) at the recorded times, ``(K, F)``; moving
+    fleets' :class:`Trajectories`; ``extra`` columns ``(K,)`` by name (``rel_yaw_err_<a>_<b>``)."""
 
     t: Array
     followers: list[str]

@@ -1,3 +1,2 @@
-"""The plan of a run, shared by the nodes (:mod:`ros`) and the command line (:mod:`cli`): what
-processes a run starts and with which parameters (:mod:`.processes`), and the DDS environment
-they share (:mod:`.dds`). No rclpy."""
+"""The plan of a run, shared by :mod:`ros` and :mod:`cli`: its processes (:mod:`.processes`) and
+their DDS environment (:mod:`.dds`). No rclpy."""

@@ -1,6 +1,5 @@
-"""The DDS environment of a run's processes, for the nodes (:mod:`ros`) and the launcher
-(:mod:`cli.launch`): domain, environment, how a hung DDS teardown ends, and the Fast DDS files
-a participant leaves in /dev/shm. No rclpy.
+"""The DDS environment of a run's processes: domain, environment, how a hung DDS teardown ends,
+and the Fast DDS files a participant leaves in /dev/shm. No rclpy.
 """
 from __future__ import annotations
 

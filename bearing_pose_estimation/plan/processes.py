@@ -1,6 +1,5 @@
-"""The process plan of a run: the processes ``bearing-pose run`` (and
-``launch/fleet.launch.py``, and the ``fleet.launch.xml`` a run writes) starts, with their
-command lines, namespaces and parameter files. :mod:`cli.launch` starts them. No rclpy.
+"""The processes of a run (``bearing-pose run``, ``launch/fleet.launch.py``, the
+``fleet.launch.xml`` a run writes): command lines, namespaces and parameter files. No rclpy.
 """
 from __future__ import annotations
 
@@ -27,11 +26,9 @@ class LaunchError(RuntimeError):
     """The run cannot start or did not finish. The message names the cause and the fix."""
 
 
-# With ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, Fast DDS (rclpy 7.1.6's rmw_fastrtps) looks
-# for participants at the ports of ids 0-31 only: two processes with ids >= 32 never discover
-# each other (measured: BENCHMARKS.md, "Discovery"). A run uses at most this many processes,
-# so observers (RViz, ros2 CLI) still see the whole fleet. Through a discovery server
-# (RunConfig.discovery_server) there is no such limit ("The discovery server").
+# With ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, Fast DDS looks for participants at the ports of
+# ids 0-31 only (BENCHMARKS.md, "Discovery"): a run uses at most this many processes, so
+# observers still see the whole fleet. A discovery server has no such limit.
 MAX_PROCESSES = 32
 
 
@@ -172,9 +169,8 @@ DISCOVERY_SERVER_EXE = 'fast-discovery-server'   # ships with Fast DDS (the ROS 
 
 
 def discovery_server_spec(port: int, logs_dir: Path) -> ProcessSpec:
-    """Fast DDS's discovery server on 127.0.0.1:``port``, server id 0 (the first address of
-    ROS_DISCOVERY_SERVER): started first, stopped last. Found beside the interpreter (.venv),
-    else on PATH; ``$BEARING_POSE_BIN_DIR`` instead (a stand-in)."""
+    """Fast DDS's discovery server on 127.0.0.1:``port``, server id 0: started first, stopped
+    last. Found beside the interpreter, else on PATH; ``$BEARING_POSE_BIN_DIR``: a stand-in."""
     bin_dir = os.environ.get(BIN_DIR_ENV)
     exe = Path(bin_dir or Path(sys.executable).parent) / DISCOVERY_SERVER_EXE
     found = str(exe) if exe.is_file() else None if bin_dir else shutil.which(DISCOVERY_SERVER_EXE)
@@ -202,9 +198,8 @@ def estimator_groups(agents: Sequence[str], agents_per_process: int) -> dict[str
 def plan_processes(scenario: Scenario, params: Mapping[str, Path], logs_dir: Path,
                    exe: Callable[[str], Path], agents_per_process: int = 1,
                    fleet: str = '', discovery_server: int | None = None) -> list[ProcessSpec]:
-    """Command lines in start order: estimators, monitor, simulator (which starts the clock
-    once every subscriber matched). With a ``fleet`` namespace, every node runs under it. With
-    a ``discovery_server`` port, that server comes first."""
+    """Command lines in start order: (the discovery server), estimators, monitor, simulator
+    (which starts the clock once every subscriber matched); all under ``fleet`` if given."""
     specs = [] if discovery_server is None else [discovery_server_spec(discovery_server,
                                                                        logs_dir)]
     agents = [a.name for a in scenario.agents]
@@ -292,9 +287,8 @@ def launch_nodes(specs: list[ProcessSpec]) -> list[LaunchNode]:
 
 
 def launch_xml(specs: list[ProcessSpec], env: Mapping[str, str]) -> str:
-    """``specs`` as a ROS 2 XML launch file (the DDS environment of ``env``, the discovery
-    server as an ``<executable>``, then a ``<node>`` each): ``ros2 launch`` starts the same
-    fleet as ``bearing-pose run``."""
+    """``specs`` as a ROS 2 XML launch file (``env``'s DDS environment, the discovery server, a
+    ``<node>`` each): ``ros2 launch`` starts the same fleet as ``bearing-pose run``."""
     import xml.etree.ElementTree as ET
 
     root = ET.Element('launch')

@@ -1,18 +1,13 @@
 """``estimators``: several agents' estimator nodes in one process, spun by one executor.
 
-Each agent keeps its own node (namespace ``/<agent>``, or ``/<fleet>/<agent>`` with
-``--fleet-namespace``), its own parameter file and its own remaps, exactly as a separate
-``estimator`` process would have: only the process (a Python interpreter and a DDS
-participant) is shared. ``--params-dir DIR`` holds each agent's parameter file,
-``DIR/<agent>.yaml`` (what ``bearing-pose run`` writes); ``--leader A`` (repeatable) remaps
-agent A's ``known_pose`` to ``ground_truth`` (simulation).
+Each agent keeps its own node, parameter file (``--params-dir DIR``: ``DIR/<agent>.yaml``) and
+remaps, exactly as a separate ``estimator`` process: only the interpreter and the DDS
+participant are shared. ``--leader A`` remaps agent A's ``known_pose`` to ``ground_truth``.
 
 With ``use_sim_time``, the process reads ``/clock`` once (:func:`share_clock`); the first
-agent's ``use_sim_time`` rules them all. The agents' steps run together, one call of the
-method's step for all those ready once the queued messages are handled (:mod:`.step_batch`;
-``--separate-steps``: each on its own). With ``BEARING_POSE_CPU_SPLIT=1`` the process also
-times its callbacks (~0.1 % of a core per agent) and its last log lines say where its CPU went
-(:meth:`.step_batch.StepBatch.cpu_split`; ``bench/cpu_split.py``).
+agent's ``use_sim_time`` rules them all. The agents' steps run together (:mod:`.step_batch`;
+``--separate-steps``: each on its own). ``BEARING_POSE_CPU_SPLIT=1``: the last log lines say
+where the CPU went (:meth:`.step_batch.StepBatch.cpu_split`; ~0.1 % of a core per agent).
 """
 from __future__ import annotations
 

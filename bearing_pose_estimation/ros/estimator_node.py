@@ -1,20 +1,12 @@
-"""``estimator``: one agent's estimator as a ROS 2 node (one per agent, in /<agent>), with the
-scenario's ``method`` (any registered one).
-
-A thin adapter around :class:`runtime.agent.AgentRuntime`: it decodes messages (``msg_defs``),
-hands them to the runtime, runs each step as soon as the runtime has its inputs (no timer) and
-publishes. Subscribes (relative names, remappable) to ``imu``, the own point sensors the method
-reads, ``odom``, ``known_pose`` (leaders) and what :mod:`runtime.table` says it reads from the
-others; publishes ``estimate`` (PoseStamped in the method's estimate frame), ``pose`` (with its
-covariance), its other channels when a neighbour's step reads them, and its health on
-``/diagnostics`` (:mod:`runtime.health`). Topics, types and frames: msg_defs/README.md.
+"""``estimator``: one agent's estimator as a ROS 2 node (one per agent, in /<agent>), any
+registered ``method``. A thin adapter around :class:`runtime.agent.AgentRuntime`: it decodes
+messages, hands them to the runtime, runs each step as soon as its inputs are in (no timer) and
+publishes. Topics, types and frames: msg_defs/README.md; parameters: :mod:`.estimator_params`.
 
 In a simulation (``fixed_exchange``, default: ``use_sim_time``) a step's inputs are fixed by
 their stamps and waited for, as netsim feeds the same runtime: a run equals netsim's to rounding
-however loaded the machine is (a wait with the own sensors standing still ends after
-``neighbour_wait`` or :data:`EXCHANGE_PATIENCE` of wall time). Bad input is rejected and
-counted by cause; it never stops the node nor reaches the estimate. Parameters:
-:mod:`.estimator_params`.
+however loaded the machine is. Bad input is rejected and counted by cause; it never stops the
+node nor reaches the estimate.
 """
 from __future__ import annotations
 
@@ -178,8 +170,7 @@ class EstimatorNode(Node):
 
     def _decoded(self, msg: Any, frame: str, what: str,
                  decode: Callable[[bytes], Any] = bytes) -> Any:
-        """``decode`` of the message's bytes if its frame id is ``frame`` (empty: any); else
-        None, after counting the rejection (a wrong frame, or ``malformed``)."""
+        """``decode`` of the bytes if their frame is ``frame`` (empty: any); else None, counted."""
         data = wire.raw(msg)
         try:
             frame_id = cdr.read_header(data).frame_id if frame else frame
@@ -197,9 +188,8 @@ class EstimatorNode(Node):
         return ns * 1e-9 if ns > 0 else None
 
     def _lead_now(self) -> float | None:
-        """The clock a neighbour's stamps are compared with for its clock lead: None on the
-        simulated clock, which every node shares (its one-step ticks and lockstep's lag would
-        read as leads)."""
+        """The clock for a neighbour's clock lead: None on the shared simulated clock (its
+        one-step ticks and lockstep's lag would read as leads)."""
         return None if self._sim_time else self._now()
 
     def _counted(self, causes: Sequence[str | None], what: str) -> None:
@@ -226,8 +216,7 @@ class EstimatorNode(Node):
         if not self.ready_timer.is_canceled():
             self.ready_timer.cancel()
             if self.rt.k == 0:
-                # Once more now that the clock runs: the simulator started it only after the
-                # monitor's readers matched, so this one reaches them.
+                # Once more: the clock runs only once the monitor's readers matched.
                 self._publish(grid=True, force=True)
         self._counted([self.rt.add_gyro(t, omega, now=self._now())], f'imu sample at {t:.6f}')
         self.run_ready_steps()
@@ -273,8 +262,7 @@ class EstimatorNode(Node):
             self.events['injected_drop'] += 1
 
     def on_channels(self, sub: Subscription, msg: Any) -> None:
-        """A neighbour's channel topic: the values of the channels it carries (one that
-        cannot be decoded is counted and left out; the others are used)."""
+        """A neighbour's channel topic: one undecodable channel is counted and left out."""
         chans = [c for c in self.method.sends if c.name in sub.channels]
         what = f'{sub.topic} of agent {sub.source_id}'
         frame = wire.channel_frame(chans[0], sub.source, self.s.estimate_frame,
@@ -318,8 +306,7 @@ class EstimatorNode(Node):
             self._publish(grid=True, force=True)
 
     def run_ready_steps(self, impatient: bool = False) -> None:
-        """Every step the inputs allow now, with what each publishes (in an ``estimators``
-        process: the batch's call)."""
+        """Every step the inputs allow now (in an ``estimators`` process: the batch's call)."""
         rt = self.rt
         if rt is None:
             return
@@ -339,8 +326,7 @@ class EstimatorNode(Node):
             self.after_step()
 
     def before_step(self) -> None:
-        """Before a step: channels deferred for own measurements that never came are skipped
-        (listeners pair values of one instant)."""
+        """Skip channels deferred for own measurements that never came (one instant each)."""
         if self.rt is not None and self._deferred == self.rt.k:
             self.events['channels_skipped'] += 1
             self._deferred = -1
@@ -366,9 +352,8 @@ class EstimatorNode(Node):
                 pub.publish(wire.encode_channels(rt.t, self.s.estimate_frame, chans, content))
 
     def on_patience(self) -> None:
-        """A step waiting while its own sensors stand still too (a lockstep clock waiting for
-        this agent) goes on after ``neighbour_wait`` ('exact' channels) or
-        :data:`EXCHANGE_PATIENCE` of wall time; else the runtime's ``link_wait`` rules."""
+        """A step waiting with its own sensors still goes on after ``neighbour_wait`` ('exact')
+        or :data:`EXCHANGE_PATIENCE` of wall time; else the runtime's ``link_wait`` rules."""
         rt = self.rt
         waited = None if rt is None else rt.waited_out(
             time.monotonic(), self.s.neighbour_wait if self.exact else EXCHANGE_PATIENCE)
@@ -381,9 +366,8 @@ class EstimatorNode(Node):
             self.run_ready_steps()
 
     def on_watch(self) -> None:
-        """An agent that has not moved for :data:`WATCH_PERIOD_S` while its clock is two steps
-        past its state takes what its subscriptions hold (messages the executor was not told
-        of: under lockstep the clock would wait forever; ``taken_while_stalled``)."""
+        """Stalled for :data:`WATCH_PERIOD_S` with the clock two steps ahead: take what the
+        subscriptions hold unannounced (under lockstep the clock would wait forever)."""
         rt, now = self.rt, self._now()
         if rt is None or now is None:
             return
@@ -404,9 +388,8 @@ class EstimatorNode(Node):
 
     # --------------------------------------------------------------------------- outputs
     def _publish(self, grid: bool, force: bool = False, deferred: bool = False) -> None:
-        """The pose and estimate (on the grid, or when a neighbour reads the pose now) and each
-        channel topic a neighbour reads now; ``force``: everything (the t0 announcement);
-        ``deferred``: the channels that waited for their own measurements."""
+        """Pose and estimate (on the grid, or when read now) and the channel topics read now;
+        ``force``: everything (t0); ``deferred``: channels that waited for own measurements."""
         rt = self.rt
         assert rt is not None
         if rt.withholding:   # cold: no estimate yet rather than a wrong one

@@ -1,21 +1,12 @@
-"""The estimator node's parameters: declared with their effective values (the scenario's, or
-the explicit mode's defaults, so ``ros2 param get`` tells the truth), checked, and turned into
-what its runtime needs (:class:`Setup`); and the live changes of gains and input limits.
+"""The estimator node's parameters, declared with their effective values (so ``ros2 param get``
+tells the truth), checked, and turned into :class:`Setup`; and live changes.
 
-Parameters: either ``scenario_file`` (+ ``agent``, default: the namespace) or the explicit set
-``agent_id``, ``leader``, ``neighbours``, ``neighbour_ids``, ``neighbour_gains``,
-``initial_position``, ``initial_orientation`` (x, y, z, w), with ``method`` (empty: the
-registry's default); ``frequency`` [Hz], ``publish_rate`` [Hz] and the method's gains, named as
-in a scenario's ``gains:`` (a gain of another method is an error). The gains, the input limits
-(``sensor_timeout``, ``neighbour_timeout``, ``max_rate``, ``link_wait``, ``max_clock_lead``)
-and ``neighbour_wait`` can be set while the node runs: a change is validated (range, the gain's
-minimum, and the method's check on the scenario) and applies from the next step, or is refused
-with the reason.
-The node's own: ``start_time``, the expected frames ``imu_frame``, ``bearings_frame``,
-``odom_child_frame`` (empty: accept any), ``diagnostics_period`` [s, wall clock],
-``publish_tf``, ``raw_messages``, ``fixed_exchange``, and the fault injection for tests and
-studies ``inject_drop_rate``, ``inject_delay`` [s], ``inject_seed`` (:mod:`runtime.faults`; it
-turns ``fixed_exchange`` off).
+Parameters: ``scenario_file`` (+ ``agent``, default: the namespace) or the explicit set
+(``agent_id``, ``leader``, ``neighbours``, ...); the method's gains are named as in a scenario's
+``gains:`` (another method's gain is an error). Gains, input limits and ``neighbour_wait`` can be
+set while the node runs: a change is validated (range, the gain's minimum, the method's check
+on the scenario) and applies from the next step, or is refused with the reason. The fault
+injection (``inject_*``, :mod:`runtime.faults`) turns ``fixed_exchange`` off.
 """
 from __future__ import annotations
 
@@ -118,9 +109,8 @@ def _explicit_parameters(node: Node) -> dict[str, Any]:
 
 
 def explicit_spec(e: dict[str, Any], agent: str) -> AgentSpec:
-    """The spec of the explicit parameters ``e`` (:func:`_explicit_parameters`), checked:
-    ScenarioError naming the fix for a missing id, neighbour lists of different lengths or under
-    two for a follower, a gain that is not positive, a bad initial pose."""
+    """The spec of the explicit parameters ``e`` (:func:`_explicit_parameters`), checked
+    (ScenarioError naming the fix: ids, neighbour lists, gains, initial pose)."""
     names = e['neighbours']
     if e['agent_id'] <= 0:
         raise ScenarioError('parameter agent_id must be > 0 without a scenario_file. Fix: '
@@ -228,8 +218,7 @@ def setup(node: Node) -> Setup:
               'world_frame)')
     step = 1.0 / frequency
     publish_every = max(1, int(round(1.0 / (step * publish_rate))))
-    # Simulation: each step's inputs fixed by their stamps and waited for, so runs do not
-    # depend on the machine's load. Off for real robots and under injected faults.
+    # Simulation: inputs fixed by their stamps and waited for (load-independent runs).
     sim_time = bool(node.get_parameter('use_sim_time').value)
     fixed = p('fixed_exchange', sim_time, 'a step uses the own measurements up to its end and '
               'each neighbour\'s values of its publish instant at or before its start, and '
@@ -269,17 +258,15 @@ def setup(node: Node) -> Setup:
         publish_tf=p('publish_tf', True, 'broadcast the estimate on TF (estimate frame -> '
                      '<agent>/base_link) when tf2_ros is installed; false for a robot whose '
                      'odometry owns base_link'),
-        # Messages as their serialised bytes (msg_defs/cdr.py): rclpy then builds no Python
-        # message (BENCHMARKS.md, "Raw CDR"); published as bytes either way.
+        # Messages as serialised bytes: rclpy builds no Python message (BENCHMARKS.md, "Raw CDR").
         raw=bool(p('raw_messages', True, 'take messages as serialised bytes; false: as rclpy '
                    'message objects')))
 
 
 def live_change(s: Setup, params: list[Parameter]) -> tuple[Any, Limits]:
     """New gains and limits (and ``s.neighbour_wait``) from a live change of ``params`` (rclpy
-    has checked the type, the range and that the parameter is not read-only): the gains must be
-    valid and, with a scenario, pass the method's check on it (e.g. a position gain whose Euler
-    step would diverge is refused); else ScenarioError with the reason."""
+    checked type, range, writability): valid gains that pass the method's check on the
+    scenario; else ScenarioError with the reason."""
     own = {f.name for f in gain_fields(type(s.gains))}
     new_gains = {p.name: float(p.value) for p in params if p.name in own}
     new_limits = {p.name: float(p.value) for p in params if p.name in LIVE_LIMITS}

@@ -1,9 +1,7 @@
-"""A lean single-threaded executor: one wait, then every ready queue drained. The nodes ran it
-until rclpy's EventsExecutor measured cheaper (BENCHMARKS.md); ``BEARING_POSE_EXECUTOR=draining``
-selects it. rclpy's ``SingleThreadedExecutor`` rebuilds its wait set in Python on every wake-up and
-runs *one* callback (262-1 644 µs of CPU per message, ``bench/executor_ceiling.py``, against 99-144
-µs here); this loop takes *every* queued message of each ready subscription, in arrival order.
-Clients (adding a node with one raises) and coroutine callbacks (``TypeError``) are not served.
+"""A lean single-threaded executor: one wait, then every ready queue drained, in arrival order
+(``BEARING_POSE_EXECUTOR=draining``; EventsExecutor measured cheaper, BENCHMARKS.md). rclpy's
+``SingleThreadedExecutor`` runs *one* callback per wake-up (262-1 644 µs of CPU per message
+against 99-144 µs here). Clients and coroutine callbacks are not served.
 """
 from __future__ import annotations
 
@@ -77,9 +75,8 @@ class DrainingExecutor(Executor):
             if s.handle.pointer in ready:
                 while (msg_info := s.handle.take_message(s.msg_type, s.raw)) is not None:
                     taken.append((msg_info[1]['received_timestamp'], len(taken), s, msg_info))
-        # In arrival order across subscriptions, as one-at-a-time executors would see them
-        # (an estimator must see the bearing that arrived before the gyro sample completing a
-        # step before it runs the step).
+        # In arrival order across subscriptions: a bearing that arrived before the gyro sample
+        # completing a step must be seen before the step runs.
         taken.sort(key=lambda item: (item[0], item[1]))
         for _, _, s, msg_info in taken:
             if s._callback_type is Subscription.CallbackType.MessageOnly:

@@ -1,8 +1,6 @@
-"""``fleet_markers``: the fleet in RViz without configuration (``bearing-pose run --rviz``, or
-``ros2 run bearing_pose_estimation fleet_markers --ros-args -p scenario_file:=...``): draws every
-agent's ``estimate``, ``ground_truth`` and ``bearings`` on ``/visualization_marker_array``
-(:mod:`msg_defs.rviz`) at ``rate`` [Hz] of its clock. In RViz: Fixed Frame = the scenario's
-``world_frame``, and a MarkerArray display on that topic.
+"""``fleet_markers``: the fleet in RViz without configuration (``bearing-pose run --rviz``):
+every agent's ``estimate``, ``ground_truth`` and ``bearings`` on ``/visualization_marker_array``
+(:mod:`msg_defs.rviz`) at ``rate`` [Hz]. RViz: Fixed Frame = the scenario's ``world_frame``.
 """
 from __future__ import annotations
 

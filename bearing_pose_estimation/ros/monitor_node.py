@@ -2,11 +2,8 @@
 
 Pairs every follower's ``estimate`` and the ``ground_truth`` at identical stamps on a
 ``record_every`` grid, measures them as the batch simulator does (:func:`watched`) and writes
-the outputs to ``out_dir`` once ``t = duration`` is recorded, or when interrupted, or once the
-truth of ``t = duration`` has waited :data:`END_PATIENCE_S` of wall time for an estimate that
-does not come (a robot whose process died and was not started again), naming whose; with
-``bag`` (``bearing-pose run --record``) it also records the run into that new rosbag2
-(:mod:`.recorder`).
+``out_dir`` at ``t = duration``, when interrupted, or after :data:`END_PATIENCE_S` of waiting
+for an estimate that does not come (a dead robot, named); ``bag``: a rosbag2 (:mod:`.recorder`).
 """
 from __future__ import annotations
 
@@ -34,13 +31,12 @@ from .node_main import (declare, run_node, scenario_parameter, wall_timer,
                         warn_unknown_parameters)
 
 
-# After the last row, the bag keeps recording until no message came for BAG_QUIET_S [s of wall
-# time] (the simulator has stopped; what was in flight is in), BAG_DRAIN_MAX_S at most.
+# After the last row, the bag records until BAG_QUIET_S [s, wall] pass without a message
+# (what was in flight is in), BAG_DRAIN_MAX_S at most.
 BAG_QUIET_S, BAG_DRAIN_MAX_S = 0.5, 10.0
 # How many recorded instants the monitor remembers to ignore their repeats (25.6 s at 10 Hz).
 _RECENT = 256
-# Wall time [s] the last instant's truth waits for the estimates before the monitor finishes
-# without them (an estimate trails the clock by milliseconds; under load, a second).
+# Wall time [s] the last truth waits for the estimates (they trail by ms; under load, a second).
 END_PATIENCE_S = 10.0
 
 
@@ -72,8 +68,7 @@ class MonitorNode(Node):
         self.followers = [a.name for a in s.followers]   # every agent that estimates
         self.method = s.estimator()
         self.frame = self.method.frame
-        # The method's fleet margins, on /diagnostics once per simulated second; min and last
-        # logged.
+        # The method's fleet margins, on /diagnostics once per simulated second.
         self.pub_diag = self.create_publisher(wire.DiagnosticArray, wire.DIAGNOSTICS, 10)
         self.margins: dict[str, list[tuple[float, float]]] = {}
         self.watched = watched(s)
@@ -107,10 +102,8 @@ class MonitorNode(Node):
             from .recorder import BagRecorder
             from .wiring import recorded_topics
             self.recorder = BagRecorder(self, Path(bag), recorded_topics(s, self.fleet))
-        # Ready once every reader has matched its writer and every follower's t0 estimate is
-        # in, which proves the writer matched this reader too: under load a writer can match
-        # 0.4 s after the start, when its history of 20 no longer holds t = 0 (the first row
-        # lost: de_carli_dds beside two busy loops, 1 run in 25; 7 of 8 had some t0 missing).
+        # Ready once every reader has matched and every follower's t0 estimate is in (proof the
+        # writer matched too: under load one matched 0.4 s late, past its history of 20).
         self.pub_ready = self.create_publisher(
             Empty, wire.fleet_topic(wire.MONITOR_READY, self.fleet), wire.LATCHED_QOS)
         self.ready_timer = wall_timer(self, 0.05, self.on_ready_check)
@@ -253,8 +246,7 @@ class MonitorNode(Node):
             self._close_bag()
             self.finished.set_result(True)
             return
-        # The bag still takes what is in flight (the messages up to t = duration that the
-        # recorder's readers have not yet handed over), until they stop coming.
+        # The bag still takes what is in flight, until it stops coming.
         recorder, start = self.recorder, time.monotonic()
 
         def close_when_quiet() -> None:

@@ -2,10 +2,7 @@
 their parameters (:func:`declare`, :func:`warn_unknown_parameters`).
 
 Clean shutdown matters: a node that dies without destroying its DDS participant leaves Fast DDS
-files in /dev/shm. SIGINT and SIGTERM only ask the spin loop to stop; everything after happens
-on the main thread, in order (see :class:`_StopRequest`). Configuration errors
-(:class:`ScenarioError`, and rclpy's parameter exceptions) are logged as fatal with their fix
-and give exit code 1, without a traceback.
+files in /dev/shm. Configuration errors are logged as fatal with their fix, exit code 1.
 """
 from __future__ import annotations
 
@@ -106,13 +103,10 @@ def _given(name: str, kind: Parameter.Type, given: Parameter) -> Any:
 def declare(node: Node, name: str, default: Any, description: str = '',
             low: float | None = None, high: float | None = None,
             read_only: bool = True) -> Any:
-    """Declare a parameter whose type is the default's, and return its value (read-only
-    unless ``read_only`` is False: the node then validates changes, and rclpy the range).
-
-    It accepts what a ROS user writes (``frequency: 100`` for a float, ``[2, 1]`` for a list of
-    floats, ``[]`` for any list). Another type, or a number outside ``[low, high]``, raises a
-    one-line :class:`ScenarioError` naming the parameter and the fix (rclpy would raise with a
-    traceback, or accept 100 only as 100.0)."""
+    """Declare a parameter of the default's type and return its value (read-only unless
+    ``read_only`` is False: the node then validates changes, and rclpy the range). It accepts
+    what a ROS user writes (``100`` for a float, ``[]`` for any list); another type, or a number
+    outside ``[low, high]``, raises a one-line :class:`ScenarioError` (rclpy: a traceback)."""
     kind = Parameter.Type.from_parameter_value(default)
     descriptor = ParameterDescriptor(description=description, read_only=read_only)
     given = parameter_overrides(node).get(name)
@@ -155,10 +149,8 @@ class _StopRequest:
     """SIGINT/SIGTERM handler that only records the request; a second signal interrupts.
 
     rclpy's own handler shuts the context down from its signal thread while the executor may be
-    taking a message or destroying a handle; on shutdown that race crashed (SIGSEGV), hung in
-    ``destroy_node`` or raised from ``take_message`` in about one fleet shutdown in twelve
-    (``bench/shutdown_stress.py`` reproduces it). Stopping from the spin loop instead leaves one
-    thread doing everything, in order.
+    taking a message or destroying a handle: a crash, hang or raise in about one fleet shutdown
+    in twelve (``bench/shutdown_stress.py``). The spin loop stops instead, on one thread.
     """
 
     def __init__(self) -> None:
@@ -183,17 +175,9 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
              args: list[str] | None = None, until: Callable[[N], Future] | None = None,
              on_interrupt: Callable[[N], None] | None = None,
              after_spin: Callable[[Executor], None] | None = None) -> int:
-    """Create the node (or nodes: one executor spins them all), spin it (until ``until(node)``
-    completes, or until SIGINT/SIGTERM), and shut down cleanly. Returns the process exit code.
-
-    Args:
-        factory: builds the node, or a list of nodes (after ``rclpy.init``).
-        name: logger name for fatal configuration errors.
-        until: a future whose completion ends the spin (e.g. "outputs written").
-        on_interrupt: called when a signal stopped the spin (e.g. write partial outputs).
-        after_spin: called with the executor after each of its spins (e.g. to run work the
-            callbacks asked for once the queue is empty, :mod:`.step_batch`).
-    """
+    """Create the node(s) with ``factory`` (after ``rclpy.init``), spin until ``until(node)``
+    completes or SIGINT/SIGTERM (then ``on_interrupt``), and shut down cleanly; ``after_spin``
+    gets the executor after each spin (:mod:`.step_batch`). Returns the process exit code."""
     # SIGUSR1 dumps every thread's stack to stderr (the log): `bearing-pose run` sends it to a
     # node that did not stop on SIGINT, so a hang explains itself.
     faulthandler.register(signal.SIGUSR1, all_threads=True)
@@ -262,18 +246,15 @@ def run_node(factory: Callable[[], N | list[N]], name: str,
 
 
 # Destroying nodes takes well under a second. Fast DDS (2.14, in the Jazzy wheels) sometimes
-# deadlocks inside rcl_node_fini (deleting the participant): about one process in 200 in
-# bench/shutdown_stress.py, always in rclpy's Node.destroy_node, holding the GIL. A timer
-# callback that needs a mutex the deleting thread holds, while that thread waits for the
-# callback to end (eProsima/Fast-DDS#6502, open). Nothing in Python can unblock it.
+# deadlocks in rcl_node_fini, holding the GIL: about one process in 200 in
+# bench/shutdown_stress.py (eProsima/Fast-DDS#6502, open). Nothing in Python can unblock it.
 TEARDOWN_TIMEOUT_S = 5.0
 
 
 def _teardown_hung(name: str, code: int) -> None:
-    """The watchdog's end: say what hung, with the stacks, and exit instead of waiting for
-    SIGKILL. A node whose work succeeded ends as the C-level watchdog would (by
-    TEARDOWN_WATCHDOG_SIGNAL), so the launcher counts it clean and removes the files its
-    participant left in /dev/shm; a failed one keeps its own exit code."""
+    """The watchdog's end: say what hung, with the stacks, and exit. A node whose work succeeded
+    ends by TEARDOWN_WATCHDOG_SIGNAL, as the C-level watchdog would, so the launcher counts it
+    clean and cleans /dev/shm; a failed one keeps its own exit code."""
     sys.stderr.write(f'[ERROR] [{name}]: DDS teardown did not finish in {TEARDOWN_TIMEOUT_S:g} s '
                      '(a Fast DDS deadlock in node destruction); exiting without it. Its files '
                      'may stay in /dev/shm: `fastdds shm clean` removes them. Stacks:\n')

@@ -1,7 +1,6 @@
-"""A rosbag2 of a run (``bearing-pose run --record``), written with `rosbags` (pure Python: the
-PyPI ROS wheels have no ``ros2 bag``): each message's CDR bytes as they came (raw
-subscriptions), stamped with the node's clock (as ``ros2 bag record --use-sim-time``), in MCAP,
-``ros2 bag``'s default since Iron (:mod:`studies.tum` reads it).
+"""A rosbag2 of a run (``bearing-pose run --record``), written with `rosbags` (the PyPI ROS wheels
+have no ``ros2 bag``): each message's CDR bytes as they came, stamped with the node's clock (as
+``ros2 bag record --use-sim-time``), in MCAP (:mod:`studies.tum` reads it).
 """
 from __future__ import annotations
 

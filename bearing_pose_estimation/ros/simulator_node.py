@@ -1,34 +1,21 @@
 """``simulator``: the world of a scenario over DDS, with a simulated clock.
 
-Publishes, per agent, ``/<agent>/imu`` (interval-average gyro), ``/<agent>/bearings`` (body
-frame) and ``/<agent>/ground_truth``, plus ``/clock``, from :class:`sim.world.World` (truth on a
-1 ms grid); and the moving-robot sensors the scenario simulates (``/<agent>/odom``,
-``relative_positions``, ``bearing_rates``, ``ranges``), each at its own rate. It is the only
-clock publisher; every other node runs with ``use_sim_time``. Within one instant the gyro
-sample goes out first (it completes the step that ends there), then the other sensors (the
-next step uses them). Messages are built and read as serialised bytes (:mod:`msg_defs.cdr`).
+Publishes each agent's sensors and ground truth from :class:`sim.world.World` (topics:
+msg_defs/README.md), each at its own rate, and ``/clock``, which only it publishes. Within one
+instant the gyro sample goes out first (it completes the step that ends there), then the other
+sensors (the next step uses them).
 
 Start: it waits until every estimator and the monitor are matched (subscriptions to its
 topics, and the estimators' own topics to each other) and every estimator has announced its
 t0 state (which it does only once its own subscriptions are matched), then starts the clock at
 t = 0, so t = 0 is the same for every node and no first sample is lost.
 
-Pacing (``lockstep``, default on): the clock never runs more than ``max_lag`` seconds ahead of
-the slowest estimator's published state, like Gazebo's lockstep: runs go as fast as the
-estimators can. (The results do not depend on the machine's load because each estimator's step
-waits for the inputs of fixed instants, ``fixed_exchange``, not because of the pacing.)
-``real_time_factor`` > 0 also caps the clock at that multiple of wall time.
+Pacing (``lockstep``, default on): the clock runs at most ``max_lag`` seconds ahead of the
+slowest estimator's state, like Gazebo's lockstep (results are load-independent because of
+``fixed_exchange``, not of the pacing); ``real_time_factor`` > 0 also caps it to wall time.
 
-A robot whose process died must not stop the fleet's clock: the clock stops waiting for the
-estimators that hold it and whose estimate writer is gone from the graph (a process stopped
-cleanly), or whose estimates have not moved for ``lockstep_patience`` of wall time (a killed
-one: DDS notices its death only after a 20 s lease). While one is not waited for, the clock
-leads the others by ``absent_lag``, more than their ``link_wait``, so that a step waiting for the
-absent robot's values goes on without them. The clock waits for it again once it has stepped
-for ``rejoin_after`` of simulated time since it came back and its estimates are no later than
-the slowest waited-for one's. (Restarted, a robot's subscriptions match one by one: what a
-neighbour sent before never comes, and the robot steps past such a hole only when its own
-sensors lead by its ``link_wait``, which a clock that waits for it would not allow.)
+A robot whose process died must not stop the fleet's clock (``lockstep_patience``,
+``absent_lag``, ``rejoin_after``; why: README.md, the simulator's description).
 """
 from __future__ import annotations
 
@@ -55,11 +42,10 @@ from .wiring import listener_counts, recorded_topics
 from ..plan.processes import CLOCK_STARTED
 from ..sim.world import World
 
-# Sim time advanced per wall-timer callback at most: keeps the node responsive to Ctrl-C and to
-# the estimators' progress messages.
+# Sim time advanced per wall-timer callback at most: keeps the node responsive.
 _MAX_SIM_PER_TICK = 0.02
-# Wall time [s] the lockstep clock waits for the slowest estimators before it names them and
-# stops waiting for them (a healthy run waits milliseconds; a loaded one a second at most).
+# Wall time [s] the lockstep clock waits for the slowest estimators before it stops waiting for
+# them, named (a healthy run waits milliseconds; a loaded one a second at most).
 LOCKSTEP_PATIENCE_S = 5.0
 # Wall time [s] a stalled clock waits before it asks the graph whether the estimators it waits
 # for still have their estimate writers, and between two such questions.
@@ -139,8 +125,7 @@ class SimulatorNode(Node):
             self.create_subscription(Empty, wire.fleet_topic(wire.MONITOR_READY, self.fleet),
                                      self._on_monitor_ready, wire.LATCHED_QOS)
         self.state = 'waiting'
-        # How far the slowest estimate trailed the clock at each tick: µs of sim time -> ticks
-        # (a few distinct values on the step grid; a list would grow with the run).
+        # How far the slowest estimate trailed the clock: µs of sim time -> ticks (few values).
         self.lags: Counter[int] = Counter()
         self.failed = Future()  # completes only if start-up fails; otherwise spin until Ctrl-C
         self.wall_start = time.monotonic()
@@ -148,16 +133,14 @@ class SimulatorNode(Node):
         # (slowest estimate time, wall time it was first seen): a stalled lockstep clock.
         self._stall = (-np.inf, 0.0)
         self._graph_checked = 0.0   # wall time of the last look for gone estimate writers
-        # The estimators the lockstep clock does not wait for (dead, or stalled too long),
-        # and their estimate time then (the first one after it: back).
+        # The estimators the clock does not wait for, and their estimate time then.
         self.absent = np.zeros(len(self.names), dtype=bool)
         self.left_at = np.full(len(self.names), np.inf)
         self.back_at = np.full(len(self.names), np.inf)
         # /clock once per estimator step: finer ticks only cost every node callbacks.
         self.steps_per_clock = max(1, int(round(s.step / self.world.dt)))
-        # A wall-clock timer: the simulator owns sim time, so it must not wait on it. A quarter
-        # of a step (at most 5 ms) keeps /clock smooth; every wake-up costs the executor ~0.3 ms
-        # of CPU, so a 1 ms tick alone took a third of a core (bench/fleet_scale.py).
+        # Wall clock: the simulator owns sim time. A quarter step (<= 5 ms) keeps /clock smooth;
+        # a wake-up costs ~0.3 ms of CPU, so 1 ms took a third of a core (bench/fleet_scale.py).
         self.timer = wall_timer(self, min(0.005, s.step / 4.0), self.on_tick)
         waiting = 'estimators and monitor' if self.wait_for_monitor else 'estimators'
         self.get_logger().info(f'{s.name}: {len(self.names)} agents, {self.duration:g} s'
@@ -186,10 +169,8 @@ class SimulatorNode(Node):
         followers = {a.name for a in s.followers}   # the monitor reads their estimates
 
         def short(pub: Any, readers: int) -> None:
-            # Matched by this writer, not only seen in the graph: a volatile writer sends
-            # nothing to a reader it has not matched yet, and under lockstep a sample an
-            # estimator misses at the start stops the clock for good. The recorder's reader
-            # counts too (it would miss the first samples).
+            # Matched by this writer, not only in the graph: a volatile writer sends nothing to an
+            # unmatched reader, and under lockstep a missed first sample stops the clock for good.
             if pub.get_subscription_count() < readers + (pub.topic_name in self.recorded):
                 missing.append(pub.topic_name)
 
@@ -266,9 +247,8 @@ class SimulatorNode(Node):
                     f'real time); slowest estimate behind the clock: median '
                     f'{np.median(lag):.1f} ms, max {lag.max():.1f} ms of sim time')
             if self.rtf > 0.0:
-                # Paced by the wall clock, an estimate is due every publish period; trailing by
-                # more than two means the slowest agent missed a deadline. (In pure lockstep
-                # the clock waits for the estimators, so lag is by design, not a miss.)
+                # Paced by the wall clock, an estimate is due every publish period: trailing by
+                # more than two is a missed deadline (in pure lockstep, lag is by design).
                 late_ms = 2e3 / self.scenario.publish_rate
                 missed = float(np.mean(lag > late_ms + 1e-6)) * 100.0
                 text += (f'; more than {late_ms:.0f} ms behind (a missed deadline) in '
@@ -282,10 +262,8 @@ class SimulatorNode(Node):
         return float(waited.min() if waited.size else self.progress.max())
 
     def _watch_lockstep(self) -> None:
-        """Stop waiting for the estimators that hold the clock while their estimate writer is
-        gone, or for :attr:`patience` of wall time (named in a warning); wait for an absent
-        one again once it has stepped :attr:`rejoin_after` since it came back and caught up
-        with the slowest waited-for one."""
+        """Stop waiting for estimators holding the clock whose estimate writer is gone, or after
+        :attr:`patience` (warned); wait again after :attr:`rejoin_after` and caught up."""
         slowest, now = self._slowest(), time.monotonic()
         moved = self.absent & (self.progress > self.left_at) & np.isinf(self.back_at)
         self.back_at[moved] = self.progress[moved]

@@ -1,12 +1,10 @@
 """The steps of the agents that share an ``estimators`` process, run together in one call
 (:mod:`runtime.together` says why; ``bench/covariance_cost.py``, ``bench/de_carli_cost.py``).
 
-An agent whose step is ready does not run it at once: it asks this batch, and once the executor
-has handled every message already queued (the simulator sends each instant's samples to all
-agents in one burst), the batch runs the steps of every agent that asked: each agent's step
-after the messages queued before it and at most :data:`WAIT_S` of waiting for the others. A
-two-round method's replies go out as soon as their first round is in; only the step waits for
-the batch. The batch sees its members through :class:`Member` only.
+An agent whose step is ready asks this batch; once the executor has handled every message
+already queued (the simulator sends each instant's samples in one burst), the batch runs the
+steps of every agent that asked, waiting at most :data:`WAIT_S` for the others. Second-round
+replies go out at once; only the step waits for the batch.
 
 The rclpy EventsExecutor of the pinned wheels has no guard conditions, and nothing tells
 whether its queue is empty: :meth:`StepBatch.settle` spins it without waiting until a spin

@@ -1,8 +1,7 @@
-"""One agent running any registered estimator, independent of ROS: what the estimator node,
-netsim's agents and an ``estimators`` process's steps run.
+"""One agent running any registered estimator, independent of ROS (the estimator node's, netsim's
+and an ``estimators`` process's), configured by its method's declarations (:mod:`estimators.base`).
 
-:class:`AgentRuntime` is configured by its method's declarations (:mod:`estimators.base`) and
-never names a method's quantity. Inputs arrive at their own rates and stamps; each fixed step
+Inputs arrive at their own rates and stamps; each fixed step
 ``h`` runs as soon as its inputs are in: the own gyro and odometry, integrated sample by sample
 (:mod:`core.gyro`, :mod:`core.odometry`; live odometry is waited for as the gyro is); the own
 point sensors (``measures``), rotated with the gyro to the body frame of the step's instant (a
@@ -94,9 +93,8 @@ def _psd(v: Array, blocks: int) -> bool:
 
 
 class Peer:
-    """What the agent keeps of one edge's other end: its channels' values (and its
-    measurements of this agent) by name, the newest stamp of each channel it was heard on
-    (with or without a value for this agent), and its odometry."""
+    """One edge's other end: its channels' values and measurements of this agent by name, the
+    newest stamp each channel was heard on (with a value for this agent or not), its odometry."""
 
     __slots__ = ('name', 'agent_id', 'k', 'slot', 'flags', 'values', 'heard', 'odometry',
                  'last')
@@ -166,11 +164,9 @@ class Prepared:
 
 
 class AgentRuntime:
-    """One agent of any registered method, fed by time-stamped inputs (module docstring):
-    ``step`` is ``h`` [s]; the first gyro interval starts at ``t0``, the scenario's start;
-    ``exchange``: a simulation's (None: a step takes what is here); ``expects_odometry``:
-    odometry comes with the first step (simulated), so it is waited for from the start (as a
-    method that needs odometry always does)."""
+    """One agent of any registered method (module docstring): ``step`` is ``h`` [s]; the first
+    gyro interval starts at ``t0``; ``exchange``: a simulation's (None: a step takes what is
+    here); ``expects_odometry``: odometry (simulated) is waited for from the first step on."""
 
     def __init__(self, estimator: Estimator, spec: AgentSpec, step: float, t0: float = 0.0,
                  limits: Limits = Limits(), exchange: Exchange | None = None,
@@ -319,9 +315,8 @@ class AgentRuntime:
 
     @property
     def _future(self) -> str:
-        """Why a stamp ahead of the newest gyro sample is not used: ``early`` before the first
-        one (a process started late, as a restarted robot's: the gyro sets its time), else
-        ``future_stamp``."""
+        """Why a stamp ahead of the newest gyro sample is unused: ``early`` before the first one
+        (a late-started process: the gyro sets its time), else ``future_stamp``."""
         return 'future_stamp' if self.clocked else 'early'
 
     # ------------------------------------------------------------------------------ own motion
@@ -361,10 +356,9 @@ class AgentRuntime:
 
     def _add_twist(self, odometry: OdometryBuffer, stamp: float, v: Array, omega: Array,
                    own: bool, now: float | None = None) -> str | None:
-        """A twist into ``odometry``, or why not (non-finite, absurd, future, out of order);
-        after a gap its integration restarts at it (``odometry_gap``), and another agent's first
-        sample or clock that jumped back restarts it too (``own``: the gyro's time rules
-        decide)."""
+        """A twist into ``odometry``, or why not; after a gap (``odometry_gap``), and for another
+        agent's first sample or jumped-back clock, the integration restarts at it (``own``: the
+        gyro's time rules decide)."""
         v, omega = np.asarray(v, dtype=float), np.asarray(omega, dtype=float)
         problem = twist_problem(stamp, v, omega, self.limits)
         if problem is not None:
@@ -388,9 +382,8 @@ class AgentRuntime:
         return None
 
     def odometry_live(self) -> bool:
-        """Odometry samples keep up with the gyro (within ``sensor_timeout``): steps wait for
-        them and feed them forward. A method that needs odometry counts it live from the start,
-        before its first sample."""
+        """Odometry keeps up with the gyro (within ``sensor_timeout``; from the start for a method
+        that needs it): steps wait for it and feed it forward."""
         keeps_up = self.odometry.end >= self.gyro.end - self.limits.sensor_timeout
         return self.uses_odometry and keeps_up and (not self.odometry.empty
                                                     or self.requires_odometry)
@@ -523,8 +516,7 @@ class AgentRuntime:
                         ids: NDArray[np.integer], vectors: Array, *,
                         now: float | None = None) -> str | None:
         """Neighbour ``sender``'s point sensor message: its point of this agent is kept when a
-        channel of the method carries that sensor's readings from it. ``now``: the own clock,
-        for :meth:`note_lead`."""
+        channel carries that sensor's readings. ``now``: the own clock (:meth:`note_lead`)."""
         peer = self._by_id.get(sender)
         if peer is None:
             return 'unknown_id'
@@ -567,9 +559,8 @@ class AgentRuntime:
         return cause
 
     def note_lead(self, sender: str, stamp: float, now: float | None) -> None:
-        """How far the stamp of ``sender``'s input was ahead of the own clock ``now`` (None:
-        not known): its clock's lead, less the input's latency. Counted in :attr:`ahead` when
-        beyond ``max_clock_lead``."""
+        """How far ``sender``'s stamp was ahead of the own clock ``now`` (None: unknown), less
+        latency; counted in :attr:`ahead` beyond ``max_clock_lead``."""
         if now is None:
             return
         lead = stamp - now
@@ -579,18 +570,16 @@ class AgentRuntime:
 
     # ------------------------------------------------------------------------------ readiness
     def stale_neighbours(self, t: float) -> list[str]:
-        """Neighbours this agent reads from that were silent for longer than
-        ``neighbour_timeout`` before ``t`` (counting from the start: one whose first values
-        are on their way is not stale before that)."""
+        """Neighbours read from that were silent for over ``neighbour_timeout`` before ``t``
+        (counting from the start, so first values on their way are not stale)."""
         limit = t - self.limits.neighbour_timeout
         if self.t0 >= limit:
             return []
         return [p.name for p in self._read_peers if p.newest() < limit]
 
     def _awaiting(self, t: float, round_: int) -> str | None:
-        """What round ``round_`` of the step at ``t`` still waits for, or None when every
-        input is here or known not to come (module docstring); :attr:`awaited_peer`: from
-        whom."""
+        """What round ``round_`` of the step at ``t`` waits for, or None when every input is here
+        or known not to come; :attr:`awaited_peer`: from whom."""
         self.awaited_peer = None
         h = self.h
         behind = self.gyro.end - t > self.limits.link_wait
@@ -718,9 +707,8 @@ class AgentRuntime:
         return ran
 
     def waited_out(self, wall: float, patience: float) -> float | None:
-        """How long [s of wall time ``wall``] the next step has waited with its own inputs in
-        and nothing else changing (a lockstep clock waiting for this agent), once that reaches
-        ``patience``: then the caller runs it impatient. Else None."""
+        """How long [s of wall time] the next step has waited, own inputs in and nothing changing,
+        once that reaches ``patience`` (the caller then runs it impatient); else None."""
         if not self.own_inputs_ready() or self.steps_ready() > 0:
             self._stuck = None
             return None
@@ -857,9 +845,8 @@ class AgentRuntime:
         return inputs
 
     def _anchor_motion(self, t: float, agent: dict[str, Array]) -> None:
-        """The anchor's motion over the step as this agent knows it (the anchor: its own),
-        and the anchor's flags. Without the anchor's odometry the anchor is taken as still
-        (counted)."""
+        """The anchor's motion over the step as this agent knows it, and the anchor's flags;
+        without the anchor's odometry, taken as still (counted)."""
         h = self.h
         displacement = agent.get(DISPLACEMENT, np.zeros((1, 3)))
         if self.is_anchor:
@@ -1039,9 +1026,8 @@ class AgentRuntime:
     # 'instant' pairing (:class:`base.Channel`): the leader-follower methods' exchange.
     def _instant_channels(self, t: float, moving: bool, edge: dict[str, Array],
                           mask: dict[str, NDArray[np.bool_]]) -> None:
-        """Each neighbour's 'instant' channels of its newest instant at or before ``t`` (a
-        robot: its newest values) with the own measurement paired with them; a neighbour
-        without them all sits the step out (masked)."""
+        """Each neighbour's 'instant' channels of its newest instant at or before ``t``, with the
+        own measurement paired; a neighbour without them all sits the step out (masked)."""
         names = self._required_names
         sensors = list(self.own)
         until = self._until(t + self.h)
@@ -1206,9 +1192,8 @@ class AgentRuntime:
         return self.cold_since is not None and self.limits.warm_window > 0
 
     def outbox(self) -> dict[str, object]:
-        """What this agent sends in round 1, formed at the state time (the time-consistent
-        values its listeners need): per-agent channels as arrays, per-edge ones as
-        ``{listener id: value}``. Measurements travel on the sensor topics, not here."""
+        """What this agent sends in round 1, formed at the state time: per-agent channels as
+        arrays, per-edge ones as ``{listener id: value}`` (measurements: on the sensor topics)."""
         cls = type(self.estimator)
         t = self.t
         ids: list[int] | None = None   # the listeners of the per-edge channels (None: the edges')
@@ -1234,9 +1219,8 @@ class AgentRuntime:
                 for c in cls.sends if c.round == 1 and c.sensor is None}
 
     def sends_now(self, name: str, publish_grid: bool) -> bool:
-        """Channel ``name`` goes out after the step that reached the state time: 'exact'
-        ones when a listener's step reads them at this instant, 'instant' ones on the
-        publish grid."""
+        """Channel ``name`` goes out after this step: 'exact' when a listener's step reads it at
+        this instant, 'instant' on the publish grid."""
         if self.channels[name].pairing == 'exact':
             return self.estimator.due(name, self.t, self.h)
         return publish_grid

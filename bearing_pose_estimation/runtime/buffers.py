@@ -49,9 +49,8 @@ class Limits:
 
 @dataclass(frozen=True)
 class Exchange:
-    """A simulation's deterministic exchange: the periods at which the inputs a step waits for
-    come, so that its inputs are fixed by their stamps, not by what has arrived (None: the
-    spacing of the last two samples received)."""
+    """A simulation's deterministic exchange: the periods of the inputs a step waits for, which
+    fix its inputs by their stamps (None: the spacing of the last two samples)."""
 
     publish_period: float                  # the neighbours' 'instant' channels [s]
     sensor_period: float | None = None     # the own point sensors [s]
@@ -145,9 +144,8 @@ def complete(stamps: deque[float], period: float | None, end: float) -> bool:
 
 # ----------------------------------------------------------------------------- checks
 def finite_max_norm(v: Array) -> tuple[bool, float, float]:
-    """Whether every entry of the small vector ``v`` is finite, then its largest magnitude and
-    norm. Python's floats: each message's checks would otherwise pay numpy's per-call overhead
-    (a few µs) several times over for three numbers."""
+    """Whether every entry of the small vector ``v`` is finite, its largest magnitude and norm,
+    in Python floats (numpy's per-call overhead would cost a few µs per check)."""
     values = v.ravel().tolist()
     if not all(map(math.isfinite, values)):
         return False, math.nan, math.nan

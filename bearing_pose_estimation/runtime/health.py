@@ -11,8 +11,7 @@ import numpy as np
 from .agent import AgentRuntime
 
 OK, WARN = 0, 1   # diagnostic_msgs/DiagnosticStatus levels
-# The end-of-run line's count of steps that went on without an awaited input, as the
-# benchmarks read it: 0 or a dict.
+# The end-of-run count of steps that went without an awaited input (0 or a dict; benchmarks).
 INCOMPLETE_LOG = re.compile(r'steps without an awaited input: (\{[^}]*\}|0)')
 
 
@@ -25,13 +24,11 @@ class Health:
 
 def health(rt: AgentRuntime | None, rejected: Counter[str], events: Counter[str],
            steps_per_second: float | None = None) -> Health:
-    """The report: the state time and step rate, the edges used and the silent neighbours,
-    the spectrum of the method's local matrix and its verdict, the method's own per-agent
-    and per-neighbour values, each neighbour's clock lead (``clock_lead_<name>_s``: its newest
-    input's stamp less the own clock; ``clock_ahead_<name>``: its inputs beyond
-    ``max_clock_lead``), what steps went without, rejections by cause, time events. WARN for
-    silent neighbours, a spectrum the method's proof objects to, a neighbour whose newest
-    input leads the own clock by more than ``max_clock_lead``, or rejections."""
+    """The report: state time, step rate, edges used, silent neighbours, the local matrix's
+    spectrum and verdict, the method's own values, each neighbour's clock lead
+    (``clock_lead_<name>_s``, ``clock_ahead_<name>``), what steps went without, rejections by
+    cause, time events. WARN for silent neighbours, a spectrum the method's proof objects to, a
+    clock lead beyond ``max_clock_lead``, or rejections."""
     values = {'state_time_s': 'n/a'}
     level, problems = OK, list[str]()
     if rt is not None:

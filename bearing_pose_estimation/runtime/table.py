@@ -1,12 +1,9 @@
-"""What each agent reads from the others, derived once from its method's declarations: the
-one table that netsim, the estimator node, the simulator node (whose clock waits for these
-readers) and the recorder read.
+"""What each agent reads from the others, derived once from its method's declarations: the one
+table of netsim, the estimator and simulator nodes and the recorder.
 
-Per edge and topic: the channels the sender sends on that topic (grouped by topic, optional
-ones first: a node subscribes and publishes in this order, so that a value no step waits for
-usually arrives before the one its neighbour's step does wait for), the sender's point sensor
-readings of this agent, and the sender's odometry; and the anchor's odometry for a method that
-moves with the anchor's frame.
+Per edge and topic: the sender's channels on that topic (optional ones first: published in this
+order, a value no step waits for usually arrives before one a step waits for), its point sensor
+readings of this agent, its odometry; and the anchor's odometry if the method needs it.
 """
 from __future__ import annotations
 
@@ -24,9 +21,8 @@ ODOM_TOPIC = 'odom'     # its topic (REP-105's name)
 
 @dataclass(frozen=True)
 class Subscription:
-    """One topic of agent ``source`` (id ``source_id``) that an agent reads: ``kind``
-    ``'channels'`` (the ``channels`` it sends on ``topic``), ``'points'`` (its point sensor
-    readings, carried by the channel ``channels[0]``), or ``'odometry'``."""
+    """One topic of agent ``source`` (``source_id``) that an agent reads: ``kind`` ``'channels'``
+    (on ``topic``), ``'points'`` (carried by ``channels[0]``), or ``'odometry'``."""
 
     source: str
     source_id: int

@@ -1,9 +1,8 @@
 """The steps of several agents in one call of their method's step.
 
-An agent's step costs ~130-500 µs, nearly all of it numpy's overhead per call on small
-blocks; eight agents' steps in one call cost little more than one (BENCHMARKS.md, "Steps run
-together"). A step treats its agents' rows independently, so each agent gets exactly what its
-own step gives (``test_runtime.py``). Used by netsim and ``estimators`` processes.
+An agent's step is mostly numpy's per-call overhead; eight agents' in one call cost little more
+than one (BENCHMARKS.md, "Steps run together"). Rows are independent, so each agent gets
+exactly what its own step gives (``test_runtime.py``).
 """
 from __future__ import annotations
 

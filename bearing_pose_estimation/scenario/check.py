@@ -40,9 +40,8 @@ def check_scenario(scenario: Scenario) -> CheckReport:
 
 
 def sample_truth(scenario: Scenario, step: float = SAMPLE_STEP_S) -> tuple[Array, Array]:
-    """``(times (K,), positions (K, N, 3))`` [s], [m]: the truth about ``step`` apart (coarser
-    for huge fleets), integrated at most ``step`` apart with a body-frame velocity (at 0.05 s
-    the paper's 9 rad/s move an agent 2e-5 m off in 60 s)."""
+    """``(times (K,), positions (K, N, 3))`` [s], [m]: the truth about ``step`` apart (coarser for
+    huge fleets; at 0.05 s the paper's 9 rad/s move a body-frame agent 2e-5 m off in 60 s)."""
     n = len(scenario.agents)
     coarse = max(step, scenario.duration * n / MAX_AGENT_SAMPLES)
     n_samples = max(1, math.ceil(scenario.duration / coarse - 1e-9))

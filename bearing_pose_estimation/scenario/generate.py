@@ -4,13 +4,11 @@ Agents fill a cube ``MIN_SPACING_M`` apart, the leaders near the centre; each fo
 of its nearest placed agents (acyclic, reachable from both leaders), one pair at least
 ``MIN_SPREAD_DEG`` from collinear (at 15 deg the smallest eigenvalue of ``M_i`` is 0.03).
 
-Moving fleets (``speed > 0``, as ``config/paper_8_agents_moving.yaml``): ``v_a(t) = V (cos(w t
-+ φ_a), sin(w t + φ_a), 0.3 cos(0.6 w t + 2 φ_a))`` in the world frame, a circle of radius
-``R = V / w`` with a slow vertical oscillation. The phases ``φ_a`` are a common one plus one in
-``±δ``, so two agents move apart by at most ``2√2 R |φ_a - φ_b| <= 4√2 R δ`` (each part of
-``∫ (v_a - v_b) dt`` is at most ``2 R |φ_a - φ_b|``), which ``δ`` keeps below
-:data:`MAX_RELATIVE_DRIFT_M`: no close approach, by construction. The phases are drawn last, so
-``speed = 0`` writes exactly the static file of the same seed.
+Moving fleets (``speed > 0``): ``v_a(t) = V (cos(w t + φ_a), sin(w t + φ_a), 0.3 cos(0.6 w t +
+2 φ_a))``, a circle of radius ``R = V / w`` with a slow vertical oscillation. The phases are a
+common one plus one in ``±δ``, so two agents move apart by at most ``2√2 R |φ_a - φ_b| <= 4√2 R
+δ``, kept below :data:`MAX_RELATIVE_DRIFT_M`: no close approach, by construction. The phases are
+drawn last, so ``speed = 0`` writes exactly the static file of the same seed.
 """
 from __future__ import annotations
 
@@ -26,8 +24,8 @@ MIN_SPACING_M = 0.5
 MIN_SPREAD_DEG = 35.0
 LEADER_SEPARATION_M = 1.5
 _CANDIDATES = 8
-# Moving fleets: the most two agents move relative to each other [m], half the room between
-# the minimum spacing and a close approach (so the geometry stays near the checked one too).
+# Moving fleets: the most two agents move relative to each other [m], half the room between the
+# minimum spacing and a close approach.
 MAX_RELATIVE_DRIFT_M = 0.5 * (MIN_SPACING_M - graph.CLOSE_APPROACH_M)
 
 
@@ -133,10 +131,9 @@ def _velocities(n: int, speed: float, turn_rate: float,
 def generate_scenario(n_agents: int, seed: int = 0, max_angle_deg: float = 90.0,
                       position_std: float = 1.0, speed: float = 0.0,
                       turn_rate: float = 0.5) -> dict[str, Any]:
-    """A scenario of ``n_agents`` >= 3 as a YAML-ready dict, everything drawn from ``seed``:
-    initial attitude errors uniform in ``[0, max_angle_deg]``, position errors
-    ``N(0, position_std²)`` per axis [m]; with ``speed`` V > 0 [m/s], a fleet drifting at V and
-    turning at ``turn_rate`` [rad/s] (module docstring)."""
+    """A scenario of ``n_agents`` >= 3 as a YAML-ready dict, drawn from ``seed``: attitude errors
+    uniform in ``[0, max_angle_deg]``, position errors ``N(0, position_std²)`` per axis [m]; with
+    ``speed`` V > 0 [m/s], a fleet turning at ``turn_rate`` [rad/s] (module docstring)."""
     if n_agents < 3:
         raise ValueError('n_agents must be at least 3 (two leaders and one follower)')
     if not (np.isfinite(speed) and speed >= 0):

@@ -60,10 +60,9 @@ class BearingPerturbation:
 
 @dataclass(frozen=True)
 class Noise:
-    """Measurement noise, all off by default (:mod:`sim.noise`): ``gyro_std`` [rad/s] per gyro
-    sample and axis; ``gyro_bias`` [rad/s] plus each agent's own, ``N(0, gyro_bias_std²)``;
-    ``bearing_std`` [rad] per component of a rotation perpendicular to each bearing (RMS angle
-    ``√2 · bearing_std``); the probability of an outlier; the ``seed`` of every draw."""
+    """Measurement noise, off by default (:mod:`sim.noise`): ``gyro_std`` [rad/s] per sample and
+    axis; ``gyro_bias`` [rad/s] plus each agent's ``N(0, gyro_bias_std²)``; ``bearing_std`` [rad]
+    per component perpendicular to each bearing (RMS angle ``√2 · bearing_std``); ``seed``."""
 
     gyro_std: float = 0.0
     gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -107,10 +106,9 @@ class Sensors:
 
 @dataclass(frozen=True)
 class FormationControl:
-    """The formation controller of the agents with a ``formation_position``
-    (:mod:`core.formation`, De Carli et al. (30)-(31)): gain ``k_c`` [1/s], speed bound
-    ``nu_max`` [m/s], ``mode`` (``paper``, on the estimated yaws: batch simulator only),
-    evaluated at ``rate`` [Hz] and held in the body frame in between."""
+    """The formation controller (:mod:`core.formation`, De Carli et al. (30)-(31)): gain ``k_c``
+    [1/s], speed bound ``nu_max`` [m/s], ``mode`` (``paper``: on the estimated yaws, batch
+    simulator only), at ``rate`` [Hz], held in the body frame in between."""
 
     k_c: float = 1.0
     nu_max: float = 1.0

@@ -1,12 +1,9 @@
-"""The truth of a scenario, the one model behind the batch simulator, the simulator node and the
-check of a moving scenario, with the sensors' true values. Rotation and translation are advanced
-together over steps of ``dt`` (:mod:`core.motion`: Magnus, closed-form or Gauss-Legendre); yaw
-splines (De Carli et al.) give ``R_i = R_z(ψ_i(t))`` exactly. Their formation controller
-(:mod:`core.formation`) is evaluated every ``1/formation_control.rate`` and held in between (a
-sampled-data plant, the note's §7), in the ``paper`` mode on the yaws the batch simulator sets in
-:attr:`Truth.controller_yaws`. Agents with an ``anchor_estimate`` velocity (Presenza et al., case
-2) hold ``u_i = Q̂_iᵀ v_i(t)`` over the step with the estimate :meth:`Truth.command` gets (else the
-true ``Q_i = R_aᵀ R_i``)."""
+"""The truth of a scenario, behind the batch simulator, the simulator node and the check, with
+the sensors' true values. Rotation and translation advance together over ``dt``
+(:mod:`core.motion`); yaw splines give ``R_i = R_z(ψ_i(t))`` exactly. The formation controller
+(:mod:`core.formation`) is held between its ticks (a sampled-data plant, the note's §7), in
+``paper`` mode on :attr:`Truth.controller_yaws`. ``anchor_estimate`` velocities (Presenza et
+al., case 2) hold ``u_i = Q̂_iᵀ v_i(t)`` with :meth:`Truth.command`'s estimate (else the true)."""
 from __future__ import annotations
 
 from collections.abc import Callable

@@ -218,9 +218,8 @@ class BatchSimulator(OnTruth):
             progress: Callable[[float, Array, Array], None] | None = None,
             progress_every: float = 10.0) -> Recording:
         """Run from the current state for ``duration`` simulated seconds, recording every
-        ``record_every`` [s] (a whole number of steps) and calling ``progress(t, att_err, pos_err)``
-        every ``progress_every``. A moving fleet's recording also holds every agent's true and
-        (world-frame, aligned) estimated positions (:class:`metrics.results.Trajectories`)."""
+        ``record_every`` [s] (whole steps), ``progress(t, att_err, pos_err)`` every
+        ``progress_every``; a moving fleet's also holds :class:`metrics.results.Trajectories`."""
         n_steps = int(round(duration / self.h))
         every = max(1, int(round(record_every / self.h)))
         prog_every = max(1, int(round(progress_every / self.h)))

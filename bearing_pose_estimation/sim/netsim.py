@@ -1,34 +1,22 @@
-"""The distributed system without DDS, in one process and deterministic: one agent runtime per
-agent (:class:`runtime.agent.AgentRuntime`, what the estimator node runs), the simulator node's
-world (:class:`.world.World`) and the links between agents.
+"""The distributed system without DDS, in one process and deterministic: one
+:class:`runtime.agent.AgentRuntime` per agent (what the estimator node runs), the simulator
+node's world (:class:`.world.World`) and the links, read as :mod:`runtime.table` says.
 
-The agents are fed as the simulator node feeds theirs and read from each other what the one
-table of subscriptions says (:mod:`runtime.table`), through the link faults. 'instant' channels
-go out at the ``publish_rate``, 'exact' ones after each step that a neighbour's next step reads,
-a second round's as soon as its first is in. The world never waits for them: a step waits at
-most ``link_wait`` of its own sensors' time. A fault-free run pairs its inputs as a lockstep
-simulation does (:class:`runtime.buffers.Exchange`), so a DDS run equals it to rounding. Every
-check, rejection and time rule is the runtimes'. Faults:
+'instant' channels go out at the ``publish_rate``, 'exact' ones after each step that a
+neighbour's next step reads, a second round's as soon as its first is in; a step waits at most
+``link_wait`` of its own sensors' time. A fault-free run pairs its inputs as a lockstep
+simulation does (:class:`runtime.buffers.Exchange`), so a DDS run equals it to rounding. Faults:
 
 - :class:`LinkFaults`: lost and late neighbour messages (:mod:`runtime.faults`);
 - :class:`Outage`: an agent is cut off over ``[start, end)``. ``network_only``: a partition,
   no neighbour message in or out while its own sensors keep feeding it. Otherwise no process,
   no input or output; it comes back as it was (``restart=False``: paused, input sent meanwhile
   is lost) or fresh from its initial estimate (``restart=True``). From 0: a late joiner;
-- :class:`ClockJump`: the simulator restarts: clock, truth and noise back to t = 0;
-- :class:`Clocks`: every robot's clock is off by a fixed offset or drifts; it stamps what it
-  measures and sends, and steps, on its own clock;
-- :class:`Garbage`: a fraction of every input (gyro sample, point sensor message, neighbour
-  message, leader's known pose) comes with a corrupted copy, or is replaced by it
-  (``replace=True``): NaN/inf, zero-length or non-unit vectors, unknown ids, stale, late or
-  future stamps, absurd rates.
+- :class:`ClockJump`, :class:`Clocks`: a simulator restart, robots' clocks off or drifting;
+- :class:`Garbage`: a fraction of every input comes with a corrupted copy, or is replaced by it
+  (``replace=True``): NaN/inf, bad vectors, unknown ids, bad stamps, absurd rates.
 
-:func:`simulate_network` also counts the estimators' rejections (by cause), time-rule events
-and non-finite estimates; a crash of the agent logic ends the run. :func:`fault_cases` is the
-one fault list of ``bench/fault_matrix.py`` and the tests, with their measures
-:func:`reconvergence_time` (back to the fault-free run's error at the fault's end),
-:func:`catch_up_time` (back to the fault-free run at the same instant) and
-:func:`convergence_cost`."""
+:func:`fault_cases` is the one fault list of ``bench/fault_matrix.py`` and the tests."""
 from __future__ import annotations
 
 from collections import Counter
@@ -70,9 +58,8 @@ class Outage:
 
 @dataclass(frozen=True)
 class ClockJump:
-    """The simulator restarts at run time ``at``. A jump back of less than the estimators'
-    ``Limits.jump_back`` (1 s) is not a time jump to them: they reject the new stamps as
-    ``out_of_order`` until the clock catches up."""
+    """The simulator restarts (clock, truth, noise) at run time ``at``. A jump back under
+    ``Limits.jump_back`` (1 s) is ``out_of_order`` to the estimators until the clock catches up."""
 
     at: float  # run time [s] at which the simulator's clock goes back to 0
 
@@ -81,10 +68,8 @@ class ClockJump:
 class Clocks:
     """Each robot's own clock against the simulator's (true) time ``t``: ``local = s_i
     (offset + drift t) + t``, the sign ``s_i`` alternating over the agents in the scenario's
-    order (+ first) or, with a ``seed``, drawn per agent. A robot stamps what it measures (gyro,
-    point sensors, odometry, a leader's known pose) and what it sends on its clock, and its
-    estimator starts and steps on it; the runtime is not told, as on a real robot. Errors are
-    measured against the truth at the true time of each estimate's local state time."""
+    order (+ first) or, with a ``seed``, drawn per agent. A robot stamps what it measures and
+    sends, and steps, on its clock, untold; errors are measured at true times."""
 
     offset: float = 0.0      # [s]
     drift: float = 0.0       # [s/s]: 1e-4 is 100 ppm
@@ -134,11 +119,10 @@ class FaultCase:
 def fault_cases(at: float = 20.0, length: float = 5.0, late_join: float = 10.0,
                 garbage: float = 0.1, victim: str = 'agent_4', late: str = 'agent_7',
                 delay: float = 0.2) -> list[FaultCase]:
-    """The fault matrix, the reference (no fault) first, for the paper's 8-agent scenario by
-    default (the bench's; the tests shrink the times). ``at``, ``length``: when the outages and
-    the clock jump happen [s] (``at`` a multiple of the step keeps the records aligned with the
-    steps); ``late_join``: when ``late`` starts [s]; ``victim``: the agent cut off, paused or
-    restarted; ``garbage``: the fraction of inputs corrupted; ``delay``: of the delayed rows [s]."""
+    """The fault matrix, the reference (no fault) first, for the paper's 8-agent scenario (the
+    tests shrink the times). ``at``, ``length`` [s]: the outages and the clock jump (``at`` a
+    multiple of the step keeps records aligned); ``late_join`` [s]: when ``late`` starts;
+    ``victim``: the agent cut off, paused or restarted; ``garbage``: fraction corrupted."""
     end = at + length
     return [
         FaultCase('reference', 'none (reference)'),
@@ -171,9 +155,8 @@ def fault_cases(at: float = 20.0, length: float = 5.0, late_join: float = 10.0,
 
 def clock_cases(offsets: Sequence[float] = (0.005, 0.05), drift: float = 1e-4
                 ) -> list[FaultCase]:
-    """The clock rows (:class:`Clocks`): every robot's clock off by ``±offset`` [s], signs
-    alternating over the agents (neighbours then often disagree by twice as much), and
-    drifting by ``±drift`` [s/s] from agreeing at t = 0 (0: no such row)."""
+    """The clock rows (:class:`Clocks`): clocks off by ``±offset`` [s] (neighbours then often
+    disagree twice as much), and drifting by ``±drift`` [s/s] from t = 0 (0: no such row)."""
     rows = [FaultCase(f'clock_{1000 * o:g}ms', f'clocks off by ±{1000 * o:g} ms (alternating '
                       'over the agents)', clocks=Clocks(offset=o)) for o in offsets]
     return rows + [FaultCase('clock_drift', f'clocks drifting by ±{1e6 * drift:g} ppm from '
@@ -371,9 +354,8 @@ class _Network:
         self.per_publish = self.per_step * scenario.publish_every
         self.tally = InputTally()
         self.non_finite = 0
-        # The truth at the last second of estimator-step instants (step index -> (R, p)): an
-        # estimator waiting for a lost gyro sample is a step behind the world, and its error
-        # is measured against the truth at its own state time, as the monitor pairs stamps.
+        # The truth at the last second of step instants (step index -> (R, p)): an estimator
+        # behind the world is measured at its own state time, as the monitor pairs stamps.
         self.truth: dict[int, tuple[Array, Array]] = {}
         # With clocks: the truth at every internal step of the last second (by world tick),
         # for the true times of the estimators' local state times.
@@ -608,9 +590,8 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
                      limits: Limits = Limits(), batched: bool = True,
                      clocks: Clocks = Clocks()) -> NetRun:
     """Run the fleet for ``duration`` s of run time with the given faults; record the followers'
-    errors every ``record_every`` (run time, monotonic across a clock jump). ``batched``: one
-    instant's steps in one call (:func:`runtime.together.advance_together`, as an
-    ``estimators`` process): bit for bit the same (``test_runtime.py``), 20-30 % faster."""
+    errors every ``record_every`` (monotonic across a clock jump). ``batched``: one instant's
+    steps in one call (:func:`runtime.together.advance_together`): bit for bit the same."""
     net = _Network(scenario, links, outages, garbage, limits, batched, clocks)
     dt = net.world.dt
     per_record = int(round(record_every / dt))
@@ -665,9 +646,8 @@ CATCH_UP_FACTOR = 1.5
 
 
 def reconvergence_time(rec: Recording, ref: Recording, fault_end: float) -> float | None:
-    """Time after ``fault_end`` until both mean errors of ``rec`` are at or below the
-    fault-free run's (``ref``, same record times) at ``fault_end``: how long the fleet needs
-    to get back to where it would have been. None if not by the end of the run."""
+    """Time after ``fault_end`` until both mean errors of ``rec`` are at or below the fault-free
+    run's (``ref``, same record times) at ``fault_end``; None if not by the end."""
     if fault_end > ref.t[-1] + 1e-9:
         return None  # the run ended before the fault did
     att, pos = rec.mean_errors()
@@ -681,9 +661,8 @@ def reconvergence_time(rec: Recording, ref: Recording, fault_end: float) -> floa
 def catch_up_time(rec: Recording, ref: Recording, fault_end: float,
                   factor: float = CATCH_UP_FACTOR) -> float | None:
     """Time after ``fault_end`` from which both mean errors of ``rec`` stay within ``factor``
-    times the fault-free run's at the same instant (``ref``, same record times): back to the
-    run it would have been, not only to where that run was when the fault ended (which a fleet
-    that stays behind also reaches). None if not by the end."""
+    times the fault-free run's at the same instant (``ref``): back to the run it would have been,
+    not only where it was at the fault's end (a fleet that stays behind gets there). Or None."""
     att, pos = rec.mean_errors()
     ref_att, ref_pos = ref.mean_errors()
     after = rec.t >= fault_end - 1e-9
@@ -697,9 +676,8 @@ def catch_up_time(rec: Recording, ref: Recording, fault_end: float,
 
 
 def convergence_cost(rec: Recording, ref: Recording) -> float:
-    """How many seconds of convergence a fault lost by the end of the run: the end time minus
-    the first time the fault-free run (``ref``) was as good, for the mean error that lost
-    more (attitude or position; 0: no worse than the fault-free run)."""
+    """Seconds of convergence a fault lost by the end: the end time minus the first time the
+    fault-free run (``ref``) was as good, for the mean error that lost more (0: no worse)."""
     costs = [0.0]
     for err, ref_err in zip(rec.mean_errors(), ref.mean_errors()):
         k = np.flatnonzero(ref_err <= err[-1])

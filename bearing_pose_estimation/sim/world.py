@@ -47,8 +47,7 @@ class World(OnTruth):
         self.truth.reset()
         self._R_last_imu = self.R.copy()
         self._last_odometry = (self.R.copy(), self.p.copy())
-        # The pose dead-reckoned from the published twists, in each agent's odom frame (its
-        # body frame at t = 0), as a real odometry source reports it.
+        # The pose dead-reckoned from the twists, in the odom frame (the body frame at t = 0).
         self.odom_R = np.tile(np.eye(3), (n, 1, 1))
         self.odom_p = np.zeros((n, 3))
 

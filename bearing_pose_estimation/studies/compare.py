@@ -1,6 +1,5 @@
-"""Several estimators on one scenario, side by side (``bearing-pose compare``); no rclpy.
-Every method runs with the same truth, initial estimates and noise seed: :func:`method_data`
-derives one scenario per method from the file, for the batch and the distributed runs."""
+"""Several estimators on one scenario, side by side (``bearing-pose compare``); no rclpy. Every
+method runs with the same truth, initial estimates and noise seed (:func:`method_data`)."""
 from __future__ import annotations
 
 import copy
@@ -108,9 +107,8 @@ def compatible_methods(scenario: Scenario) -> tuple[list[str], dict[str, str]]:
 
 def method_data(data: Mapping[str, Any], scenario: Scenario, method: str,
                 overrides: Mapping[str, float] | None = None) -> dict[str, Any]:
-    """The file's content ``data`` (``scenario`` is it parsed) run by ``method``: the roles it
-    uses at the top level, the others under ``other_roles``, and a ``gains:`` block with every
-    gain it reads (as :meth:`Scenario.with_method`, then ``overrides``) and the file's ``k_ij``."""
+    """The file's ``data`` (parsed: ``scenario``) run by ``method``: its roles at the top level,
+    others under ``other_roles``, every gain it reads (then ``overrides``) and the ``k_ij``."""
     derived = copy.deepcopy(dict(data))
     derived['method'] = method
     cls = estimators.get(method)

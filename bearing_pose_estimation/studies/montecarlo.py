@@ -1,8 +1,6 @@
-"""Monte Carlo runs of the batch simulator (``bearing-pose montecarlo``); no rclpy.
-
-Run ``i`` (0-based) with first seed ``S`` is the scenario with ``noise.seed`` and any
-``initial_estimates.random.seed`` set to ``S + i``, so ``bearing-pose simulate`` with those
-seeds replays it exactly. Per run: every quantity of :mod:`.summary`."""
+"""Monte Carlo runs of the batch simulator (``bearing-pose montecarlo``); no rclpy. Run ``i``
+(0-based) with first seed ``S`` has ``noise.seed`` and any ``initial_estimates.random.seed`` set
+to ``S + i`` (``simulate`` replays it exactly); per run, every quantity of :mod:`.summary`."""
 from __future__ import annotations
 
 import math

@@ -1,9 +1,8 @@
 """The Tran, Anderson & Ahn (2020) noise experiment for several methods (``noise-study``):
 every bearing is ``rot_X(θ0 sin 2πft) · b`` (Section 5.1: θ0 up to 10°, f from 1 to 25 Hz),
-replacing the file's ``bearing_perturbation``; one batch run per method (derived as
-``compare`` does) and (θ0, f), and its ``steady_*`` quantities (``*_max``: the radius of the
-neighbourhood of the truth the estimates stay in). The bearings are sampled once per step
-``h``: frequencies above ``1/(4h)`` would alias and are refused."""
+replacing the file's ``bearing_perturbation``; one batch run per method and (θ0, f), and its
+``steady_*`` quantities. Bearings are sampled once per step ``h``: frequencies above ``1/(4h)``
+would alias and are refused."""
 from __future__ import annotations
 
 import dataclasses

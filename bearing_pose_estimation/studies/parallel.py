@@ -12,9 +12,8 @@ R = TypeVar('R')
 
 def run_all(func: Callable[..., R], calls: Sequence[tuple[Any, ...]], jobs: int | None = None,
             progress: Callable[[int, int, R], None] | None = None) -> list[R]:
-    """``func(*args)`` for every ``args`` in ``calls`` on ``jobs`` processes (default: every
-    core; 1: this one), in order, ``progress(done, total, result)`` as each finishes. On an
-    error or Ctrl-C the queued calls are dropped and the running ones waited for."""
+    """``func(*args)`` for every ``args`` in ``calls`` on ``jobs`` processes (default: all
+    cores), in order, ``progress(done, total, result)`` each; error or Ctrl-C: queue dropped."""
     jobs = min(jobs or os.cpu_count() or 1, len(calls))
     results: list[R | None] = [None] * len(calls)
     done = 0

@@ -66,9 +66,8 @@ ROLES_CSV = 'errors_by_role.csv'
 
 def write_role_outputs(rec: Recording, groups: dict[str, list[str]], out_dir: Path,
                        title: str = '', plot: bool = True) -> list[Path]:
-    """Robots by role (Presenza et al.: sensing, free): :data:`ROLES_CSV` (``t``, then per group
-    its mean position [m] and attitude [rad] errors) and :data:`ROLES_PLOT` (a line style per
-    group, its mean bold); nothing without groups."""
+    """Robots by role (sensing, free): :data:`ROLES_CSV` (``t``, per group its mean position [m]
+    and attitude [rad] errors) and :data:`ROLES_PLOT`; nothing without groups."""
     if not groups:
         return []
     cols = {g: [rec.followers.index(a) for a in names if a in rec.followers]

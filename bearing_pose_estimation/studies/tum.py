@@ -1,6 +1,6 @@
-"""TUM trajectories from a run's bag (``bearing-pose export-tum DIR``), what evo reads: per
-agent, ``<agent>_estimate.tum`` (in the method's estimate frame) and ``<agent>_truth.tum``, one
-pose per line ``t x y z qx qy qz qw``, t the message stamp [s] (a stamp sent twice, once)."""
+"""TUM trajectories from a run's bag (``bearing-pose export-tum DIR``) for evo: per agent,
+``<agent>_estimate.tum`` (estimate frame), ``<agent>_truth.tum``: ``t x y z qx qy qz qw``, t
+the message stamp [s] (a stamp sent twice, once)."""
 from __future__ import annotations
 
 from pathlib import Path
