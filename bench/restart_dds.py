@@ -17,6 +17,7 @@ main had, so it measures main too (PYTHONPATH=<main checkout>).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import signal
@@ -34,7 +35,8 @@ from bearing_pose_estimation.cli import launch
 from bearing_pose_estimation.plan import dds
 from bearing_pose_estimation.plan import processes as plan
 from bearing_pose_estimation.scenario import load_scenario
-from bearing_pose_estimation.sim.netsim import run_network
+from bearing_pose_estimation.sim.netsim import (CATCH_UP_FACTOR, catch_up_time,
+                                                 reconvergence_time, run_network)
 from bearing_pose_estimation.studies.summary import read_metrics_csv
 
 REPO = Path(__file__).resolve().parents[1]
@@ -128,6 +130,16 @@ def main() -> None:
                     f'{metrics.pos_err[-1, i] / clean.pos_err[k, i]:.3g}'
                     for i, n in enumerate(metrics.followers))
     print(f'per follower, attitude/position error ratio to clean: {per}')
+    # The two re-convergence times of the fault matrix, on the records both runs have.
+    rows = [int(np.argmin(abs(clean.t - t))) for t in metrics.t]
+    ref = dataclasses.replace(clean, t=clean.t[rows], att_err=clean.att_err[rows],
+                              pos_err=clean.pos_err[rows])
+    back, caught = (reconvergence_time(metrics, ref, marks['restart_t']),
+                    catch_up_time(metrics, ref, marks['restart_t']))
+    print(f're-converged (back at the clean run\'s error at the restart) '
+          f'{"never" if back is None else f"{back:.1f} s"} after the restart; caught up (within '
+          f'{CATCH_UP_FACTOR:g} x the clean run at the same instant) '
+          f'{"never" if caught is None else f"{caught:.1f} s"} after it')
     summary = json.loads((out / 'summary.json').read_text())
     print(f'summary.json: complete {summary.get("complete")}, deaths {summary.get("deaths")}')
     if left:

@@ -34,12 +34,15 @@ from ..core.gyro import GyroBuffer
 from ..core.odometry import OdometryBuffer
 from ..estimators.base import (ANCHOR_DELTA_R, ANCHOR_DISPLACEMENT, DELTA_R, DISPLACEMENT, HELD,
                                IS_ANCHOR, P_OWN, PEER_DELTA_R, PEER_DISPLACEMENT, PEER_ODOMETRY,
-                               PINNED, Channel, Edges, Estimator, Motion, Sensor, State,
-                               StepInputs)
+                               PINNED, POSE_COVARIANCE, Channel, Edges, Estimator, Motion,
+                               Sensor, State, StepInputs)
 from .buffers import (SAME, Exchange, Limits, Stamped, bounded_problem, complete,
                       finite_max_norm, twist_problem, unit_problem)
 
 Array = NDArray[np.float64]
+# A neighbour's covariance that rises this many times between two steps announces a reset
+# (it never does while running: it moves by a few per cent a step).
+RESET_JUMP = 10.0
 # The largest component [unit per sensor] of an own or received point measurement.
 POINT_BOUNDS = {Sensor.BEARINGS: 2.0, Sensor.RELATIVE_POSITIONS: 1e4,
                 Sensor.BEARING_RATES: 100.0}
@@ -97,7 +100,7 @@ class Peer:
     newest stamp each channel was heard on (with a value for this agent or not), its odometry."""
 
     __slots__ = ('name', 'agent_id', 'k', 'slot', 'flags', 'values', 'heard', 'odometry',
-                 'last')
+                 'last', 'known', 'bar', 'silent')
 
     def __init__(self, spec: PeerSpec, slot: int, odometry: OdometryBuffer | None) -> None:
         self.name, self.agent_id, self.k, self.slot = spec.name, spec.agent_id, spec.k, slot
@@ -106,6 +109,16 @@ class Peer:
         self.heard: dict[str, float] = {}
         self.odometry = odometry
         self.last = -math.inf   # the newest stamp of a value or measurement it sent
+        self.forget()
+
+    def forget(self) -> None:
+        """No covariance of it used yet (``known``: its last, relative to the prior), and no
+        reset announced (``bar``: what it must be back at; :meth:`AgentRuntime._distrust`)."""
+        self.known, self.bar, self.silent = math.nan, math.nan, False
+
+    @property
+    def reset(self) -> bool:
+        return not math.isnan(self.bar)
 
     def newest(self) -> float:
         """The newest stamp of anything it sent (channels, measurements, odometry)."""
@@ -213,6 +226,11 @@ class AgentRuntime:
         # What an edge needs to take part in a step, for a method without partial_edges.
         self._complete_keys = [s.value for s in cls.measures] + [
             c.name for c in cls.sends if not c.optional and c.sensor is None]
+        # The covariance a sender announces its pose with, and the prior's variances it is
+        # measured against (the estimator's stand-in for a covariance never received).
+        self._cov = next((c.name for c in cls.sends if c.kind == POSE_COVARIANCE), None)
+        self._prior_var = (None if self._cov is None
+                           else np.diagonal(estimator.missing(self._cov)).copy())
         flags = {name: np.array([p.flags.get(name, False) for p in self.peers], dtype=bool)
                  for name in sorted({f for p in self.peers for f in p.flags})}
         # Its edges, one per peer: the same object every step (a method may cache what it
@@ -245,6 +263,8 @@ class AgentRuntime:
         self.odometry_missing_steps = 0           # steps without the odometry expected
         self.anchor_still_steps = 0               # steps without the anchor's odometry
         self.non_finite_steps = 0                 # steps discarded as non-finite
+        self.resets: Counter[str] = Counter()     # per neighbour: the resets it announced
+        self.distrusted: Counter[str] = Counter()   # per neighbour: steps left out after one
         # No trustworthy estimate since then (None: it has one): started after the fleet's
         # t = 0 (a late or restarted process, or a robot's real clock), a gyro gap or a clock
         # jump. Until then, or warm_window, each step first tries the method's warm start.
@@ -307,6 +327,7 @@ class AgentRuntime:
                 peer.values.clear()
                 peer.heard.clear()
                 peer.last = -math.inf
+                peer.forget()
                 if peer.odometry is not None:
                     peer.odometry.reset(self.t0)
             if self.anchor_odometry is not None:
@@ -813,6 +834,7 @@ class AgentRuntime:
             later, later_mask = dict(first.edge), dict(first.mask)
             for r in range(2, rounds + 1):
                 self._exact_channels(t, r, later, later_mask)
+            self._leave_out(later, later_mask)
             return StepInputs(edges=first.edges, agent=first.agent, edge=later,
                               mask=later_mask, t=t)
         h = self.h
@@ -839,10 +861,52 @@ class AgentRuntime:
             self._peer_motion(t, edge, mask)
         for r in range(1, rounds + 1):
             self._exact_channels(t, r, edge, mask)
+        if rounds == 1:
+            self._distrust(t, edge, mask)
         inputs = StepInputs(edges=edges, agent=agent, edge=edge, mask=mask, t=t)
         if not cls.partial_edges:
             inputs = inputs.complete(self._complete_keys)
         return inputs
+
+    def _distrust(self, t: float, edge: dict[str, Array],
+                  mask: dict[str, NDArray[np.bool_]]) -> None:
+        """Leave out what a neighbour sends once it announces a reset: back from a silence
+        (``neighbour_timeout``) with a covariance, in units of the prior's, :data:`RESET_JUMP`
+        times what it was before and above ``reset_trust`` (a restart its warm start did not
+        settle). It is taken back once within RESET_JUMP of this agent's own covariance when
+        it announced it: a listener that knows its pose to 1e-4 rad waits for its neighbour
+        to know its own to about 3e-4, not 0.1."""
+        name, prior = self._cov, self._prior_var
+        if name is None or prior is None or name not in edge:
+            return
+        known, limit = prior > 0, t - self.limits.neighbour_timeout
+        for p in self._read_peers:   # (on what it sent, never the stand-in for none yet)
+            if p.newest() < limit:
+                p.silent = True   # judged at its first value after
+                continue
+            if not p.values.get(name) or (name in mask and not mask[name][p.slot]):
+                continue
+            u = float(np.mean(np.diagonal(edge[name][p.slot])[known] / prior[known]))
+            if p.reset and u <= p.bar:
+                p.bar = math.nan
+            elif p.silent and u > self.limits.reset_trust and u > RESET_JUMP * p.known:
+                own = np.diagonal(self.covariance())[:len(prior)][known] / prior[known]
+                p.bar = max(RESET_JUMP * float(np.mean(own)), 1e-300)
+                self.resets[p.name] += 1
+            p.silent = False
+            p.known = u
+            if p.reset:
+                self.distrusted[p.name] += 1
+        self._leave_out(edge, mask)
+
+    def _leave_out(self, edge: dict[str, Array], mask: dict[str, NDArray[np.bool_]]) -> None:
+        """Mask the values of the neighbours that announced a reset (:meth:`_distrust`)."""
+        for p in self._read_peers:
+            if p.reset:
+                for key in self.channels:
+                    if key in edge:
+                        m = mask.setdefault(key, np.ones(len(self.peers), dtype=bool))
+                        m[p.slot] = False
 
     def _anchor_motion(self, t: float, agent: dict[str, Array]) -> None:
         """The anchor's motion over the step as this agent knows it, and the anchor's flags;

@@ -45,6 +45,9 @@ class Limits:
     # A neighbour's stamps further ahead [s] of the own clock: its clock runs ahead (counted,
     # and /diagnostics warns); well above a LAN's latency and a step, below a 50 ms offset.
     max_clock_lead: float = 0.02
+    # A neighbour whose covariance jumps (runtime.agent.RESET_JUMP) above this, in units of the
+    # prior's (its std a tenth of it), announces a reset: it is left out for a while.
+    reset_trust: float = 0.01
 
 
 @dataclass(frozen=True)

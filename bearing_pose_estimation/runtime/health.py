@@ -63,6 +63,11 @@ def health(rt: AgentRuntime | None, rejected: Counter[str], events: Counter[str]
             values['unpaired'] = str(rt.unpaired)   # newest values used for their instant's
             if rt.warm_note:
                 values['warm_start'] = rt.warm_note
+            for peer in rt.peers:   # neighbours left out after announcing a reset
+                if rt.resets[peer.name]:
+                    values[f'resets_{peer.name}'] = str(rt.resets[peer.name])
+                    values[f'left_out_{peer.name}'] = (f'{rt.distrusted[peer.name]} steps'
+                                                       + ' (now)' * peer.reset)
             values['incomplete_steps'] = str(sum(rt.incomplete.values()))
         limit = rt.limits.max_clock_lead
         ahead = {name: lead for name, lead in rt.leads.items() if lead > limit}
@@ -98,7 +103,8 @@ def summary(rt: AgentRuntime, rejected: Counter[str], events: Counter[str],
     return (f'{rt.k} steps ({rt.k * rt.h:.2f} s of state time) in {wall:.1f} s wall: '
             f'{rt.k / max(wall, 1e-9):.1f} steps/s; rejected: {dict(rejected) or 0}; events: '
             f'{dict(events) or 0}; lost-sample gaps bridged: gyro {rt.gyro.bridged}, odometry '
-            f'{rt.odometry.bridged}; warm starts: {dict(rt.warm_starts) or 0}; unpaired '
+            f'{rt.odometry.bridged}; warm starts: {dict(rt.warm_starts) or 0}; neighbour resets: '
+            f'{dict(rt.resets) or 0}; unpaired '
             f'neighbour values: {rt.unpaired}; waited for: '
             f'{dict(rt.waits) or 0}; left out: {dict(+rt.missing) or 0}; carried: {rt.carried}; '
             f'inputs of clocks ahead of ours: {dict(rt.ahead) or 0}; '

@@ -308,6 +308,8 @@ class NetRun:
     # Per listener, its neighbours' inputs stamped more than Limits.max_clock_lead ahead of
     # its clock (listeners with none left out).
     ahead: dict[str, dict[str, int]] = field(default_factory=dict)
+    # Per listener, the resets its neighbours announced (AgentRuntime._distrust).
+    resets: dict[str, dict[str, int]] = field(default_factory=dict)
 
 
 class _Network:
@@ -622,7 +624,8 @@ def simulate_network(scenario: Scenario, duration: float, record_every: float = 
                   non_finite_steps=sum(ag.non_finite_steps for ag in net.agents.values()),
                   carried=sum(ag.carried for ag in net.agents.values()),
                   warm_starts=sum((ag.warm_starts for ag in net.agents.values()), Counter()),
-                  ahead={n: dict(ag.ahead) for n, ag in net.agents.items() if ag.ahead})
+                  ahead={n: dict(ag.ahead) for n, ag in net.agents.items() if ag.ahead},
+                  resets={n: dict(ag.resets) for n, ag in net.agents.items() if ag.resets})
 
 
 def run_network(scenario: Scenario, duration: float, record_every: float = 0.1,
