@@ -7,7 +7,9 @@
    receiving? A second listener started while the server is down: does it receive? The server
    started again on the same port (no backup): when does the second listener receive?
 
-    .venv/bin/python bench/discovery_server_loss.py [--domain-id 93] [--down 15]
+    .venv/bin/python bench/discovery_server_loss.py [--domain-id 93] [--down 15] [--redundant]
+
+``--redundant``: a second server (id 1) that stays up; every process lists both.
 
 Every process is stopped with SIGINT, the server last; the files the killed server left in
 /dev/shm are removed.
@@ -92,14 +94,20 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--domain-id', type=int, default=93)
     ap.add_argument('--down', type=float, default=15.0, help='seconds the server stays down')
+    ap.add_argument('--redundant', action='store_true',
+                    help='a second server (id 1) that stays up: ROS_DISCOVERY_SERVER="A;B"')
     args = ap.parse_args()
     logs = Path(tempfile.mkdtemp())
     spec = discovery_server_spec(dds.free_udp_port(), logs)
-    env = dds.dds_env(args.domain_id, logs / 'ros', discovery_server=f'127.0.0.1:{spec.argv[-1]}')
+    argvs = [list(spec.argv)]
+    if args.redundant:   # id 1 on another port; its place in the list is its id
+        argvs.append([*spec.argv[:2], '1', *spec.argv[3:-1], str(dds.free_udp_port())])
+    env = dds.dds_env(args.domain_id, logs / 'ros',
+                      discovery_server=';'.join(f'127.0.0.1:{a[-1]}' for a in argvs))
     before = dds.shm_files()
     killed: set[str] = set()   # the server's files in /dev/shm when it was killed
-    server = subprocess.Popen(spec.argv, env=env, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL)
+    servers = [subprocess.Popen(a, env=env, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL) for a in argvs]
     probes: list[Probe] = []
     t0 = time.monotonic()
 
@@ -110,6 +118,7 @@ def main() -> None:
 
     try:
         time.sleep(1.0)
+        print(f'ROS_DISCOVERY_SERVER={env[dds.DISCOVERY_SERVER_ENV]}', flush=True)
         probes += [Probe('talker', env), Probe('listener_a', env)]
         observers = [Probe('client', env),
                      Probe('super_client', {**env, 'ROS_SUPER_CLIENT': 'TRUE'})]
@@ -119,31 +128,32 @@ def main() -> None:
             print(f'{o.role:>12}: ' + '; '.join(o.lines), flush=True)
             o.stop()
         say('server up')
-        maps = Path(f'/proc/{server.pid}/maps').read_text()
+        maps = Path(f'/proc/{servers[0].pid}/maps').read_text()
         killed = {w for w in maps.split() if w.startswith('/dev/shm/fastrtps_')}
-        server.send_signal(signal.SIGKILL)
-        server.wait()
-        say('server killed (SIGKILL)')
+        servers[0].send_signal(signal.SIGKILL)
+        servers[0].wait()
+        say('server 0 killed (SIGKILL)')
         time.sleep(5.0)
-        say('server down')
+        say('server 0 down')
         probes.append(Probe('listener_b', env))
         say('listener_b started')
         time.sleep(args.down)
-        say('server down')
-        server = subprocess.Popen(spec.argv, env=env, stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.DEVNULL)
-        restarted = time.monotonic()
+        say('server 0 down')
+        servers[0] = subprocess.Popen(argvs[0], env=env, stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL)
+        restarted, waited = time.monotonic(), probes[-1].got == 0
         while probes[-1].got == 0 and time.monotonic() - restarted < 60:
             time.sleep(0.05)
-        say(f'server started again; listener_b received after '
-            f'{time.monotonic() - restarted:.1f} s')
+        say('server 0 started again' + (f'; listener_b received {time.monotonic() - restarted:.1f}'
+                                        ' s later' if waited else ''))
         time.sleep(3.0)
-        say('server up')
+        say('server 0 up')
     finally:
         for p in probes:
             p.stop()
-        server.send_signal(signal.SIGINT)
-        server.wait(timeout=20)
+        for server in servers:
+            server.send_signal(signal.SIGINT)
+            server.wait(timeout=20)
         shutil.rmtree(logs, ignore_errors=True)
     left = [f for f in dds.leaked_shm(before) if f.removesuffix('_el') in killed]
     for path in left:
