@@ -26,6 +26,8 @@ Measured 2026-12-06 (BENCHMARKS.md, "Discovery"): the pair matches within a seco
 30 or 31 idle processes and never after 32: the 33rd and 34th participants of a domain never
 discover each other, which is why ``bearing-pose run`` uses at most 32 processes
 (``plan.processes.MAX_PROCESSES``) unless it has a discovery server ("The discovery server").
+Through one (2026-12-08), the pair matched after 32, 40 and 64 idle processes; 64 released at
+once hang in Fast DDS's shared-memory transport, with or without it.
 """
 from __future__ import annotations
 
