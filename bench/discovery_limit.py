@@ -26,13 +26,18 @@ Measured 2026-12-06 (BENCHMARKS.md, "Discovery"): the pair matches within a seco
 30 or 31 idle processes and never after 32: the 33rd and 34th participants of a domain never
 discover each other, which is why ``bearing-pose run`` uses at most 32 processes
 (``plan.processes.MAX_PROCESSES``) unless it has a discovery server ("The discovery server").
+Through one (2026-12-08), the pair matched after 32, 40 and 64 idle processes; 64 released at
+once hang in Fast DDS's shared-memory transport, with or without it.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import glob
 import os
 import queue
+import re
+import shutil
 import signal
 import statistics
 import subprocess
@@ -40,7 +45,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from bearing_pose_estimation.cli import launch
@@ -101,6 +106,29 @@ def _stop(procs: list[subprocess.Popen[str]]) -> list[int]:
     return killed
 
 
+# A Fast DDS file in /dev/shm: a segment, a port, their locks, a port's named mutex.
+_SHM_FILE = re.compile(r'/dev/shm/(?:sem\.)?fastrtps_[^\s/]+')
+
+
+def _shm_key(path: str) -> str:
+    """What a file belongs to: its segment or port (``fastrtps_port7000`` for
+    ``sem.fastrtps_port7000_mutex`` and ``fastrtps_port7000_el`` too)."""
+    return Path(path).name.removeprefix('sem.').removesuffix('_mutex').removesuffix('_el')
+
+
+def _shm_used(pids: Iterable[int] | None = None) -> set[str]:
+    """The Fast DDS files that the processes ``pids`` (None: all) map or hold open."""
+    used: set[str] = set()
+    for pid in ['[0-9]*'] if pids is None else [str(p) for p in pids]:
+        for maps in glob.glob(f'/proc/{pid}/maps'):
+            with contextlib.suppress(OSError):
+                used.update(_SHM_FILE.findall(Path(maps).read_text()))
+        for fd in glob.glob(f'/proc/{pid}/fd/*'):
+            with contextlib.suppress(OSError):
+                used.update(_SHM_FILE.findall(os.readlink(fd)))
+    return used
+
+
 @contextlib.contextmanager
 def _probes(label: str, domain_id: int, server: bool) -> Iterator[
         tuple[dict[str, str], list[subprocess.Popen[str]]]]:
@@ -111,20 +139,27 @@ def _probes(label: str, domain_id: int, server: bool) -> Iterator[
     env = dds.dds_env(domain_id, logs / 'ros', discovery_server=None if spec is None else
                       f'127.0.0.1:{spec.argv[-1]}')
     procs: list[subprocess.Popen[str]] = []
-    before = dds.shm_files()
     with launch.ProcessGroup(env, stderr=open(os.devnull, 'w')) as group:
         if spec is not None:
             launch.start_discovery_server(group, spec)
         try:
             yield env, procs
         finally:
+            # Only what our processes use: other runs share /dev/shm, and every participant on
+            # localhost maps the 7000+ ports, whatever its domain.
+            ours = {_shm_key(f) for f in _shm_used([p.pid for p in procs]
+                                                    + list(group.pids.values()))}
             killed = len(_stop(procs)) + len(group.shutdown())
-    left = dds.leaked_shm(before, lockless=True)
+    shutil.rmtree(logs, ignore_errors=True)
+    ours -= {_shm_key(f) for f in _shm_used()}
+    left = sorted(f for f in glob.glob('/dev/shm/*fastrtps_*') if _shm_key(f) in ours)
     for path in left:
-        os.remove(path)
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(path)
     if killed or left:   # Fast DDS keeps a port file after clean exits now and then
-        print(f'  ({label}: {killed} process(es) needed SIGKILL; removed '
-              f'{len(left)} file(s) left in /dev/shm: {", ".join(left)})', flush=True)
+        print(f'  ({label}: {killed} process(es) needed SIGKILL; removed {len(left)} file(s) '
+              f'left in /dev/shm: {", ".join(Path(f).name for f in left[:4])}'
+              f'{", ..." if len(left) > 4 else ""})', flush=True)
 
 
 _LINES: dict[int, queue.Queue[str]] = {}   # pid -> the probe's stdout lines ('' at its end)
@@ -187,9 +222,14 @@ def fleet(n: int, wait: float, domain_id: int, server: bool) -> dict[str, float]
             assert proc.stdin is not None
             proc.stdin.write('go\n')
             proc.stdin.flush()
-        ups = [_line(p, 'up', 120.0) for p in procs]
+        # One deadline for all, not one per probe: k hung probes cost 120 s, not k x 120 s.
+        by = time.monotonic() + 120.0
+        ups = [_line(p, 'up', max(0.1, by - time.monotonic())) for p in procs]
         up = [float(u[1]) for u in ups if u != [HUNG]]
-        ends = [_line(p, 'matched', wait + 60.0) for p, u in zip(procs, ups) if u != [HUNG]]
+        by = time.monotonic() + wait + 60.0
+        ends = [_line(p, 'matched', max(0.1, by - time.monotonic()))
+                for p, u in zip(procs, ups) if u != [HUNG]]
+        ends = [e for e in ends if e != [HUNG]]
     counts, times = [int(e[1]) for e in ends], [float(e[2]) for e in ends]
     done = len(counts) == n and all(c >= n for c in counts)
     return {'up': max(up) - released, 'hung': n - len(up),
