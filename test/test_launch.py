@@ -271,9 +271,11 @@ def test_a_run_stays_within_the_processes_discovery_connects():
                        r'processes.*Fix: --agents-per-process 2 or more.*--discovery-server'):
         plan.fit_agents_per_process(40, 1)
     # Through a discovery server every process discovers every other (BENCHMARKS.md, "The
-    # discovery server"): no limit, one agent per process unless asked otherwise.
+    # discovery server"): any --agents-per-process goes.
     assert plan.fit_agents_per_process(40, 1, discovery_server=True) == 1
-    assert plan.fit_agents_per_process(100, None, rviz=True, discovery_server=True) == 1
+    # Left to itself, it still keeps within 32: 64 processes started at once hang in Fast
+    # DDS's shared-memory transport, server or not.
+    assert plan.fit_agents_per_process(100, None, rviz=True, discovery_server=True) == 4
     assert plan.fit_agents_per_process(100, 8, discovery_server=True) == 8
 
 

@@ -41,13 +41,15 @@ def fit_agents_per_process(n_agents: int, requested: int | None, rviz: bool = Fa
                            discovery_server: bool = False) -> int:
     """``requested`` agents per process (LaunchError if that needs more than
     :data:`MAX_PROCESSES`), or for None the fewest that keep the run within it. With a
-    ``discovery_server`` there is no limit: ``requested``, or 1."""
-    if discovery_server:
-        return requested or 1
+    ``discovery_server`` any ``requested`` goes; None still keeps within MAX_PROCESSES: 64
+    processes started at once hang in Fast DDS's shared memory, server or not (BENCHMARKS.md,
+    "The discovery server")."""
     fewest = next(k for k in range(1, max(n_agents, 1) + 1)
                   if processes_needed(n_agents, k, rviz) <= MAX_PROCESSES)
     if requested is None:
         return fewest
+    if discovery_server:
+        return requested
     if processes_needed(n_agents, requested, rviz) > MAX_PROCESSES:
         raise LaunchError(
             f'{n_agents} agents at {requested} per process need '
