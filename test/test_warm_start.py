@@ -126,8 +126,9 @@ LANDS = {
     # 1 deg bearings at both ends.
     'boughellaba_tayebi': ('paper_noisy.yaml', 'boughellaba_tayebi', 'agent_4', 20.0, 0.1, 0.3),
     'tran_anderson_ahn': ('paper_noisy.yaml', 'tran_anderson_ahn', 'agent_4', 20.0, 0.1, 0.3),
-    # 2 cm relative positions; the fleet at 4 s (its formation is reached near 5 s).
-    'de_carli': ('de_carli_noisy.yaml', None, 'robot_4', 4.005, 0.03, 0.1),
+    # 2 cm relative positions; the fleet at 4 s (its formation is reached near 5 s). robot_1
+    # senses robot_0 and robot_2, and robot_0 and robot_5 sense it.
+    'de_carli': ('de_carli_noisy.yaml', None, 'robot_1', 4.005, 0.03, 0.1),
     # robot_2: a sensing robot the anchor ranges (1 mrad bearings, 2 cm range).
     'presenza': ('presenza_noisy.yaml', None, 'robot_2', 10.0, 0.03, 0.1),
 }
@@ -200,6 +201,26 @@ def test_an_outlier_is_refused(case):
     tried = rt.estimator.warm_start(rt.x, corrupt(inputs))
     assert tried is not None and tried.x is None and tried.note.startswith('refused'), tried.note
     assert rt.estimator.warm_start(rt.x, inputs).x is not None   # without the outlier: taken
+
+
+def test_de_carli_needs_two_points_at_a_position_tick():
+    """De Carli et al.: robot_4 senses robot_5, robot_7 and robot_0 and owns the three pairs.
+    Its warm start takes ẑ_j and p̂_j of a position tick only (between ticks p̂_j is an older
+    value), needs two horizontal points (one relative position leaves the yaw free), and lets
+    its pairs into the consensus at once (excited: they start from the fitted yaw, which a
+    fleet that no longer moves could not give them otherwise)."""
+    net, rt = _cold_agent('de_carli_8_quadrotors.yaml', 4.005, name='robot_4')
+    inputs = rt._gather(rt.t - rt.h)
+    tried = rt.estimator.warm_start(rt.x, inputs)
+    assert tried is not None and tried.x is not None, tried
+    np.testing.assert_array_equal(tried.x.excited[0], [True, True, True])
+    assert abs(tried.x.z_hat[0]) == pytest.approx(
+        np.mean(np.hypot(*inputs.edge['z_hat'].T)))   # the neighbours' modulus
+    between = rt.estimator.warm_start(rt.x, rt._gather(rt.t - 2 * rt.h))
+    assert between.x is None and 'position tick' in between.note
+    one = inputs.select(np.array([0]), np.array([0]), slice(0, 1), 1)
+    alone = rt.estimator.warm_start(rt.x, one)
+    assert alone.x is None and alone.note.startswith('not determined'), alone.note
 
 
 def test_presenza_determines_the_anchor_and_the_ranged_robots_only():
