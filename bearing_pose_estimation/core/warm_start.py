@@ -84,7 +84,7 @@ class Planar(NamedTuple):
     psi: float
     c: Array            # (3,)
     residuals: Array    # (E, 3)
-    information: Array  # (4, 4) on (c, ψ), per unit weight
+    information: Array  # (4, 4) on (c, ψ): Σ w_k J_kᵀ J_k
     lever: float        # the weighted RMS horizontal distance of body_k to their centroid [m]
 
 

@@ -198,7 +198,7 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         """Where the messages determine the pose (docs/warm_start.md): the anchor's is ``(I, 0)``
         by definition; a ranged robot's position is the anchor's ``q_i``, and a sensing robot's
         attitude then solves Wahba's problem between ``β_ij`` and the directions to the ``q̂_j``
-        (12), refused beyond ``WARM_SIGMAS`` of the noise (a free robot's needs its motion: its
+        (2), refused beyond ``WARM_SIGMAS`` of the noise (a free robot's needs its motion: its
         attitude stays). None for the others: no message carries a position to them, only
         angles, which the observer's gradient (6) turns into one over time."""
         g, edges, r = self.gains, inputs.edges, inputs.edge
