@@ -10,9 +10,12 @@ bearing in the world frame as j sees it (``-R̂_j b^j_ji``), and ``p̂_j``. Then
   ``(Σ w_j P_j) p = Σ w_j P_j p̂_j`` with ``P_j = I − d_j d_jᵀ``.
 
 Both need two bearings at least :data:`MIN_SPREAD_RAD` apart. Each returns its residual angles
-[rad], for the caller to judge against the noise.
+[rad], for the caller to judge against the noise. :func:`planar` fits a yaw and a translation to
+relative positions (De Carli et al.).
 """
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +25,12 @@ Array = NDArray[np.float64]
 # Two bearings closer than this to collinear leave a rotation about them (and the position
 # along them) unobserved: no warm start (5 deg, as the methods' own collinearity warning).
 MIN_SPREAD_RAD = np.radians(5.0)
+# A fit is accepted when every residual is within this many per-component std of the noise it
+# explains (at least the floors: noise-free neighbours are exact only to rounding). A true 2-D
+# residual exceeds 4 sigma with probability exp(-8) = 3e-4 (Rayleigh), a 3-D one 1e-3.
+WARM_SIGMAS = 4.0
+WARM_FLOOR_RAD = 1e-3
+WARM_FLOOR_M = 1e-3
 
 
 def _angles(a: Array, b: Array) -> Array:
@@ -67,3 +76,37 @@ def information(d: Array, sigma: Array, dist: Array | None = None) -> Array:
     on a position; its inverse is the fit's covariance to first order."""
     scale = sigma ** 2 if dist is None else (sigma * dist) ** 2
     return np.einsum('e,eab->ab', 1.0 / scale, np.eye(3) - np.einsum('ea,eb->eab', d, d))
+
+
+class Planar(NamedTuple):
+    """:func:`planar`'s fit: ``world_k ≈ c + R_z(ψ) body_k``."""
+
+    psi: float
+    c: Array            # (3,)
+    residuals: Array    # (E, 3)
+    information: Array  # (4, 4) on (c, ψ): Σ w_k J_kᵀ J_k
+    lever: float        # the weighted RMS horizontal distance of body_k to their centroid [m]
+
+
+def planar(body: Array, world: Array, w: Array) -> Planar | None:
+    """The yaw and translation that carry ``body`` ``(E, 3)`` onto ``world`` (weighted least
+    squares, weights ``w``); None if the horizontal ``body_k`` coincide (no yaw).
+
+    In complex numbers ``x + ιy`` (2-D Procrustes): with the weighted means ``ā, b̄``,
+    ``e^{ιψ} = unit(Σ w_k conj(b_k − b̄)(a_k − ā))`` and ``c = ā − e^{ιψ} b̄``."""
+    a, b = world[:, 0] + 1j * world[:, 1], body[:, 0] + 1j * body[:, 1]
+    a_bar, b_bar = np.average(a, weights=w), np.average(b, weights=w)
+    lever = float(np.sqrt(np.average(np.abs(b - b_bar) ** 2, weights=w)))
+    s = np.sum(w * np.conj(b - b_bar) * (a - a_bar))
+    if lever <= 1e-9 * max(1.0, float(np.abs(b).max())) or s == 0:
+        return None
+    u = s / abs(s)
+    c_xy = a_bar - u * b_bar
+    c = np.array([c_xy.real, c_xy.imag, np.average(world[:, 2] - body[:, 2], weights=w)])
+    r_xy = a - c_xy - u * b
+    res = np.column_stack([r_xy.real, r_xy.imag, world[:, 2] - body[:, 2] - c[2]])
+    turn = np.column_stack([-(u * b).imag, (u * b).real, np.zeros(len(b)), np.abs(b) ** 2])
+    info = np.zeros((4, 4))
+    info[[0, 1, 2], [0, 1, 2]] = w.sum()
+    info[:, 3] = info[3, :] = np.sum(w[:, None] * turn, axis=0)   # ∂(residual)/∂ψ = ι e^{ιψ} b_k
+    return Planar(float(np.angle(u)), c, res, info, lever)

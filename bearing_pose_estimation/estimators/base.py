@@ -548,7 +548,8 @@ class Estimator(ABC, Generic[G, S]):
 
     def warm_start(self, x: S, inputs: StepInputs) -> WarmStart | None:
         """A state for one agent with no trustworthy estimate (started late, after a gyro gap
-        or a clock jump) from its step's complete ``inputs``, or why not; None: no warm start."""
+        or a clock jump) from its step's ``inputs`` (as :meth:`step` gets them), or why not;
+        None: no warm start (the method's, or this agent's role's)."""
         return None
 
     def missing(self, channel: str) -> Array:

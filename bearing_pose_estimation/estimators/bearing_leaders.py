@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core import graph, so3, warm_start
+from ..core.warm_start import WARM_FLOOR_RAD, WARM_SIGMAS
 from .base import (Array, Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, HELD,
                    Index, P_OWN, POSE_POSITION, Roles, Sensor, State, StepInputs, WarmStart)
 from .covariance import DOF, POSE_COV, CovarianceModel, Jacobians, initial_covariance, propagate
@@ -36,11 +37,6 @@ COLLINEAR_ERROR_RAD = 1e-6
 COLLINEAR_WARN_DEG = 5.0
 # Eigenvalues closer than this (relative to the largest) count as repeated.
 EIGEN_GAP_REL = 1e-6
-# A warm start is accepted when every residual angle is within this many per-component std of
-# the noise it explains (bearings and the neighbour's covariance; at least WARM_FLOOR_RAD). A
-# true residual exceeds 4 sigma with probability exp(-8) = 3e-4 (Rayleigh).
-WARM_SIGMAS = 4.0
-WARM_FLOOR_RAD = 1e-3
 # check_motion works on (samples × followers) blocks of about this many bearing sets.
 MOTION_BLOCK = 200_000
 # Along the motion, the local matrix's spectrum is evaluated where one of the follower's

@@ -80,11 +80,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse.csgraph import connected_components
 
+from ..core import warm_start as warm
 from ..core.motion import rot_z, yaw_of
 from . import de_carli_covariance as cov
 from .base import (PEER_DELTA_R, PEER_DISPLACEMENT, PEER_ODOMETRY, POSE_POSITION, VECTOR, Array,
                    Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, Index, Mask,
-                   Motion, Roles, Sensor, State, StepInputs, gain)
+                   Motion, Roles, Sensor, State, StepInputs, WarmStart, gain)
 from .covariance import DOF, POSE_COV, PoseCovarianceModel
 from .fleet import Fleet
 
@@ -276,6 +277,56 @@ class DeCarli(Estimator[DeCarliGains, DeCarliState]):
         if channel != POSE_COV.name:
             return super().missing(channel)
         return self.prior(1)[0]
+
+    def warm_start(self, x: DeCarliState, inputs: StepInputs) -> WarmStart | None:
+        """``ψ̂_i``, ``p̂_i`` in the fleet's common frame at a position tick (docs/warm_start.md):
+        ``p̂_j = p̂_i + R̂_i ⁱp_ij`` per robot i senses, ``p̂_i = p̂_j + R̂_j ʲp_ji`` per one that
+        senses i (21), fitted by :func:`core.warm_start.planar`; refused beyond ``WARM_SIGMAS``
+        of the noise. ``ẑ_i`` takes the neighbours' mean modulus; the pairs it owns start from it
+        (the step, §8) and join the consensus at once: the fit determined them. None at the
+        fleet's start (a simulator restart restarts every robot): the common frame is then the
+        robots' initial estimates themselves, nothing to land on."""
+        g, edges, rec = self.gains, inputs.edges, inputs.edge
+        tick = inputs.t * g.position_rate
+        if tick < 1.0 - 1e-6:
+            return None
+        y_ok, m_ok, _, fresh = usable(inputs)
+        out_, in_ = fresh & y_ok, fresh & m_ok
+        if abs(tick - round(tick)) > 1e-6 or not (out_ | in_).any():
+            return WarmStart(None, 'not determined: no neighbour\'s z_hat and p_hat of this '
+                                   'instant (a position tick)')
+        z_j, P_j = as_complex(rec['z_hat']), rec[POSE_COV.name]
+        m_j = np.einsum('kab,kb->ka', rot_z(np.angle(z_j)), rec['meas'])   # R̂_j ʲp_ji
+        world = np.concatenate([rec['p_hat'][out_], rec['p_hat'][in_] + m_j[in_]])
+        body = np.concatenate([rec['relative_positions'][out_], np.zeros((in_.sum(), 3))])
+        nbr = np.concatenate([np.flatnonzero(out_), np.flatnonzero(in_)])
+        turned = np.concatenate([np.zeros(out_.sum()), np.sum(m_j[in_, :2] ** 2, axis=1)])
+        var = g.relative_position_std ** 2 + (np.trace(P_j[nbr, :3, :3], axis1=1, axis2=2)
+                                              + P_j[nbr, 5, 5] * turned) / 3.0
+        sigma = np.maximum(np.sqrt(var), warm.WARM_FLOOR_M)
+        fit = warm.planar(body, world, sigma ** -2)
+        # Determined: one measurement's noise turns the yaw by MIN_SPREAD_RAD at most.
+        noise = max(g.relative_position_std, warm.WARM_FLOOR_M)
+        if fit is None or noise > warm.MIN_SPREAD_RAD * fit.lever:
+            return WarmStart(None, f'not determined: {len(nbr)} relative position(s) within '
+                                   f'{0.0 if fit is None else fit.lever:.2g} m of one point')
+        P_fit = np.linalg.inv(fit.information)
+        miss = np.linalg.norm(fit.residuals, axis=1)
+        residual = f'residual {miss.max():.2g} m ({(miss / sigma).max():.2g} sigma)'
+        if (miss / sigma).max() > warm.WARM_SIGMAS:
+            return WarmStart(None, f'refused: {residual} from {len(nbr)} relative positions')
+        assert edges.slot is not None
+        x0 = self.initial_state(rot_z(np.array([fit.psi])), fit.c[None]).grown(
+            int(edges.slot.max()) + 1)
+        x0.z_hat *= np.mean(np.abs(z_j[nbr]))
+        x0.P[0][np.ix_(cov.POSE, cov.POSE)] = P_fit
+        mine = np.flatnonzero((out_ | in_) & edges.flag('owns'))
+        x0.excited[0, edges.slot[mine]] = True
+        pairs = cov.pair_prior(len(mine), g.relative_position_std, 0.0)   # ζ: both yaws' error
+        pairs[:, [2, 3], [2, 3]] = np.minimum(P_fit[3, 3] + P_j[mine, 5, 5],
+                                              cov.ZETA_PRIOR_MAX)[:, None]
+        x0.P_pair[0, edges.slot[mine]] = pairs
+        return WarmStart(x0, f'accepted: {residual} from {len(nbr)} relative positions')
 
     def propagate(self, x: DeCarliState, delta_R: Array,
                   displacement: Array | None = None) -> DeCarliState:

@@ -52,12 +52,12 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core import angles, so3
+from ..core import angles, so3, warm_start as warm
 from ..core.motion import in_anchor_frame
 from . import presenza_covariance as cov
 from .base import (ANCHOR_DELTA_R, ANCHOR_DISPLACEMENT, IS_ANCHOR, PINNED, POSE_POSITION, Array,
                    Channel, CheckReport, Edges, EstimateFrame, Estimator, Finding, Index, Mask,
-                   Motion, Roles, Sensor, State, StepInputs, gain)
+                   Motion, Roles, Sensor, State, StepInputs, WarmStart, gain)
 from .covariance import POSE_COV, initial_covariance
 from .fleet import Fleet
 
@@ -193,6 +193,50 @@ class Presenza(Estimator[PresenzaGains, PresenzaState]):
         position of the listener (``bearings``: zeros where the sender does not range it)."""
         return {'q_hat': x.p_hat.copy(), 'q_ranged': np.array(bearings, dtype=float),
                 'pose_cov': x.P.copy()}
+
+    def warm_start(self, x: PresenzaState, inputs: StepInputs) -> WarmStart | None:
+        """Where the messages determine the pose (docs/warm_start.md): the anchor's is ``(I, 0)``
+        by definition; a ranged robot's position is the anchor's ``q_i``, and a sensing robot's
+        attitude then solves Wahba's problem between ``β_ij`` and the directions to the ``q̂_j``
+        (2), refused beyond ``WARM_SIGMAS`` of the noise (a free robot's needs its motion: its
+        attitude stays). None for the others: no message carries a position to them, only
+        angles, which the observer's gradient (6) turns into one over time."""
+        g, edges, r = self.gains, inputs.edges, inputs.edge
+        if inputs.agent[IS_ANCHOR][0]:
+            x0 = self.initial_state(np.eye(3)[None], np.zeros((1, 3)))
+            x0.P[:] = 0.0
+            return WarmStart(x0, 'accepted: the anchor, (I, 0) by definition')
+        if not edges.flag('ranged_by').any():
+            return None
+        ranged = np.flatnonzero(edges.flag('ranged_by') & inputs.here('q_ranged'))
+        if not ranged.size:
+            return WarmStart(None, 'not determined: no range from the anchor at this instant')
+        q, sig_q = r['q_ranged'][ranged[0]], max(g.relative_position_std, warm.WARM_FLOOR_M)
+        x0 = self.initial_state(x.R_hat, q[None])
+        x0.P[0] = np.diag([sig_q ** 2] * 3 + [0.0] * 3)
+        if np.count_nonzero(edges.flag('senses')) < 2:
+            x0.P[0, 3:, 3:] = x.P[0, 3:, 3:]
+            return WarmStart(x0, 'accepted: the position from the anchor\'s range (a free '
+                                 'robot\'s attitude needs its motion, (13))')
+        use = edges.flag('senses') & inputs.here('bearings') & inputs.here('q_hat')
+        d = r['q_hat'][use] - q
+        dist = np.maximum(np.linalg.norm(d, axis=1), MIN_DISTANCE_M)
+        fit = warm.wahba(r['bearings'][use], d / dist[:, None], np.ones(len(d)))
+        if fit is None:
+            return WarmStart(None, f'not determined: {len(d)} neighbour bearing(s) within '
+                                   f'{np.degrees(warm.MIN_SPREAD_RAD):g} deg of a line')
+        R, res = fit
+        P_j = r[POSE_COV.name][use]
+        sigma = np.maximum(np.sqrt(g.bearing_std ** 2 + (np.trace(P_j[:, :3, :3], axis1=1, axis2=2)
+                                                         + 3 * sig_q ** 2) / (3 * dist ** 2)),
+                           warm.WARM_FLOOR_RAD)
+        z = float(np.max(res / sigma))
+        residual = f'residual {res.max():.2g} rad ({z:.2g} sigma) from {len(d)} bearings'
+        if z > warm.WARM_SIGMAS:
+            return WarmStart(None, f'refused: {residual}')
+        x0.R_hat[0] = R
+        x0.P[0, 3:, 3:] = np.linalg.inv(warm.information(d / dist[:, None], sigma))
+        return WarmStart(x0, f'accepted: {residual}')
 
     def carry(self, values: Mapping[str, Array], motion: Motion) -> dict[str, Array] | None:
         """Values formed at ``t_s`` in the anchor frame at t (moved by ``ΔR_a``, ``δ_a``): a

@@ -785,9 +785,10 @@ class AgentRuntime:
         return Prepared(t, tuple(self.stale_neighbours(t)), inputs)
 
     def _warm_start(self, t: float, since: float, inputs: StepInputs) -> None:
-        """The method's warm start from the step's complete edges: taken, or tried again
-        next step until ``warm_window`` has passed since ``since`` (then it goes on as it is)."""
-        tried = self.estimator.warm_start(self.x, inputs.complete(self._complete_keys))
+        """The method's warm start from the step's inputs (complete edges, or with their masks
+        for ``partial_edges``): taken, or tried again next step until ``warm_window`` has passed
+        since ``since`` (then it goes on as it is)."""
+        tried = self.estimator.warm_start(self.x, inputs)
         if tried is not None and tried.x is None and t - since < self.limits.warm_window:
             self.warm_note = f'trying since t = {since:.3f} s: {tried.note}'
             return
