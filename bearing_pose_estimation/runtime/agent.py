@@ -40,8 +40,8 @@ from .buffers import (SAME, Exchange, Limits, Stamped, bounded_problem, complete
                       finite_max_norm, twist_problem, unit_problem)
 
 Array = NDArray[np.float64]
-# A neighbour's covariance that rises this many times between two steps announces a reset
-# (it never does while running: it moves by a few per cent a step).
+# A neighbour's covariance that rises this many times across a silence announces a reset (not
+# without one: Presenza et al.'s rises a thousandfold in the first steps of a run).
 RESET_JUMP = 10.0
 # The largest component [unit per sensor] of an own or received point measurement.
 POINT_BOUNDS = {Sensor.BEARINGS: 2.0, Sensor.RELATIVE_POSITIONS: 1e4,
@@ -873,8 +873,8 @@ class AgentRuntime:
                   mask: dict[str, NDArray[np.bool_]]) -> None:
         """Leave out what a neighbour sends once it announces a reset: back from a silence
         (``neighbour_timeout``) with a covariance, in units of the prior's, :data:`RESET_JUMP`
-        times what it was before and above ``reset_trust`` (a restart its warm start did not
-        settle). It is taken back once within RESET_JUMP of this agent's own covariance when
+        times what it was before and above ``reset_trust`` (a restart, unless its warm start
+        made it nearly as sure as before). It is taken back once within RESET_JUMP of this agent's own covariance when
         it announced it: a listener that knows its pose to 1e-4 rad waits for its neighbour
         to know its own to about 3e-4, not 0.1."""
         name, prior = self._cov, self._prior_var
